@@ -1,0 +1,46 @@
+"""The ``mocapflow`` command: each subcommand lives in its own module under ``mocapflow.commands``."""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import logging
+import pkgutil
+import sys
+
+from mocapflow import __version__, commands
+from mocapflow.errors import MocapflowError
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """Collect every module in ``mocapflow.commands``; each adds its own subparser through ``register``."""
+    parser = argparse.ArgumentParser(prog="mocapflow", description=__doc__)
+    parser.add_argument("--version", action="version", version=f"mocapflow {__version__}")
+    parser.add_argument("-v", "--verbose", action="store_true", help="log debug messages")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for info in sorted(pkgutil.iter_modules(commands.__path__), key=lambda m: m.name):
+        importlib.import_module(f"mocapflow.commands.{info.name}").register(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    logging.basicConfig(
+        level=logging.DEBUG if args.verbose else logging.INFO,
+        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+    )
+    if not getattr(args, "func", None):
+        parser.print_help()
+        return 2
+    try:
+        return int(args.func(args) or 0)
+    except MocapflowError as exc:
+        print(f"mocapflow {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,1 @@
+"""Subcommands of the mocapflow CLI: each module defines ``register(subparsers)``."""

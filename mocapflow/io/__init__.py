@@ -1,0 +1,1 @@
+"""File formats in and out: C3D, TRC, BVH, skeleton JSON."""

@@ -1,0 +1,64 @@
+"""Body models learnt from data: segments (rigid marker groups) and the skeleton (segments joined by joints).
+
+Local frame convention shared by every algorithm: a segment's local frame has its origin at the centroid of its
+markers in the reference pose and axes parallel to the world axes in that pose. A segment's pose in a frame is the
+rigid transform (R, t) with ``world = R @ local + t``. ``marker_offsets`` and joint offsets are in these frames, in mm.
+These models are also the messages that carry them and the schema of SKELETON.json.
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+Vec3 = tuple[float, float, float]
+
+
+class Segment(BaseModel):
+    """A rigid group of markers (a limb, a rod): markers that keep their mutual distances."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    name: str
+    markers: list[str] = Field(description="labels of the markers on this segment")
+    marker_offsets: list[Vec3] | None = Field(
+        default=None, description="marker positions in the segment's local frame (mm), same order as markers"
+    )
+
+
+class Joint(BaseModel):
+    """A centre of rotation between two segments, with the quality of its estimate."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    name: str
+    parent: str = Field(description="name of the parent segment (towards the root)")
+    child: str = Field(description="name of the child segment")
+    kind: Literal["ball", "hinge"] = "ball"
+    parent_offset: Vec3 | None = Field(default=None, description="centre of rotation in the parent's local frame (mm)")
+    child_offset: Vec3 | None = Field(default=None, description="centre of rotation in the child's local frame (mm)")
+    axis: Vec3 | None = Field(default=None, description="hinge axis in the parent's local frame (unit vector)")
+    cost: float | None = Field(default=None, description="joint cost used for the topology (lower is better)")
+    distance_mean: float | None = Field(default=None, description="mean marker-to-joint distance (mm)")
+    distance_sd: float | None = Field(default=None, description="mean standard deviation of marker-to-joint distance (mm)")
+
+
+class SegmentModel(BaseModel):
+    """Which marker belongs to which segment; published by the clusterer."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    segments: list[Segment]
+
+
+class SkeletonModel(BaseModel):
+    """A parameterised skeleton: segments, the joints that form a tree, and its root. Saved as SKELETON.json."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    name: str = "skeleton"
+    units: Literal["mm"] = "mm"
+    segments: list[Segment]
+    joints: list[Joint]
+    root: str = Field(description="name of the root segment")

@@ -1,0 +1,1 @@
+"""Node base class, graph model, launcher and supervisor."""

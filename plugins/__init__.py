@@ -1,0 +1,1 @@
+"""First-party mocapflow stages: thin nodes over mocapflow.mocap."""
