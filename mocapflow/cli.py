@@ -1,4 +1,7 @@
-"""The ``mocapflow`` command: each subcommand lives in its own module under ``mocapflow.commands``."""
+"""mocapflow: labelled, gap-free marker streams and a live skeleton from optical motion capture.
+
+Each subcommand lives in its own module under ``mocapflow.commands``.
+"""
 
 from __future__ import annotations
 
@@ -14,7 +17,7 @@ from mocapflow.errors import MocapflowError
 
 def build_parser() -> argparse.ArgumentParser:
     """Collect every module in ``mocapflow.commands``; each adds its own subparser through ``register``."""
-    parser = argparse.ArgumentParser(prog="mocapflow", description=__doc__)
+    parser = argparse.ArgumentParser(prog="mocapflow", description=__doc__.split("\n\n")[0])
     parser.add_argument("--version", action="version", version=f"mocapflow {__version__}")
     parser.add_argument("-v", "--verbose", action="store_true", help="log debug messages")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")

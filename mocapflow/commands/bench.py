@@ -1,0 +1,144 @@
+"""``mocapflow bench``: codec cost, and the latency each node hop adds next to bare Zenoh in the same run."""
+
+from __future__ import annotations
+
+import argparse
+import socket
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import zenoh
+
+from mocapflow.messages import MarkerFrame, decode, encode
+from mocapflow.runtime.session import open_client, open_router
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("bench", help="print codec cost per frame and per-hop latency next to bare Zenoh")
+    p.add_argument("--markers", type=int, default=60, help="markers per frame (default 60)")
+    p.add_argument("--rate", type=float, default=240.0, help="frame rate of the latency runs (default 240)")
+    p.add_argument("--seconds", type=float, default=5.0, help="length of each latency run (default 5)")
+    p.add_argument("--hops", type=int, default=3, help="relay nodes in the chain (default 3)")
+    p.set_defaults(func=run)
+
+
+def _frame(markers: int, index: int = 0) -> MarkerFrame:
+    rng = np.random.default_rng(index)
+    positions = (rng.normal(size=(markers, 3)) * 500).astype(np.float32)
+    positions[::17] = np.nan
+    return MarkerFrame(frame=index, capture_ns=time.time_ns(), rate=240.0, positions=positions,
+                       labels=[f"M{i:03d}" for i in range(markers)])
+
+
+def _codec(markers: int, n: int = 20_000) -> tuple[float, float, int]:
+    msg = _frame(markers)
+    payload = encode(msg)
+    t0 = time.perf_counter()
+    for _ in range(n):
+        encode(msg)
+    t1 = time.perf_counter()
+    for _ in range(n):
+        decode(payload, MarkerFrame)
+    t2 = time.perf_counter()
+    return (t1 - t0) / n * 1e6, (t2 - t1) / n * 1e6, len(payload)
+
+
+def _free_endpoint() -> str:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return f"tcp/127.0.0.1:{s.getsockname()[1]}"
+
+
+def _percentiles(values: list[float]) -> str:
+    if not values:
+        return "no samples"
+    p50, p99 = np.percentile(values, [50, 99])
+    return f"p50 {p50:7.3f} ms   p99 {p99:7.3f} ms   (n={len(values)})"
+
+
+def _bare_zenoh(markers: int, rate: float, seconds: float) -> list[float]:
+    """Publisher and subscriber in two client sessions through one router: the floor any node hop builds on."""
+    endpoint = _free_endpoint()
+    latencies: list[float] = []
+    with open_router([endpoint]), open_client([endpoint]) as pub_s, open_client([endpoint]) as sub_s:
+        def on_sample(sample: zenoh.Sample) -> None:
+            sent = int.from_bytes(sample.attachment.to_bytes(), "little")
+            latencies.append((time.time_ns() - sent) / 1e6)
+
+        sub = sub_s.declare_subscriber("bench/bare", on_sample)
+        pub = pub_s.declare_publisher("bench/bare")
+        time.sleep(0.5)
+        payload = encode(_frame(markers))
+        period = 1.0 / rate
+        t0 = time.monotonic()
+        for i in range(int(seconds * rate)):
+            delay = t0 + i * period - time.monotonic()
+            if delay > 0:
+                time.sleep(delay)
+            pub.put(payload, attachment=time.time_ns().to_bytes(8, "little"))
+        time.sleep(0.3)
+        sub.undeclare()
+    return latencies
+
+
+def _node_chain(hops: int, rate: float, seconds: float) -> dict[str, list[float]]:
+    """simulator -> relay x hops, each node its own process; latency of each key from the tracker's timestamp."""
+    endpoint = _free_endpoint()
+    frames = int(seconds * rate)
+    lines = [f"name: bench\nzenoh: {{listen: ['{endpoint}']}}\nnodes:",
+             f"  tracker: {{plugin: simulator, config: {{rig: human, rate: {rate}, frames: {frames}}}}}"]
+    previous = "tracker"
+    for h in range(1, hops + 1):
+        lines.append(f"  hop{h}: {{plugin: relay, inputs: {{markers: {previous}/markers}}}}")
+        previous = f"hop{h}"
+    keys = ["tracker", *[f"hop{h}" for h in range(1, hops + 1)]]
+    latencies: dict[str, list[float]] = {k: [] for k in keys}
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "bench.yaml"
+        path.write_text("\n".join(lines) + "\n")
+        run = subprocess.Popen([sys.executable, "-m", "mocapflow.cli", "run", str(path)], stdout=subprocess.PIPE,
+                               stderr=subprocess.STDOUT, text=True)
+        try:
+            time.sleep(1.0)
+            with open_client([endpoint]) as session:
+                def listener(key: str):  # noqa: ANN202
+                    def on_sample(sample: zenoh.Sample) -> None:
+                        if sample.kind == zenoh.SampleKind.PUT:
+                            msg = decode(sample.payload.to_bytes(), MarkerFrame)
+                            latencies[key].append((time.time_ns() - msg.capture_ns) / 1e6)
+                    return on_sample
+
+                subs = [session.declare_subscriber(f"mocapflow/bench/{k}/markers", listener(k)) for k in keys]
+                out, _ = run.communicate(timeout=seconds + 60)
+                for s in subs:
+                    s.undeclare()
+        finally:
+            if run.poll() is None:
+                run.terminate()
+                run.wait()
+    if run.returncode != 0:
+        raise RuntimeError(f"benchmark graph failed:\n{out}")
+    return latencies
+
+
+def run(args: argparse.Namespace) -> int:
+    enc, dec, size = _codec(args.markers)
+    print(f"codec, {args.markers}-marker frame ({size} bytes JSON): encode {enc:.1f} us, decode {dec:.1f} us,"
+          f" round trip {enc + dec:.1f} us")
+    print(f"latency at {args.rate:g} Hz over {args.seconds:g} s, all processes on this machine:")
+    bare = _bare_zenoh(args.markers, args.rate, args.seconds)
+    print(f"  bare Zenoh put -> subscribe (via router)  {_percentiles(bare)}")
+    chain = _node_chain(args.hops, args.rate, args.seconds)
+    previous = None
+    for key, values in chain.items():
+        print(f"  {key + '/markers':<40} {_percentiles(values)}")
+        if previous is not None and values and chain[previous]:
+            hop = np.percentile(values, 50) - np.percentile(chain[previous], 50)
+            print(f"    added by {key} (receive, decode, process, encode, publish): p50 {hop:.3f} ms")
+        previous = key
+    return 0

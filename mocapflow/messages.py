@@ -1,0 +1,216 @@
+"""Typed messages and their wire codec.
+
+Every message is a pydantic model. On the wire it is one UTF-8 JSON object (see docs/wire-format.md):
+numpy arrays travel as flat JSON arrays of numbers in row-major order, with ``null`` for a missing value (NaN),
+and the message type is declared in Zenoh's encoding field as ``application/json;mocapflow/<Type>``. Any language
+with a Zenoh client and a JSON parser can read and write them; each type's JSON Schema is served on
+``{prefix}/_schema/<Type>``.
+
+orjson encodes numpy arrays natively (NaN becomes null), which keeps a 60-marker frame at a few microseconds.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Any, ClassVar, Literal
+
+import numpy as np
+import orjson
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    PlainSerializer,
+    SerializationInfo,
+    ValidationError,
+    WithJsonSchema,
+    model_validator,
+)
+from pydantic.functional_validators import BeforeValidator
+
+from mocapflow.mocap.model import Segment, SkeletonModel
+
+SCHEMA_PREFIX = "mocapflow/"
+
+
+class DecodeError(ValueError):
+    """A payload that is not a valid message of the expected type."""
+
+
+def _flat(array: np.ndarray, info: SerializationInfo) -> Any:
+    """Flat row-major values: the array itself for orjson (fast path), a list for pydantic's own JSON."""
+    flat = np.ascontiguousarray(array).ravel()
+    return flat if info.mode == "python" else flat.tolist()
+
+
+def _array(dtype: type, width: int | None) -> Any:
+    """An ndarray field: accepts an array or a (flat or nested) list, stores ``(n, width)`` or ``(n,)`` of ``dtype``."""
+
+    def validate(value: Any) -> np.ndarray:
+        try:
+            arr = np.asarray(value, dtype=dtype)
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"not an array of {np.dtype(dtype).name}: {exc}") from None
+        if width is None:
+            if arr.ndim != 1:
+                raise ValueError(f"expected a flat array, got shape {arr.shape}")
+            return arr
+        if arr.ndim == 1:
+            if arr.size % width:
+                raise ValueError(f"flat array of {arr.size} values is not a multiple of {width}")
+            arr = arr.reshape(-1, width)
+        if arr.ndim != 2 or arr.shape[1] != width:
+            raise ValueError(f"expected shape (n, {width}), got {arr.shape}")
+        return arr
+
+    item = {"type": "number"} if np.dtype(dtype).kind == "f" else {"type": "integer"}
+    if np.dtype(dtype).kind == "f":
+        item = {"anyOf": [item, {"type": "null"}]}
+    doc = f"flat row-major array, {width} values per row" if width else "flat array"
+    return Annotated[
+        np.ndarray,
+        BeforeValidator(validate),
+        PlainSerializer(_flat),
+        WithJsonSchema({"type": "array", "items": item, "description": doc + "; null = missing"}),
+    ]
+
+
+Points = _array(np.float32, 3)
+Rays = _array(np.float32, 6)
+Quaternions = _array(np.float64, 4)
+Flags = _array(np.uint8, None)
+Indices = _array(np.int32, None)
+
+# Per-sample flags carried in MarkerFrame.flags (and written to files).
+FLAG_MISSING = 0
+FLAG_OBSERVED = 1
+FLAG_ESTIMATED = 2
+
+
+class Message(BaseModel):
+    """Fields every message carries: the tracker frame it derives from and that frame's capture time."""
+
+    model_config = ConfigDict(arbitrary_types_allowed=True, extra="forbid")
+    type_name: ClassVar[str]
+
+    frame: int = Field(ge=0, description="tracker frame number")
+    capture_ns: int = Field(description="capture time of that frame on the tracker's clock, ns since the Unix epoch")
+
+    def __init_subclass__(cls, **kwargs: Any) -> None:
+        super().__init_subclass__(**kwargs)
+        cls.type_name = cls.__name__
+
+    @classmethod
+    def encoding(cls) -> str:
+        return f"application/json;{SCHEMA_PREFIX}{cls.type_name}"
+
+
+class MarkerFrame(Message):
+    """One frame of markers. Labelled streams keep row order fixed; unlabelled streams have no labels."""
+
+    rate: float = Field(gt=0, description="tracker frame rate, Hz")
+    positions: Points = Field(description="N x 3 positions in mm, null = missing")
+    labels: list[str] | None = Field(default=None, description="N labels; absent for an unlabelled point cloud")
+    flags: Flags | None = Field(default=None, description="N per-marker flags: 0 missing, 1 observed, >= 2 estimated")
+    rays: Rays | None = Field(
+        default=None, description="N x 6 single-camera rays (origin mm, unit direction), null rows where none"
+    )
+
+    @model_validator(mode="after")
+    def _same_length(self) -> MarkerFrame:
+        n = len(self.positions)
+        for name in ("labels", "flags", "rays"):
+            value = getattr(self, name)
+            if value is not None and len(value) != n:
+                raise ValueError(f"{name} has {len(value)} entries for {n} markers")
+        return self
+
+
+class Segments(Message):
+    """The current segment model: which markers move together."""
+
+    segments: list[Segment]
+
+
+class Skeleton(Message):
+    """The current skeleton model."""
+
+    skeleton: SkeletonModel
+
+
+class Pose(Message):
+    """A solved skeleton pose: joint centres and segment rotations for one frame."""
+
+    joint_names: list[str]
+    joint_centres: Points = Field(description="J x 3 joint centres in mm, null = unknown")
+    segment_names: list[str]
+    rotations: Quaternions = Field(description="S x 4 segment rotations as quaternions (x, y, z, w)")
+    translations: Points = Field(description="S x 3 segment origins in mm")
+
+
+class SimTruth(Message):
+    """Ground truth of a simulated frame, for evaluation."""
+
+    labels: list[str] = Field(description="N marker labels, in the simulator's marker order")
+    identity: Indices = Field(description="for each published point row: the true marker index, -1 for a ghost")
+    true_positions: Points = Field(description="N x 3 noise-free marker positions")
+    joint_names: list[str]
+    joint_centres: Points = Field(description="J x 3 true joint centres")
+
+
+class NodeStats(BaseModel):
+    """Health and throughput of one node, published periodically on ``{prefix}/_stats/{node}``."""
+
+    model_config = ConfigDict(extra="forbid")
+    type_name: ClassVar[str] = "NodeStats"
+
+    node: str
+    pid: int
+    state: Literal["starting", "running", "finished", "stopping"]
+    frames_in: int = 0
+    frames_out: int = 0
+    rate_hz: float = 0.0
+    latency_p50_ms: float | None = None
+    latency_p99_ms: float | None = None
+    drops: int = 0
+    errors: int = 0
+    last_error: str | None = None
+    clock_origin_ns: int | None = Field(default=None, description="sources: wall-clock time of frame 0")
+
+    @classmethod
+    def encoding(cls) -> str:
+        return f"application/json;{SCHEMA_PREFIX}{cls.type_name}"
+
+
+MESSAGE_TYPES: dict[str, type[BaseModel]] = {
+    t.type_name: t for t in (MarkerFrame, Segments, Skeleton, Pose, SimTruth, NodeStats)
+}
+
+
+def encode(message: BaseModel) -> bytes:
+    """Serialise a message to its JSON wire form."""
+    return orjson.dumps(message.model_dump(mode="python"), option=orjson.OPT_SERIALIZE_NUMPY)
+
+
+def decode(payload: bytes | bytearray | memoryview, message_type: type[BaseModel]) -> Any:
+    """Parse and validate a payload as ``message_type``; raise DecodeError with a one-line reason otherwise."""
+    try:
+        data = orjson.loads(payload)
+    except orjson.JSONDecodeError as exc:
+        raise DecodeError(f"not JSON: {exc}") from None
+    if not isinstance(data, dict):
+        raise DecodeError(f"expected a JSON object for {message_type.type_name}, got {type(data).__name__}")
+    try:
+        return message_type.model_validate(data)
+    except ValidationError as exc:
+        first = exc.errors()[0]
+        where = ".".join(str(p) for p in first["loc"]) or "message"
+        raise DecodeError(
+            f"invalid {message_type.type_name}: {where}: {first['msg']} ({exc.error_count()} error(s))"
+        ) from None
+
+
+def json_schema(message_type: type[BaseModel]) -> dict[str, Any]:
+    """The JSON Schema of a message type, as served to clients in other languages."""
+    schema = message_type.model_json_schema(mode="serialization")
+    schema["$id"] = f"{SCHEMA_PREFIX}{message_type.type_name}"
+    return schema

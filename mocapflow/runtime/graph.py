@@ -1,0 +1,165 @@
+"""Graph files: which nodes run, with which plugin and config, linked how, on which machine.
+
+Loading validates everything a run depends on before any process starts, and every error names the node and the
+field (``nodes.filler.inputs.markers: ...``) so a broken graph is fixed from the message alone.
+"""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+from typing import Any, Literal
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+
+from mocapflow.errors import GraphError
+from mocapflow.runtime.node import Node
+from mocapflow.runtime.plugins import PluginNotFound, load
+
+NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_-]*$")
+
+
+class ZenohSettings(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    connect: list[str] = Field(default_factory=list, description="routers to join; empty: start an embedded router")
+    listen: list[str] = Field(default_factory=list, description="endpoints of the embedded router")
+
+
+class NodeSpec(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    plugin: str
+    config: dict[str, Any] = Field(default_factory=dict)
+    inputs: dict[str, str] = Field(default_factory=dict, description="input port -> 'node/output'")
+    machine: str | None = Field(default=None, description="agent that runs this node; none: the launcher's machine")
+    restart: Literal["on-failure", "never"] = "on-failure"
+    max_restarts: int = Field(default=5, ge=0)
+
+
+class Graph(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    name: str
+    prefix: str | None = None
+    zenoh: ZenohSettings = Field(default_factory=ZenohSettings)
+    nodes: dict[str, NodeSpec]
+
+    @field_validator("nodes")
+    @classmethod
+    def _names(cls, nodes: dict[str, NodeSpec]) -> dict[str, NodeSpec]:
+        if not nodes:
+            raise ValueError("a graph needs at least one node")
+        for name in nodes:
+            if not NAME.match(name):
+                raise ValueError(f"node name {name!r} must be letters, digits, '-' or '_' and not start with '_'")
+        return nodes
+
+    @property
+    def key_prefix(self) -> str:
+        return self.prefix or f"mocapflow/{self.name}"
+
+
+def _format_validation(exc: ValidationError, base: str = "") -> str:
+    lines = []
+    for err in exc.errors():
+        where = ".".join(str(p) for p in (base, *err["loc"]) if p != "")
+        lines.append(f"{where or 'graph'}: {err['msg']}")
+    return "; ".join(lines)
+
+
+def parse_override(text: str) -> tuple[str, str, Any]:
+    """``node.key.sub=value`` -> (node, "key.sub", value); the value is read as YAML so numbers stay numbers."""
+    lhs, sep, rhs = text.partition("=")
+    node, dot, key = lhs.partition(".")
+    if not sep or not dot or not node or not key:
+        raise GraphError(f"--set {text!r}: expected NODE.KEY=VALUE")
+    try:
+        value = yaml.safe_load(rhs) if rhs else ""
+    except yaml.YAMLError:
+        value = rhs
+    return node, key, value
+
+
+def apply_overrides(raw: dict[str, Any], overrides: list[str]) -> None:
+    nodes = raw.get("nodes") or {}
+    for text in overrides:
+        node, key, value = parse_override(text)
+        if node not in nodes:
+            raise GraphError(f"--set {text!r}: no node {node!r} in the graph (nodes: {', '.join(nodes)})")
+        target = nodes[node].setdefault("config", {})
+        *path, last = key.split(".")
+        for part in path:
+            target = target.setdefault(part, {})
+        target[last] = value
+
+
+def load_graph(path: str | Path, overrides: list[str] | None = None) -> Graph:
+    """Read, override and fully validate a graph file."""
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except OSError as exc:
+        raise GraphError(f"{path}: cannot read: {exc.strerror}") from None
+    try:
+        raw = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f"{path}:{mark.line + 1}:{mark.column + 1}" if mark else str(path)
+        problem = getattr(exc, "problem", None) or str(exc)
+        raise GraphError(f"{where}: YAML syntax error: {problem}") from None
+    if not isinstance(raw, dict):
+        raise GraphError(f"{path}: a graph file must be a mapping with 'name' and 'nodes'")
+    raw.setdefault("name", path.stem)
+    apply_overrides(raw, overrides or [])
+    try:
+        graph = Graph.model_validate(raw)
+    except ValidationError as exc:
+        raise GraphError(f"{path}: {_format_validation(exc)}") from None
+    validate(graph, str(path))
+    return graph
+
+
+def validate(graph: Graph, source: str = "graph") -> dict[str, type[Node]]:
+    """Check plugins, configs, ports and link types; return each node's class. Collects every error."""
+    errors: list[str] = []
+    classes: dict[str, type[Node]] = {}
+    for name, spec in graph.nodes.items():
+        try:
+            classes[name] = load(spec.plugin)
+        except PluginNotFound as exc:
+            errors.append(f"nodes.{name}.plugin: {exc}")
+            continue
+        try:
+            classes[name].Config.model_validate(spec.config)
+        except ValidationError as exc:
+            errors.append(_format_validation(exc, f"nodes.{name}.config"))
+    for name, spec in graph.nodes.items():
+        cls = classes.get(name)
+        if cls is None:
+            continue
+        for port, port_spec in cls.inputs.items():
+            if port_spec.required and port not in spec.inputs:
+                errors.append(f"nodes.{name}.inputs.{port}: required input is not linked ({port_spec.type.type_name})")
+        for port, link in spec.inputs.items():
+            where = f"nodes.{name}.inputs.{port}"
+            if port not in cls.inputs:
+                errors.append(f"{where}: plugin {spec.plugin!r} has no input {port!r} (inputs: {', '.join(cls.inputs) or 'none'})")
+                continue
+            src, slash, out = link.partition("/")
+            if not slash or src not in graph.nodes:
+                errors.append(f"{where}: {link!r} must be 'node/output' with a node of this graph")
+                continue
+            src_cls = classes.get(src)
+            if src_cls is None:
+                continue
+            if out not in src_cls.outputs:
+                errors.append(f"{where}: node {src!r} has no output {out!r} (outputs: {', '.join(src_cls.outputs) or 'none'})")
+                continue
+            want, have = cls.inputs[port].type, src_cls.outputs[out].type
+            if want is not have:
+                errors.append(f"{where}: type mismatch: {link} carries {have.type_name}, input expects {want.type_name}")
+    if errors:
+        raise GraphError(f"{source}: " + "; ".join(errors) if len(errors) == 1 else f"{source}:\n  " + "\n  ".join(errors))
+    return classes

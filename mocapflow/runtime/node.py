@@ -1,0 +1,99 @@
+"""The node base class: what a plugin declares (ports, config) and the few calls it makes.
+
+A node knows its inputs, its outputs, its config model and its algorithm object, nothing else: sessions, keys,
+pacing, statistics and shutdown belong to the runtime (``mocapflow.runtime.worker``), so the same node class runs
+under the launcher, under an agent on another machine, or in a test.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any, ClassVar
+
+from pydantic import BaseModel, ConfigDict
+
+from mocapflow.messages import Message
+
+
+class NoConfig(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+@dataclass(frozen=True)
+class Input:
+    """An input port. ``state`` inputs carry models (segments, skeleton): a late joiner receives the latest one at
+    once. A ``required`` data input must be linked, and the node finishes when all of them have ended."""
+
+    type: type[Message]
+    required: bool = True
+    state: bool = False
+    doc: str = ""
+
+
+@dataclass(frozen=True)
+class Output:
+    """An output port. ``state`` outputs are cached so that nodes starting later receive the latest value."""
+
+    type: type[Message]
+    state: bool = False
+    doc: str = ""
+
+
+class Node:
+    """Base class of every stage.
+
+    Subclasses set ``Config`` (a pydantic model), ``inputs`` and ``outputs``, and implement ``process`` for each
+    input message. A node with no inputs is a source: it sets ``rate`` in ``__init__`` and implements ``emit``, which
+    the runtime calls once per frame index at that rate, in order, starting from ``first_index``.
+    """
+
+    Config: ClassVar[type[BaseModel]] = NoConfig
+    inputs: ClassVar[dict[str, Input]] = {}
+    outputs: ClassVar[dict[str, Output]] = {}
+
+    rate: float = 0.0
+
+    def __init__(self, config: Any, publish: Callable[[str, Message], None], name: str = "node") -> None:
+        self.config = config
+        self.name = name
+        self._publish = publish
+        self.log = logging.getLogger(f"mocapflow.{name}")
+
+    @classmethod
+    def is_source(cls) -> bool:
+        return not cls.inputs
+
+    def publish(self, output: str, message: Message) -> None:
+        """Send ``message`` on one of this node's declared outputs."""
+        self._publish(output, message)
+
+    def process(self, port: str, message: Message) -> None:
+        """Handle one message from input ``port``. Exceptions are logged and counted; the stream goes on."""
+        raise NotImplementedError(f"{type(self).__name__} declares inputs but does not implement process()")
+
+    def emit(self, index: int) -> bool:
+        """Sources: produce frame ``index``. Return False when the source has no more frames."""
+        raise NotImplementedError(f"{type(self).__name__} is a source but does not implement emit()")
+
+    def first_index(self, elapsed_s: float) -> int:
+        """Sources: the frame to start from, ``elapsed_s`` after frame 0 was due (0 on a first start). Resuming where
+        the source's clock is after a restart, instead of at 0, keeps frame numbers increasing."""
+        return max(0, int(elapsed_s * self.rate))
+
+    def finish(self) -> None:
+        """Called once when the node stops (end of its input streams, or a stop request): flush and release."""
+
+    @classmethod
+    def describe(cls) -> dict[str, Any]:
+        """Ports and config schema, as shown by ``mocapflow plugins``."""
+        return {
+            "doc": (cls.__doc__ or "").strip().splitlines()[0] if cls.__doc__ else "",
+            "inputs": {
+                k: {"type": v.type.type_name, "required": v.required, "state": v.state, "doc": v.doc}
+                for k, v in cls.inputs.items()
+            },
+            "outputs": {k: {"type": v.type.type_name, "state": v.state, "doc": v.doc} for k, v in cls.outputs.items()},
+            "config": cls.Config.model_json_schema(),
+        }

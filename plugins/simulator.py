@@ -1,0 +1,45 @@
+"""Simulated optical tracker: an articulated rig in lifelike motion, with noise, occlusions and ghosts."""
+
+from __future__ import annotations
+
+import time
+
+from pydantic import Field
+
+from mocapflow.messages import MarkerFrame, SimTruth
+from mocapflow.mocap.simulator import Simulator, SimulatorConfig
+from mocapflow.runtime.node import Node, Output
+
+
+class SimulatorNodeConfig(SimulatorConfig):
+    frames: int | None = Field(default=None, ge=1, description="stop after this many frames; none: run until stopped")
+
+
+class SimulatorNode(Node):
+    """Simulated tracker publishing marker frames at the configured rate, plus ground truth for evaluation."""
+
+    Config = SimulatorNodeConfig
+    outputs = {
+        "markers": Output(MarkerFrame, doc="raw frames: labelled rows, or a shuffled point cloud when unlabelled"),
+        "truth": Output(SimTruth, doc="identities, true positions and joint centres of each frame"),
+    }
+
+    def __init__(self, config: SimulatorNodeConfig, publish, name: str = "simulator") -> None:  # noqa: ANN001
+        super().__init__(config, publish, name)
+        self.sim = Simulator(SimulatorConfig.model_validate(config.model_dump(exclude={"frames"})))
+        self.rate = config.rate
+        self.labels = list(self.sim.rig.marker_labels)
+
+    def emit(self, index: int) -> bool:
+        if self.config.frames is not None and index >= self.config.frames:
+            return False
+        frame = self.sim.frame(index)
+        capture_ns = time.time_ns()
+        self.publish("markers", MarkerFrame(
+            frame=index, capture_ns=capture_ns, rate=self.rate, positions=frame.points, labels=frame.labels,
+        ))
+        self.publish("truth", SimTruth(
+            frame=index, capture_ns=capture_ns, labels=self.labels, identity=frame.identity,
+            true_positions=frame.true_positions, joint_names=self.sim.joint_names, joint_centres=frame.joint_centres,
+        ))
+        return True

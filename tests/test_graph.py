@@ -1,0 +1,95 @@
+"""Graph files: every shipped deployment validates, and each kind of broken graph is refused by node and field."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from mocapflow.errors import GraphError
+from mocapflow.runtime.graph import load_graph
+
+DEPLOYMENTS = sorted((Path(__file__).resolve().parents[1] / "deployments").glob("*.yaml"))
+
+GOOD = """
+name: t
+nodes:
+  tracker: {plugin: simulator, config: {rig: human, rate: 120}}
+  recorder: {plugin: recorder, inputs: {markers: tracker/markers}, config: {path: out.c3d}}
+"""
+
+
+@pytest.mark.parametrize("path", DEPLOYMENTS, ids=lambda p: p.name)
+def test_shipped_deployments_validate(path: Path) -> None:
+    graph = load_graph(path)
+    assert graph.nodes
+
+
+def write(tmp_path: Path, text: str) -> Path:
+    path = tmp_path / "graph.yaml"
+    path.write_text(text)
+    return path
+
+
+def test_good_graph_and_overrides(tmp_path: Path) -> None:
+    graph = load_graph(write(tmp_path, GOOD), ["tracker.rate=480", "recorder.path=x/y.c3d", "tracker.unlabelled=true"])
+    assert graph.nodes["tracker"].config == {"rig": "human", "rate": 480, "unlabelled": True}
+    assert graph.nodes["recorder"].config["path"] == "x/y.c3d"
+    assert graph.key_prefix == "mocapflow/t"
+
+
+@pytest.mark.parametrize(
+    "text, expected",
+    [
+        ("name: t\nnodes:\n  a: {plugin: simulator\n", r"graph.yaml:\d+:\d+: YAML syntax error"),
+        ("name: t\nnodes:\n  a: [1, 2\n  b: 3\n", r"YAML syntax error"),
+        ("- just\n- a list\n", r"must be a mapping"),
+        ("name: t\nnodes: {}\n", r"nodes: .*at least one node"),
+        ("name: t\nnodes:\n  _x: {plugin: simulator}\n", r"node name '_x'"),
+        ("name: t\nnodes:\n  a: {plugin: simulator, colour: red}\n", r"nodes.a.colour: Extra inputs"),
+        (GOOD.replace("plugin: simulator", "plugin: teleporter"), r"nodes.tracker.plugin: unknown plugin 'teleporter'"),
+        (GOOD.replace("rate: 120", "rate: -5"), r"nodes.tracker.config.rate: Input should be greater than 0"),
+        (GOOD.replace("rate: 120", "rate: 120, colour: red"), r"nodes.tracker.config.colour: Extra inputs"),
+        (GOOD.replace("path: out.c3d", "path: out.txt"), r"nodes.recorder.config.path: .*\.c3d or \.trc"),
+        (GOOD.replace("{markers: tracker/markers}", "{}"), r"nodes.recorder.inputs.markers: required input is not linked"),
+        (GOOD.replace("{markers: tracker/markers}", "{markers: tracker/markers, gps: tracker/markers}"),
+         r"nodes.recorder.inputs.gps: plugin 'recorder' has no input 'gps'"),
+        (GOOD.replace("tracker/markers}", "camera/markers}"), r"nodes.recorder.inputs.markers: 'camera/markers' must be"),
+        (GOOD.replace("tracker/markers}", "tracker/points}"), r"nodes.recorder.inputs.markers: node 'tracker' has no output 'points'"),
+        (GOOD.replace("tracker/markers}", "tracker/truth}"),
+         r"nodes.recorder.inputs.markers: type mismatch: tracker/truth carries SimTruth, input expects MarkerFrame"),
+    ],
+    ids=["yaml-unclosed", "yaml-bad-flow", "not-mapping", "no-nodes", "bad-name", "unknown-node-field",
+         "unknown-plugin", "bad-config-value", "unknown-config-field", "bad-path", "missing-input", "unknown-input",
+         "unknown-node", "unknown-output", "type-mismatch"],
+)
+def test_broken_graphs_are_refused_by_node_and_field(tmp_path: Path, text: str, expected: str) -> None:
+    with pytest.raises(GraphError, match=expected):
+        load_graph(write(tmp_path, text))
+
+
+def test_all_errors_are_reported_at_once(tmp_path: Path) -> None:
+    text = GOOD.replace("rate: 120", "rate: -5").replace("tracker/markers}", "tracker/truth}")
+    with pytest.raises(GraphError) as info:
+        load_graph(write(tmp_path, text))
+    assert "nodes.tracker.config.rate" in str(info.value) and "nodes.recorder.inputs.markers" in str(info.value)
+
+
+def test_bad_override(tmp_path: Path) -> None:
+    with pytest.raises(GraphError, match="no node 'ghost'"):
+        load_graph(write(tmp_path, GOOD), ["ghost.rate=1"])
+    with pytest.raises(GraphError, match="expected NODE.KEY=VALUE"):
+        load_graph(write(tmp_path, GOOD), ["tracker"])
+
+
+def test_validate_command_exit_codes(tmp_path: Path) -> None:
+    good = subprocess.run([sys.executable, "-m", "mocapflow.cli", "validate", str(write(tmp_path, GOOD))],
+                          capture_output=True, text=True)
+    assert good.returncode == 0 and "ok (2 nodes" in good.stdout
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(GOOD.replace("rate: 120", "rate: fast"))
+    result = subprocess.run([sys.executable, "-m", "mocapflow.cli", "validate", str(bad)], capture_output=True, text=True)
+    assert result.returncode == 2
+    assert "nodes.tracker.config.rate" in result.stderr and len(result.stderr.strip().splitlines()) == 1

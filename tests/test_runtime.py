@@ -1,0 +1,157 @@
+"""Multi-process runs over real Zenoh on loopback: every frame, in order, restarts, clean stops, no orphans."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import ezc3d
+import numpy as np
+import pytest
+import zenoh
+
+from mocapflow.mocap.simulator import Simulator, SimulatorConfig
+from mocapflow.runtime.session import open_client
+
+RATE = 240
+
+
+def graph(tmp_path: Path, endpoint: str, extra_tracker: str = "", name: str = "rt") -> Path:
+    path = tmp_path / f"{name}.yaml"
+    path.write_text(f"""
+name: {name}
+zenoh: {{listen: ["{endpoint}"]}}
+nodes:
+  tracker: {{plugin: simulator, config: {{rig: human, rate: {RATE}, seed: 3{extra_tracker}}}}}
+  recorder: {{plugin: recorder, inputs: {{markers: tracker/markers}}, config: {{path: {tmp_path / 'out.c3d'}}}}}
+""")
+    return path
+
+
+def start(args: list[str], cwd: Path) -> subprocess.Popen[str]:
+    return subprocess.Popen([sys.executable, "-m", "mocapflow.cli", *args], cwd=cwd, stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, text=True)
+
+
+def workers_of(prefix: str) -> list[int]:
+    """PIDs of worker processes of one run, found by their command line: survivors here would be orphans."""
+    pids = []
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            try:
+                cmd = (entry / "cmdline").read_bytes().decode(errors="replace")
+            except OSError:
+                continue
+            if "mocapflow.runtime.worker" in cmd and f'"prefix":"{prefix}"' in cmd:
+                pids.append(int(entry.name))
+    return pids
+
+
+def worker_pid(prefix: str, node: str, timeout: float = 20.0) -> int:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        for pid in workers_of(prefix):
+            if f'"node":"{node}"' in Path(f"/proc/{pid}/cmdline").read_bytes().decode(errors="replace"):
+                return pid
+        time.sleep(0.1)
+    raise AssertionError(f"no worker for {node}")
+
+
+def read_c3d(path: Path) -> tuple[np.ndarray, list[str], float, int]:
+    c3d = ezc3d.c3d(str(path))
+    points = c3d["data"]["points"][:3].transpose(2, 1, 0)  # (F, N, 3)
+    labels = c3d["parameters"]["POINT"]["LABELS"]["value"]
+    return points, labels, c3d["parameters"]["POINT"]["RATE"]["value"][0], c3d["header"]["points"]["first_frame"]
+
+
+def test_every_frame_arrives_in_order_and_reads_back(tmp_path: Path, free_endpoint: str) -> None:
+    frames = 5 * RATE + 1
+    run = start(["run", str(graph(tmp_path, free_endpoint, f", frames: {frames}")), "--duration", "60"], tmp_path)
+    # Meanwhile, garbage on the recorder's input must be reported and must not disturb the stream.
+    time.sleep(3)
+    with open_client([free_endpoint]) as session:
+        session.put("mocapflow/rt/tracker/markers", b'{"not": "a frame"}')
+    out, _ = run.communicate(timeout=90)
+    assert run.returncode == 0, out
+    assert "all nodes finished" in out
+    assert "invalid MarkerFrame" in out  # the malformed message was logged with its reason
+    points, labels, rate, first = read_c3d(tmp_path / "out.c3d")
+    sim = Simulator(SimulatorConfig(rig="human", rate=RATE, seed=3))
+    assert points.shape[0] == frames and rate == RATE and labels == list(sim.rig.marker_labels)
+    for i in (0, 1, frames // 2, frames - 1):
+        np.testing.assert_allclose(points[i], sim.frame(i).points, atol=1e-3, equal_nan=True)
+    # In order and complete: every frame's row matches its own simulated frame, none missing.
+    truth = np.stack([sim.frame(i).points for i in range(0, frames, 37)])
+    np.testing.assert_allclose(points[::37], truth, atol=1e-3, equal_nan=True)
+    assert not workers_of("mocapflow/rt")
+
+
+def test_killed_node_is_restarted_and_the_stream_resumes(tmp_path: Path, free_endpoint: str) -> None:
+    run = start(["run", str(graph(tmp_path, free_endpoint, name="rk")), "--duration", "9"], tmp_path)
+    victim = worker_pid("mocapflow/rk", "tracker")
+    time.sleep(3)
+    os.kill(victim, signal.SIGKILL)
+    t_kill = time.monotonic()
+    replacement = worker_pid("mocapflow/rk", "tracker")
+    while replacement == victim and time.monotonic() - t_kill < 10:
+        time.sleep(0.1)
+        replacement = worker_pid("mocapflow/rk", "tracker")
+    assert replacement != victim
+    out, _ = run.communicate(timeout=60)
+    assert run.returncode == 0, out
+    assert "restart 1" in out
+    points, *_ = read_c3d(tmp_path / "out.c3d")
+    seen = ~np.isnan(points[:, 0, 0])
+    # frames flowed before the kill, stopped while the tracker was down, and flowed again after its restart
+    assert seen[: 2 * RATE].all() and seen[-RATE:].all() and not seen.all()
+    assert not workers_of("mocapflow/rk")
+
+
+def test_interrupt_stops_cleanly_and_writes_the_recording(tmp_path: Path, free_endpoint: str) -> None:
+    run = start(["run", str(graph(tmp_path, free_endpoint, name="ri"))], tmp_path)
+    worker_pid("mocapflow/ri", "recorder")
+    time.sleep(3)
+    run.send_signal(signal.SIGINT)
+    out, _ = run.communicate(timeout=30)
+    assert run.returncode == 0, out
+    assert "stopped (SIGINT)" in out
+    points, *_ = read_c3d(tmp_path / "out.c3d")
+    assert points.shape[0] > RATE and not np.isnan(points).any()
+    assert not workers_of("mocapflow/ri")
+
+
+def test_node_failing_for_good_makes_the_run_fail(tmp_path: Path, free_endpoint: str) -> None:
+    path = graph(tmp_path, free_endpoint, f", bvh: {tmp_path / 'missing.bvh'}", name="rf")
+    run = start(["run", str(path), "--duration", "30"], tmp_path)
+    out, _ = run.communicate(timeout=60)
+    assert run.returncode == 1, out
+    assert "failed: tracker" in out and "missing.bvh" in out
+    assert not workers_of("mocapflow/rf")
+
+
+def test_introspection_commands_see_a_live_run(tmp_path: Path, free_endpoint: str) -> None:
+    run = start(["run", str(graph(tmp_path, free_endpoint, name="rn")), "--duration", "12"], tmp_path)
+    try:
+        worker_pid("mocapflow/rn", "recorder")
+        time.sleep(2)
+        cli = [sys.executable, "-m", "mocapflow.cli"]
+        nodes = subprocess.run([*cli, "nodes", "--connect", free_endpoint, "--prefix", "mocapflow/rn"],
+                               capture_output=True, text=True, timeout=30)
+        assert "mocapflow/rn/tracker" in nodes.stdout and "mocapflow/rn/recorder" in nodes.stdout, nodes.stdout
+        echo = subprocess.run([*cli, "echo", "mocapflow/rn/tracker/markers", "-n", "2", "--connect", free_endpoint],
+                              capture_output=True, text=True, timeout=30)
+        assert echo.stdout.count("application/json;mocapflow/MarkerFrame") == 2 and "positions:" in echo.stdout
+        hz = subprocess.run([*cli, "hz", "mocapflow/rn/tracker/markers", "-n", "1", "--window", "2", "--connect",
+                             free_endpoint], capture_output=True, text=True, timeout=30)
+        measured = float(hz.stdout.split(": ")[1].split(" Hz")[0])
+        assert abs(measured - RATE) < 0.1 * RATE, hz.stdout
+        with open_client([free_endpoint]) as session:
+            replies = list(session.get("mocapflow/rn/_schema/MarkerFrame", timeout=5))
+        assert replies and b'"$id":"mocapflow/MarkerFrame"' in replies[0].ok.payload.to_bytes()
+    finally:
+        out, _ = run.communicate(timeout=60)
+    assert run.returncode == 0, out
