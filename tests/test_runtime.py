@@ -11,8 +11,6 @@ from pathlib import Path
 
 import ezc3d
 import numpy as np
-import pytest
-import zenoh
 
 from mocapflow.mocap.simulator import Simulator, SimulatorConfig
 from mocapflow.runtime.session import open_client

@@ -70,13 +70,13 @@ def _nodes(args: argparse.Namespace) -> int:
     prefix = args.prefix.rstrip("/")
     stats: dict[str, dict] = {}
     with open_client(args.connect) as session:
-        alive = sorted(str(r.ok.key_expr) for r in session.liveliness().get(f"{prefix}/_alive/*", timeout=2.0)
+        alive = sorted(str(r.ok.key_expr) for r in session.liveliness().get(keys.alive_key(prefix), timeout=2.0)
                        if r.ok is not None)
 
         def on_stats(sample: zenoh.Sample) -> None:
             stats[str(sample.key_expr).replace("/_stats/", "/_alive/")] = orjson.loads(sample.payload.to_bytes())
 
-        with session.declare_subscriber(f"{prefix}/_stats/*", on_stats):
+        with session.declare_subscriber(keys.stats_key(prefix), on_stats):
             time.sleep(1.2)
     if not alive:
         print("no live nodes")

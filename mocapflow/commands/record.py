@@ -1,0 +1,102 @@
+"""``mocapflow record KEY... -o FILE.mcap`` and ``mocapflow replay FILE.mcap`` with the original timing."""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import queue
+import signal
+import threading
+import time
+
+from mocapflow.runtime.session import DEFAULT_ENDPOINT
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    rec = sub.add_parser("record", help="record keys of a live system to an MCAP file")
+    rec.add_argument("keys", nargs="+", help="key expressions, e.g. mocapflow/quickstart/** ")
+    rec.add_argument("-o", "--output", required=True, help="output .mcap file")
+    rec.add_argument("--duration", type=float, default=None, metavar="S", help="stop after S seconds")
+    rec.add_argument("--connect", action="append", default=[], metavar="ENDPOINT",
+                     help=f"router to join (default {DEFAULT_ENDPOINT})")
+    rec.set_defaults(func=_record)
+
+    rep = sub.add_parser("replay", help="publish an MCAP recording again with its original timing")
+    rep.add_argument("recording", help=".mcap file written by `mocapflow record`")
+    rep.add_argument("--speed", type=float, default=1.0, help="time factor (2 = twice as fast)")
+    rep.add_argument("--connect", action="append", default=[], metavar="ENDPOINT",
+                     help=f"router to join (default {DEFAULT_ENDPOINT})")
+    rep.set_defaults(func=_replay)
+
+
+def _record(args: argparse.Namespace) -> int:
+    import zenoh
+
+    from mocapflow.io.recording import RecordedSample, RecordingWriter
+    from mocapflow.runtime.session import open_client
+
+    inbox: queue.Queue[RecordedSample] = queue.Queue()
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+
+    def on_sample(sample: zenoh.Sample) -> None:
+        inbox.put(RecordedSample(key=str(sample.key_expr), encoding=str(sample.encoding),
+                                 payload=sample.payload.to_bytes(), log_time_ns=time.time_ns(),
+                                 delete=sample.kind == zenoh.SampleKind.DELETE))
+
+    deadline = None if args.duration is None else time.monotonic() + args.duration
+    with open_client(args.connect) as session, RecordingWriter(args.output) as writer:
+        subs = [session.declare_subscriber(key, on_sample) for key in args.keys]
+        print(f"recording {', '.join(args.keys)} to {args.output} (Ctrl-C to stop)", flush=True)
+        while not stop.is_set() and (deadline is None or time.monotonic() < deadline):
+            try:
+                writer.write(inbox.get(timeout=0.1))
+            except queue.Empty:
+                pass
+        for s in subs:
+            s.undeclare()
+        while not inbox.empty():
+            writer.write(inbox.get_nowait())
+        print(f"recorded {writer.count} samples to {args.output}", flush=True)
+    return 0
+
+
+def _replay(args: argparse.Namespace) -> int:
+    import zenoh
+
+    from mocapflow.errors import MocapflowError
+    from mocapflow.io.recording import read_recording
+    from mocapflow.runtime.session import open_client
+
+    if args.speed <= 0:
+        raise MocapflowError("--speed must be positive")
+    samples = read_recording(args.recording)
+    first = next(samples, None)
+    if first is None:
+        print(f"{args.recording}: empty recording")
+        return 0
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    count = 0
+    with open_client(args.connect) as session:
+        publishers: dict[tuple[str, str], zenoh.Publisher] = {}
+        t0 = time.monotonic()
+        for sample in itertools.chain([first], samples):
+            due = t0 + (sample.log_time_ns - first.log_time_ns) / 1e9 / args.speed
+            while (delay := due - time.monotonic()) > 0 and not stop.is_set():
+                time.sleep(delay if delay > 0.002 else 0)  # sleep coarsely, then spin for the last 2 ms
+            if stop.is_set():
+                break
+            ident = (sample.key, sample.encoding)
+            if ident not in publishers:
+                publishers[ident] = session.declare_publisher(sample.key, encoding=zenoh.Encoding(sample.encoding),
+                                                              congestion_control=zenoh.CongestionControl.BLOCK)
+            if sample.delete:
+                publishers[ident].delete()
+            else:
+                publishers[ident].put(sample.payload)
+            count += 1
+    print(f"replayed {count} samples from {args.recording}")
+    return 0

@@ -1,0 +1,135 @@
+"""Supervision of worker processes: start, restart with backoff, give up, and stop in order.
+
+Used by the launcher for the nodes it runs itself and by each agent for the nodes placed on its machine.
+"""
+
+from __future__ import annotations
+
+import queue
+import signal
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import IO, Literal
+
+from mocapflow.runtime.worker import EXIT_CONFIG, WorkerSpec
+
+DRAIN_S = 10.0
+TERM_S = 3.0
+HEALTHY_S = 30.0
+
+State = Literal["starting", "running", "restarting", "finished", "failed"]
+
+
+@dataclass
+class Proc:
+    """One supervised node process and its history."""
+
+    spec: WorkerSpec
+    source: bool
+    restart: Literal["on-failure", "never"] = "on-failure"
+    max_restarts: int = 5
+    popen: subprocess.Popen[bytes] | None = None
+    state: State = "starting"
+    restarts: int = 0
+    failures: int = 0
+    next_start: float = 0.0
+    started_at: float = 0.0
+    exit_code: int | None = None
+    log_tail: list[str] = field(default_factory=list)
+
+    @property
+    def name(self) -> str:
+        return self.spec.node
+
+    @property
+    def pid(self) -> int | None:
+        return self.popen.pid if self.popen else None
+
+
+class Supervisor:
+    """Runs a set of worker processes. Every line a worker prints, and every lifecycle event, goes to ``lines``."""
+
+    def __init__(self, procs: list[Proc], lines: queue.Queue[str] | None = None) -> None:
+        self.procs = {p.name: p for p in procs}
+        self.lines: queue.Queue[str] = lines if lines is not None else queue.Queue()
+        self.stopping = False
+
+    def start(self) -> None:
+        for proc in self.procs.values():
+            self._spawn(proc)
+
+    def _spawn(self, proc: Proc) -> None:
+        proc.popen = subprocess.Popen(
+            [sys.executable, "-m", "mocapflow.runtime.worker", proc.spec.model_dump_json()],
+            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+        )
+        proc.state, proc.started_at, proc.exit_code = "running", time.monotonic(), None
+        threading.Thread(target=self._pump, args=(proc, proc.popen.stdout), daemon=True).start()
+
+    def _pump(self, proc: Proc, stream: IO[bytes]) -> None:
+        for raw in stream:
+            line = raw.decode(errors="replace").rstrip()
+            proc.log_tail = (proc.log_tail + [line])[-20:]
+            self.lines.put(f"[{proc.name}] {line}")
+
+    def poll(self) -> None:
+        """Notice exits; schedule restarts with exponential backoff; give up after ``max_restarts`` failures."""
+        now = time.monotonic()
+        for proc in self.procs.values():
+            if proc.state == "restarting" and now >= proc.next_start and not self.stopping:
+                self._spawn(proc)
+                continue
+            if proc.popen is None or proc.state != "running" or proc.popen.poll() is None:
+                continue
+            code = proc.exit_code = proc.popen.returncode
+            if code == 0:
+                proc.state = "finished"
+                continue
+            if now - proc.started_at > HEALTHY_S:
+                proc.failures = 0
+            proc.failures += 1
+            why = "configuration error" if code == EXIT_CONFIG else f"exit code {code}"
+            if self.stopping or code == EXIT_CONFIG or proc.restart == "never" or proc.failures > proc.max_restarts:
+                proc.state = "failed"
+                self.lines.put(f"[{proc.name}] failed for good ({why})")
+            else:
+                delay = min(0.5 * 2 ** (proc.failures - 1), 10.0)
+                proc.state, proc.next_start = "restarting", now + delay
+                proc.restarts += 1
+                self.lines.put(f"[{proc.name}] stopped ({why}); restart {proc.restarts} in {delay:.1f} s")
+
+    def alive(self) -> list[Proc]:
+        return [p for p in self.procs.values() if p.popen is not None and p.popen.poll() is None]
+
+    def all_finished(self) -> bool:
+        return all(p.state == "finished" for p in self.procs.values())
+
+    def failed(self) -> list[Proc]:
+        return [p for p in self.procs.values() if p.state == "failed"]
+
+    def _signal(self, procs: list[Proc], sig: int) -> None:
+        for proc in procs:
+            if proc.popen is not None and proc.popen.poll() is None:
+                proc.popen.send_signal(sig)
+
+    def shutdown(self, tick: Callable[[], None] = lambda: None) -> None:
+        """Sources first, then let end-of-stream drain the graph, then terminate, then kill. ``tick`` runs while
+        waiting (the launcher prints logs from it)."""
+        self.stopping = True
+        self._signal([p for p in self.procs.values() if p.source], signal.SIGTERM)
+        for grace, sig in ((DRAIN_S, signal.SIGTERM), (TERM_S, signal.SIGKILL), (TERM_S, None)):
+            deadline = time.monotonic() + grace
+            while self.alive() and time.monotonic() < deadline:
+                self.poll()
+                tick()
+                time.sleep(0.05)
+            if sig is not None:
+                self._signal(self.alive(), sig)
+        for proc in self.procs.values():
+            if proc.popen is not None:
+                proc.popen.wait()
+        self.poll()
