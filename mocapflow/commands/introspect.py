@@ -92,9 +92,12 @@ def _nodes(args: argparse.Namespace) -> int:
 
 
 def _summary(value: object, full: bool) -> object:
+    """Long numeric arrays shortened to their size, missing count and first values; everything else as is."""
     if full or not isinstance(value, list) or len(value) <= 12:
         return value
-    arr = np.array(value, dtype=float)
+    if not all(v is None or isinstance(v, (int, float)) for v in value):
+        return f"[{len(value)} items: {', '.join(map(str, value[:6]))}, ...]"
+    arr = np.array([np.nan if v is None else v for v in value], dtype=float)
     return f"[{len(value)} values, {int(np.isnan(arr).sum())} missing, first {arr[:6].round(2).tolist()}...]"
 
 

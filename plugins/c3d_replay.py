@@ -1,0 +1,64 @@
+"""File tracker: replays a C3D or TRC recording in real time, as a tracker would stream it."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+from mocapflow.io.markers import read_markers
+from mocapflow.messages import MarkerFrame
+from mocapflow.runtime.node import Node, Output
+
+
+class ReplayConfig(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    path: str = Field(description="C3D or TRC file to replay")
+    speed: float = Field(default=1.0, gt=0, le=100, description="time factor: 2 replays twice as fast")
+    loop: bool = Field(default=False, description="start again at the end instead of ending the stream")
+    start: int = Field(default=0, ge=0, description="first frame to replay (0 = the file's first)")
+    end: int | None = Field(default=None, ge=1, description="replay up to this frame, exclusive (none = to the end)")
+    unlabelled: bool = Field(default=False, description="strip labels and shuffle points, like a passive tracker")
+    seed: int = Field(default=0, description="shuffle seed in unlabelled mode")
+
+    @model_validator(mode="after")
+    def _range(self) -> ReplayConfig:
+        if self.end is not None and self.end <= self.start:
+            raise ValueError(f"end ({self.end}) must be after start ({self.start})")
+        return self
+
+
+class FileReplay(Node):
+    """Streams a marker file at its own rate (times ``speed``); frame numbers count from 0 and keep rising when
+    looping, so downstream stages see one continuous capture."""
+
+    Config = ReplayConfig
+    outputs = {"markers": Output(MarkerFrame, doc="the file's markers, labelled or as an unlabelled point cloud")}
+
+    def __init__(self, config: ReplayConfig, publish, name: str = "tracker") -> None:  # noqa: ANN001
+        super().__init__(config, publish, name)
+        data = read_markers(config.path)
+        end = min(config.end or len(data.positions), len(data.positions))
+        if config.start >= end:
+            raise ValueError(f"{config.path}: start frame {config.start} is past the last frame ({end - 1})")
+        self.positions = data.positions[config.start:end]
+        self.labels = data.labels
+        self.file_rate = data.rate
+        self.rate = data.rate * config.speed
+        self.log.info("replaying %s: %d frames x %d markers at %g Hz", config.path, len(self.positions),
+                      len(self.labels), self.rate)
+
+    def emit(self, index: int) -> bool:
+        if index >= len(self.positions) and not self.config.loop:
+            return False
+        points = self.positions[index % len(self.positions)]
+        labels: list[str] | None = self.labels
+        if self.config.unlabelled:
+            points = points[~np.isnan(points).any(axis=1)]
+            points = points[np.random.default_rng([self.config.seed, index]).permutation(len(points))]
+            labels = None
+        self.publish("markers", MarkerFrame(frame=index, capture_ns=time.time_ns(), rate=self.file_rate,
+                                            positions=points, labels=labels))
+        return True
