@@ -6,6 +6,7 @@ import time
 
 from pydantic import Field
 
+from mocapflow.io.bvh import read_bvh
 from mocapflow.messages import MarkerFrame, SimTruth
 from mocapflow.mocap.simulator import Simulator, SimulatorConfig
 from mocapflow.runtime.node import Node, Output
@@ -26,7 +27,8 @@ class SimulatorNode(Node):
 
     def __init__(self, config: SimulatorNodeConfig, publish, name: str = "simulator") -> None:  # noqa: ANN001
         super().__init__(config, publish, name)
-        self.sim = Simulator(SimulatorConfig.model_validate(config.model_dump(exclude={"frames"})))
+        sim_config = SimulatorConfig.model_validate(config.model_dump(exclude={"frames"}))
+        self.sim = Simulator(sim_config, read_bvh(config.bvh) if config.bvh else None)
         self.rate = config.rate
         self.labels = list(self.sim.rig.marker_labels)
 

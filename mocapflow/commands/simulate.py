@@ -27,6 +27,7 @@ def run(args: argparse.Namespace) -> int:
     import yaml
     from pydantic import ValidationError
 
+    from mocapflow.io.bvh import read_bvh
     from mocapflow.io.markers import MarkerData, write_markers
     from mocapflow.mocap.simulator import SimulatorConfig, simulate
 
@@ -42,7 +43,7 @@ def run(args: argparse.Namespace) -> int:
         raise MocapflowError("; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in exc.errors())) from None
     if args.frames < 1:
         raise MocapflowError("--frames must be at least 1")
-    rec = simulate(config, args.frames)
+    rec = simulate(config, args.frames, read_bvh(config.bvh) if config.bvh else None)
     out = Path(args.output)
     out.parent.mkdir(parents=True, exist_ok=True)
     truth: dict[str, np.ndarray] = {
