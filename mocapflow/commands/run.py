@@ -17,7 +17,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     run.add_argument("--listen", action="append", default=[], metavar="ENDPOINT",
                      help="endpoint of the embedded router (default tcp/127.0.0.1:7447)")
     run.add_argument("--connect", action="append", default=[], metavar="ENDPOINT",
-                     help="join an existing Zenoh router instead of starting one")
+                     help="join an existing Zenoh router instead of starting one (needed for 'machine:' placements)")
+    run.add_argument("--security", metavar="FILE", default=None,
+                     help="security settings: TLS, login (docs/lab-deployment.md; default $MOCAPFLOW_SECURITY)")
+    run.add_argument("--agent-timeout", type=float, default=30.0, metavar="S",
+                     help="how long to wait for the agents of 'machine:' placements, at start or when one is lost")
     run.set_defaults(func=_run)
 
     val = sub.add_parser("validate", help="check a graph's plugins, ports, link types and configs")
@@ -31,7 +35,8 @@ def _run(args: argparse.Namespace) -> int:
     from mocapflow.runtime.launcher import Launcher
 
     graph = load_graph(args.graph, args.overrides)
-    launcher = Launcher(graph, validate(graph), duration=args.duration, listen=args.listen, connect=args.connect)
+    launcher = Launcher(graph, validate(graph), duration=args.duration, listen=args.listen, connect=args.connect,
+                        security=args.security, agent_timeout=args.agent_timeout)
     return launcher.run()
 
 

@@ -1,16 +1,28 @@
-"""Zenoh session configuration: one place decides modes, endpoints and scouting for every mocapflow process."""
+"""Zenoh session configuration: one place decides modes, endpoints, scouting and security for every mocapflow process.
+
+Security settings (TLS, login, users, access control; see ``mocapflow.runtime.security``) come from the file a
+command was given, else from ``$MOCAPFLOW_SECURITY``, so that every session of a lab (router, agents, nodes, launcher,
+introspection commands) applies the same file without passwords on any command line.
+"""
 
 from __future__ import annotations
 
 import json
 from collections.abc import Sequence
+from pathlib import Path
+from typing import Literal
 
 import zenoh
 
+from mocapflow.runtime.security import SecuritySettings, load_security, security_path
+
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
+# Rejoin a restarted router within a second: agents and nodes keep their state and the stream resumes.
+RECONNECT = {"period_init_ms": 250, "period_max_ms": 1000, "period_increase_factor": 2}
 
 
-def zenoh_config(mode: str, *, listen: Sequence[str] = (), connect: Sequence[str] = ()) -> zenoh.Config:
+def zenoh_config(mode: Literal["router", "client"], *, listen: Sequence[str] = (), connect: Sequence[str] = (),
+                 security: SecuritySettings | None = None, users_file: Path | None = None) -> zenoh.Config:
     """A Zenoh config with multicast scouting and gossip off: a lab network is explicit, never discovered by chance.
 
     Timestamping is on so that model outputs can be cached for late joiners (Zenoh's advanced publisher needs it).
@@ -26,14 +38,29 @@ def zenoh_config(mode: str, *, listen: Sequence[str] = (), connect: Sequence[str
         config.insert_json5("connect/endpoints", json.dumps(list(connect)))
         # Keep retrying: a router that restarts must not end a node.
         config.insert_json5("connect/timeout_ms", "-1")
+        config.insert_json5("connect/retry", json.dumps(RECONNECT))
+    if security is not None:
+        for key, value in security.zenoh_keys(mode, users_file).items():
+            config.insert_json5(key, json.dumps(value))
     return config
 
 
-def open_client(connect: Sequence[str]) -> zenoh.Session:
-    """A client session to the given routers; used by nodes and by the CLI's introspection commands."""
-    return zenoh.open(zenoh_config("client", connect=connect or [DEFAULT_ENDPOINT]))
+def settings(security: str | Path | None = None) -> SecuritySettings | None:
+    """The security settings a session applies: from ``security``, else ``$MOCAPFLOW_SECURITY``, else none."""
+    path = security_path(security)
+    return load_security(path) if path is not None else None
 
 
-def open_router(listen: Sequence[str]) -> zenoh.Session:
-    """An embedded Zenoh router listening on ``listen``."""
-    return zenoh.open(zenoh_config("router", listen=listen or [DEFAULT_ENDPOINT]))
+def open_client(connect: Sequence[str], security: str | Path | None = None) -> zenoh.Session:
+    """A client session to the given routers; used by nodes, agents and the CLI's introspection commands."""
+    return zenoh.open(zenoh_config("client", connect=connect or [DEFAULT_ENDPOINT], security=settings(security)))
+
+
+def open_router(listen: Sequence[str], security: str | Path | None = None) -> zenoh.Session:
+    """A Zenoh router listening on ``listen``: the lab's router, or the launcher's embedded one."""
+    chosen = settings(security)
+    if chosen is None:
+        return zenoh.open(zenoh_config("router", listen=listen or [DEFAULT_ENDPOINT]))
+    with chosen.users_dictionary() as users_file:
+        return zenoh.open(zenoh_config("router", listen=listen or [DEFAULT_ENDPOINT], security=chosen,
+                                       users_file=users_file))

@@ -33,6 +33,7 @@ from mocapflow.messages import DecodeError, Message, NodeStats, decode, encode
 from mocapflow.runtime import keys
 from mocapflow.runtime.node import Node
 from mocapflow.runtime.plugins import PluginNotFound, load
+from mocapflow.runtime.security import SecurityError
 from mocapflow.runtime.session import open_client
 
 EXIT_CONFIG = 2
@@ -55,6 +56,9 @@ class WorkerSpec(BaseModel):
     peers: list[str] = Field(default_factory=list, description="nodes a source waits for before emitting")
     clock_origin_ns: int | None = Field(
         default=None, description="sources: wall-clock time of frame 0, given when resuming after a restart"
+    )
+    security: str | None = Field(
+        default=None, description="security settings file (TLS, login); its path, so no password is on a command line"
     )
 
 
@@ -285,10 +289,10 @@ def run_worker(spec: WorkerSpec) -> int:
     try:
         node_cls = load(spec.plugin)
         config = node_cls.Config.model_validate(spec.config)
-    except (PluginNotFound, ValidationError) as exc:
+        session = open_client(spec.connect, spec.security)
+    except (PluginNotFound, ValidationError, SecurityError) as exc:
         log.error("node %s: %s", spec.node, exc)
         return EXIT_CONFIG
-    session = open_client(spec.connect)
     try:
         try:
             worker = Worker(spec, node_cls, config, session)

@@ -1,0 +1,49 @@
+"""``mocapflow router [--listen ENDPOINT...] [--config FILE]``: the lab's Zenoh router, with TLS, users and access
+control from a security settings file (docs/lab-deployment.md)."""
+
+from __future__ import annotations
+
+import argparse
+import signal
+import threading
+
+PORT = 7447
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    parser = sub.add_parser("router", help="run the lab's Zenoh router (TLS, users, access control)")
+    parser.add_argument("--listen", action="append", default=[], metavar="ENDPOINT",
+                        help=f"endpoint to listen on (repeatable; default tcp/0.0.0.0:{PORT}, or tls/0.0.0.0:{PORT}"
+                             " when the settings give the router a certificate)")
+    parser.add_argument("--config", metavar="FILE", default=None,
+                        help="security settings: TLS certificate, users, access rules (default $MOCAPFLOW_SECURITY)")
+    parser.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    import zenoh
+
+    from mocapflow.runtime.session import open_router, settings
+
+    chosen = settings(args.config)
+    scheme = "tls" if chosen is not None and chosen.tls_listener else "tcp"
+    listen = args.listen or [f"{scheme}/0.0.0.0:{PORT}"]
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+
+    def on_transport(event: zenoh.TransportEvent) -> None:
+        what = "joined" if event.kind == zenoh.SampleKind.PUT else "left"
+        print(f"mocapflow router: {event.transport.whatami} {event.transport.zid} {what}", flush=True)
+
+    with open_router(listen, args.config) as session:
+        security = "no security settings" if chosen is None else ", ".join([
+            "TLS" if chosen.tls_listener else "no TLS",
+            f"{len(chosen.accepted_users())} user(s)" if chosen.accepted_users() else "no authentication",
+            "access control" if chosen.access is not None else "no access control",
+        ])
+        print(f"mocapflow router: {session.zid()} listening on {', '.join(listen)} ({security})", flush=True)
+        with session.info.declare_transport_events_listener(on_transport):
+            stop.wait()
+    print("mocapflow router: stopped", flush=True)
+    return 0
