@@ -73,6 +73,13 @@ class Node:
         """Handle one message from input ``port``. Exceptions are logged and counted; the stream goes on."""
         raise NotImplementedError(f"{type(self).__name__} declares inputs but does not implement process()")
 
+    def process_batch(self, port: str, messages: list[Message]) -> None:
+        """Handle several messages that queued up on one input while the node was busy, oldest first. Override it
+        when a batch is cheaper than one call per message (vectorised work); by default the runtime calls
+        ``process`` for each message instead, so a failing one costs only itself."""
+        for message in messages:
+            self.process(port, message)
+
     def emit(self, index: int) -> bool:
         """Sources: produce frame ``index``. Return False when the source has no more frames."""
         raise NotImplementedError(f"{type(self).__name__} is a source but does not implement emit()")
@@ -89,7 +96,7 @@ class Node:
     def describe(cls) -> dict[str, Any]:
         """Ports and config schema, as shown by ``mocapflow plugins``."""
         return {
-            "doc": (cls.__doc__ or "").strip().splitlines()[0] if cls.__doc__ else "",
+            "doc": " ".join((cls.__doc__ or "").strip().split("\n\n")[0].split()),
             "inputs": {
                 k: {"type": v.type.type_name, "required": v.required, "state": v.state, "doc": v.doc}
                 for k, v in cls.inputs.items()

@@ -40,6 +40,7 @@ EXIT_CONFIG = 2
 STATS_PERIOD_S = 0.5
 PEER_WAIT_S = 20.0
 QUEUE_CAPACITY = 100_000
+MAX_BATCH = 256
 
 log = logging.getLogger("mocapflow.worker")
 
@@ -239,26 +240,41 @@ class Worker:
         self._end_outputs()
 
     def _run_sink(self) -> None:
+        pending: tuple[str, zenoh.Sample] | None = None
         while not self.stop_event.is_set():
-            try:
-                port, sample = self.inbox.get(timeout=0.1)
-            except queue.Empty:
-                continue
+            if pending is None:
+                try:
+                    pending = self.inbox.get(timeout=0.1)
+                except queue.Empty:
+                    continue
+            port, sample = pending
+            pending = None
             if sample.kind == zenoh.SampleKind.DELETE:
                 self._open_inputs.discard(port)
                 if not self._open_inputs and not self.node.inputs[port].state:
                     self._end_outputs()
                     return
                 continue
-            self._handle(port, sample)
+            # A node that fell behind catches up on what has queued on this input since, in one batch.
+            batch = [sample]
+            while len(batch) < MAX_BATCH:
+                try:
+                    pending = self.inbox.get_nowait()
+                except queue.Empty:
+                    break
+                if pending[0] != port or pending[1].kind != zenoh.SampleKind.PUT:
+                    break
+                batch.append(pending[1])
+                pending = None
+            self._handle(port, batch)
 
-    def _handle(self, port: str, sample: zenoh.Sample) -> None:
+    def _decode(self, port: str, sample: zenoh.Sample) -> Message | None:
         spec = self.node.inputs[port]
         try:
             message = decode(sample.payload.to_bytes(), spec.type)
         except DecodeError as exc:
             self._report_error(f"input {port!r} ({sample.key_expr})", exc)
-            return
+            return None
         if not spec.state:
             self.stats.frames_in += 1
             last = self._last_frame.get(port)
@@ -268,13 +284,26 @@ class Worker:
                 else:
                     self._report_error(f"input {port!r}", ValueError(f"frame {message.frame} after {last}"))
             self._last_frame[port] = message.frame
-        try:
-            self.node.process(port, message)
-        except Exception as exc:  # a bad frame must not end the stage: log, count, go on
-            self._report_error(f"processing {port!r} frame {message.frame}", exc)
-            return
-        if not spec.state:
-            self.stats.frame_done(message.capture_ns)
+        return message
+
+    def _handle(self, port: str, samples: list[zenoh.Sample]) -> None:
+        messages = [m for m in (self._decode(port, s) for s in samples) if m is not None]
+        if type(self.node).process_batch is Node.process_batch:
+            groups = [[m] for m in messages]  # one at a time, so a bad frame costs only itself
+        else:
+            groups = [messages] if messages else []
+        for group in groups:
+            try:
+                if len(group) == 1:
+                    self.node.process(port, group[0])
+                else:
+                    self.node.process_batch(port, group)
+            except Exception as exc:  # a bad frame must not end the stage: log, count, go on
+                self._report_error(f"processing {port!r} frame {group[0].frame}", exc)
+                continue
+            if not self.node.inputs[port].state:
+                for message in group:
+                    self.stats.frame_done(message.capture_ns)
 
 
 def _die_with_parent() -> None:

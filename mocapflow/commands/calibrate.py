@@ -1,0 +1,63 @@
+"""``mocapflow calibrate IN -o SKELETON.json``: a skeleton (segments, joints, offsets) learnt from a marker file."""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+from mocapflow.errors import MocapflowError
+
+if TYPE_CHECKING:
+    from mocapflow.mocap.model import SkeletonModel
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("calibrate", help="learn a skeleton from labelled marker trajectories (.c3d or .trc)")
+    p.add_argument("input", help="labelled marker file (.c3d or .trc) of varied motion")
+    p.add_argument("-o", "--output", required=True, help="skeleton file to write (.json)")
+    p.add_argument("--segments", type=int, default=None, metavar="K",
+                   help="number of segments (default: found from the data)")
+    p.add_argument("--method", choices=["spectral", "distance-threshold"], default="spectral",
+                   help="marker clustering (default spectral)")
+    p.add_argument("--joints", choices=["variance", "closed-form"], default="variance",
+                   help="joint estimator: distance variance (Schoenauer) or closed-form centre of rotation "
+                        "(Aristidou); default variance")
+    p.add_argument("--name", default=None, help="skeleton name (default: the input file's stem)")
+    p.set_defaults(func=run)
+
+
+def summary(skeleton: SkeletonModel) -> str:
+    """The segments, joints and root of a skeleton as aligned text tables."""
+    lines = [f"{'segment':<16} {'markers':>7}  labels"]
+    for s in skeleton.segments:
+        lines.append(f"{s.name:<16} {len(s.markers):>7}  {' '.join(s.markers)}")
+    lines.append("")
+    lines.append(f"{'joint':<28} {'parent':<16} {'child':<16} {'kind':<5} {'cost':>9} {'dist mm':>8} {'sd mm':>6}")
+    for j in skeleton.joints:
+        lines.append(f"{j.name:<28} {j.parent:<16} {j.child:<16} {j.kind:<5} {j.cost:>9.3f} {j.distance_mean:>8.1f} "
+                     f"{j.distance_sd:>6.2f}")
+    lines.append("")
+    lines.append(f"root: {skeleton.root}")
+    return "\n".join(lines)
+
+
+def run(args: argparse.Namespace) -> int:
+    from mocapflow.io.markers import read_markers
+    from mocapflow.mocap.calibration import calibrate
+
+    if args.segments is not None and args.segments < 2:
+        raise MocapflowError("--segments must be at least 2")
+    data = read_markers(args.input)
+    start = time.perf_counter()
+    skeleton = calibrate(data.positions, data.labels, data.rate, segments=args.segments, method=args.method,
+                         joint_method=args.joints, name=args.name or Path(args.input).stem)
+    elapsed = time.perf_counter() - start
+    out = Path(args.output)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(skeleton.model_dump_json(indent=2))
+    print(summary(skeleton))
+    print(f"wrote {out}: {len(skeleton.segments)} segments, {len(skeleton.joints)} joints from "
+          f"{data.n_frames} frames in {elapsed:.1f} s")
+    return 0

@@ -1,0 +1,83 @@
+"""``mocapflow solve IN --skeleton SKELETON.json -o OUT``: joint centres and segment rotations in every frame."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+
+from mocapflow.errors import MocapflowError
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("solve", help="fit a calibrated skeleton to every frame of a marker file")
+    p.add_argument("input", help="labelled marker file (.c3d or .trc)")
+    p.add_argument("--skeleton", required=True, help="skeleton written by `mocapflow calibrate` (.json)")
+    p.add_argument("-o", "--output", required=True,
+                   help="output: .c3d/.trc (input markers plus one point per joint) or .json (per-frame joint "
+                        "centres and segment poses)")
+    p.set_defaults(func=run)
+
+
+def _rows(values: np.ndarray) -> list:
+    """(F, K, D) floats as nested lists with null for rows holding a NaN."""
+    rounded = np.round(values, 4)
+    known = np.isfinite(rounded).all(-1)
+    return [[row.tolist() if ok else None for row, ok in zip(frame, oks, strict=True)]
+            for frame, oks in zip(rounded, known, strict=True)]
+
+
+def run(args: argparse.Namespace) -> int:
+    import orjson
+    from pydantic import ValidationError
+
+    from mocapflow.io.markers import MarkerData, read_markers, write_markers
+    from mocapflow.mocap.model import SkeletonModel
+    from mocapflow.mocap.solve import solve
+
+    out = Path(args.output)
+    if out.suffix.lower() not in (".c3d", ".trc", ".json"):
+        raise MocapflowError(f"{out}: output must be .c3d, .trc or .json")
+    try:
+        skeleton = SkeletonModel.model_validate_json(Path(args.skeleton).read_bytes())
+    except FileNotFoundError:
+        raise MocapflowError(f"{args.skeleton}: no such file") from None
+    except ValidationError as exc:
+        raise MocapflowError(f"{args.skeleton}: not a skeleton file ({exc.error_count()} errors, first: "
+                             f"{exc.errors()[0]['msg']})") from None
+    data = read_markers(args.input)
+    missing = sorted({m for s in skeleton.segments for m in s.markers} - set(data.labels))
+    if len(missing) == sum(len(s.markers) for s in skeleton.segments):
+        raise MocapflowError(f"{args.input}: none of the skeleton's markers is in the file")
+    try:
+        pose = solve(skeleton, data.positions, data.labels, show_progress=True)
+    except ValueError as exc:
+        raise MocapflowError(f"{args.skeleton}: {exc}") from None
+    out.parent.mkdir(parents=True, exist_ok=True)
+    if out.suffix.lower() == ".json":
+        document = {
+            "skeleton": skeleton.name, "rate": data.rate, "first_frame": data.first_frame, "units": "mm",
+            "joints": pose.joint_names, "segments": pose.segment_names,
+            "parents": [pose.segment_names[p] if p >= 0 else None for p in pose.parents],
+            "frames": [
+                {"frame": data.first_frame + i, "joint_centres": centres, "rotations": rotations,
+                 "translations": translations}
+                for i, (centres, rotations, translations) in enumerate(zip(
+                    _rows(pose.joint_centres), _rows(pose.rotations), _rows(pose.translations), strict=True))
+            ],
+        }
+        out.write_bytes(orjson.dumps(document))
+    else:
+        clash = sorted(set(pose.joint_names) & set(data.labels))
+        if clash:
+            raise MocapflowError(f"joint names {', '.join(clash)} are also marker labels in {args.input}")
+        extra = {**data.extra, **{name: pose.joint_centres[:, j] for j, name in enumerate(pose.joint_names)}}
+        write_markers(out, MarkerData(positions=data.positions, labels=data.labels, rate=data.rate,
+                                      first_frame=data.first_frame, flags=data.flags, extra=extra))
+    posed = np.isfinite(pose.rotations).all(-1)
+    print(f"wrote {out}: {len(pose.joint_names)} joints over {data.n_frames} frames; segments posed in "
+          f"{100 * posed.mean():.1f} % of frames, mean marker fit {np.nanmean(pose.residual):.2f} mm")
+    if missing:
+        print(f"markers of the skeleton absent from the file: {', '.join(missing)}")
+    return 0

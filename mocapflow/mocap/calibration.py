@@ -1,0 +1,254 @@
+"""Skeleton generation with no model given: labelled trajectories in, a parameterised ``SkeletonModel`` out.
+
+The batch pipeline of Schoenauer (2007, chapter 3) with Aristidou's (2008) closed-form centres of rotation:
+
+1. segments: markers clustered by the spread of their mutual distances (``clustering``);
+2. joint costs for every pair of segments, on frames sampled every half second with a small jitter (Kirk et al.):
+   the distance-variance cost of 3.5 (``joint_method="variance"``) or the residual of the closed-form centre of
+   rotation of Aristidou 4.4 (``"closed-form"``);
+3. topology: the minimum spanning tree of those costs, rooted at the most connected segment (3.7.7);
+4. joint centres of the tree's joints, frame by frame;
+5. rigid parameters: marker and joint offsets averaged over many frames with outlier rejection (3.8.1);
+6. hinges: detected from the relative rotations, reported with their axis and placed on it (``joints``).
+
+Errors a user can act on raise ``CalibrationError`` naming what is missing: too few frames, a segment with fewer
+than two usable markers, a joint that moved too little to be located.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Sequence
+from typing import Literal
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from mocapflow.errors import CalibrationError
+from mocapflow.mocap.clustering import PARTITIONERS, distance_spread, segment_names
+from mocapflow.mocap.cor import CoREstimate, PoseFit, SequentialCoR, joint_track
+from mocapflow.mocap.joints import (
+    ALPHA,
+    distance_stats,
+    fit_joint_variance,
+    marker_centroid,
+    place_on_axis,
+    spanning_tree,
+)
+from mocapflow.mocap.model import Joint, Segment, SkeletonModel
+from mocapflow.mocap.rigid import fit_shape
+from mocapflow.progress import progress
+
+log = logging.getLogger(__name__)
+
+MIN_FRAMES = 50
+"""Fewest frames a calibration accepts."""
+MIN_VISIBLE = 0.1
+"""A marker seen in a smaller fraction of the frames is left out of the model."""
+MIN_ROTATION_DEG = 2.0
+"""Least RMS rotation between two joined segments for their joint to be located."""
+CANDIDATES = 3
+"""With the variance cost, each segment's joint is optimised towards this many most likely partners (the cheapest
+at the start); other pairs keep their cost at the start, an upper bound, which is far above any real joint's."""
+
+JointMethod = Literal["variance", "closed-form"]
+
+
+def sample_frames(frames: int, rate: float, every_s: float = 0.5, jitter_s: float = 1 / 30, at_least: int = 40,
+                  at_most: int = 120, seed: int = 0) -> np.ndarray:
+    """Sorted frame indices about every ``every_s`` seconds with a random jitter of up to ``jitter_s`` (Kirk et
+    al.'s sampling, which keeps periodic errors from lining up), between ``at_least`` and ``at_most`` of them."""
+    count = int(np.clip(round(frames / max(every_s * rate, 1.0)), min(at_least, frames), min(at_most, frames)))
+    base = np.linspace(0, frames - 1, count)
+    jitter = np.random.default_rng(seed).uniform(-1, 1, count) * jitter_s * rate
+    return np.unique(np.clip(np.round(base + jitter), 0, frames - 1).astype(int))
+
+
+def calibrate(positions: np.ndarray, labels: Sequence[str], rate: float, segments: int | None = None,
+              method: Literal["spectral", "distance-threshold"] = "spectral",
+              joint_method: JointMethod = "variance", *, hinge_placement: Literal["neighbours", "estimator"] =
+              "neighbours", name: str = "skeleton", show_progress: bool = True, **cluster_options: object,
+              ) -> SkeletonModel:
+    """Segments, topology, joints and rigid parameters of an articulated body from (F, N, 3) labelled trajectories.
+
+    ``segments`` fixes the number of segments (else the clusterer decides); ``method`` picks the clusterer and
+    ``cluster_options`` go to it (``neighbour``, ``threshold_mm``...); ``joint_method`` picks the joint estimator.
+    """
+    positions, usable = _clean(positions, labels)
+    spread = distance_spread(positions[:, usable])
+    if method not in PARTITIONERS:
+        raise ValueError(f"unknown clustering method {method!r}; choose one of {', '.join(PARTITIONERS)}")
+    groups = PARTITIONERS[method](spread, segments, **cluster_options)
+    groups = [[int(usable[i]) for i in group] for group in groups]
+    return build_skeleton(positions, labels, rate, groups, joint_method, hinge_placement=hinge_placement, name=name,
+                          show_progress=show_progress)
+
+
+def _clean(positions: np.ndarray, labels: Sequence[str]) -> tuple[np.ndarray, np.ndarray]:
+    """Positions as float64 with NaN gaps, and the indices of markers seen often enough to use."""
+    positions = np.array(positions, dtype=np.float64)
+    if positions.ndim != 3 or positions.shape[2] != 3 or positions.shape[1] != len(labels):
+        raise ValueError(f"positions must be (frames, {len(labels)}, 3), got {positions.shape}")
+    if positions.shape[0] < MIN_FRAMES:
+        raise CalibrationError(f"{positions.shape[0]} frames: calibration needs at least {MIN_FRAMES} frames of "
+                               "varied motion")
+    positions[~np.isfinite(positions).all(-1) | (positions == 0).all(-1)] = np.nan
+    seen = np.isfinite(positions).all(-1).mean(0)
+    rare = [labels[i] for i in np.flatnonzero(seen < MIN_VISIBLE)]
+    if rare:
+        log.warning("left out markers seen in under %d %% of the frames: %s", round(100 * MIN_VISIBLE), ", ".join(rare))
+    usable = np.flatnonzero(seen >= MIN_VISIBLE)
+    if len(usable) < 2:
+        raise CalibrationError("fewer than two markers are visible often enough to calibrate")
+    return positions, usable
+
+
+def build_skeleton(positions: np.ndarray, labels: Sequence[str], rate: float, groups: Sequence[Sequence[int]],
+                   joint_method: JointMethod = "variance", *,
+                   hinge_placement: Literal["neighbours", "estimator"] = "neighbours", name: str = "skeleton",
+                   show_progress: bool = True) -> SkeletonModel:
+    """Topology, joints and rigid parameters for a given partition of the markers (indices per segment)."""
+    if joint_method not in ("variance", "closed-form"):
+        raise ValueError(f"unknown joint method {joint_method!r}; choose variance or closed-form")
+    positions, _ = _clean(positions, labels)
+    frames = positions.shape[0]
+    groups = [list(g) for g in groups]
+    names = segment_names(groups, labels)
+    if len(groups) < 2:
+        raise CalibrationError("all markers form one rigid segment: there is no joint to find")
+    for seg, group in zip(names, groups, strict=True):
+        if len(group) < 2:
+            raise CalibrationError(f"segment {seg!r} has {len(group)} usable marker ({labels[group[0]]}): a segment "
+                                   "needs at least 2; ask for fewer segments or leave that marker out")
+    reference = int(np.argmax(np.isfinite(positions).all(-1).sum(1)))
+    poses = [_marker_poses(positions[:, g], reference) for g in groups]
+    if joint_method == "closed-form" and any(pose is None for pose in poses):
+        flat = [seg for seg, pose in zip(names, poses, strict=True) if pose is None]
+        raise CalibrationError(f"segments {', '.join(flat)} have fewer than 3 markers: the closed-form centre of "
+                               "rotation needs each segment's orientation; use the variance joint method")
+
+    costs = _pair_costs(positions, groups, poses, sample_frames(frames, rate), joint_method, show_progress)
+    try:
+        root, edges = spanning_tree(costs)
+    except ValueError as exc:
+        raise CalibrationError(f"no tree of joints joins the segments: {exc}") from None
+
+    chosen = np.union1d(sample_frames(frames, rate, every_s=0.05, at_least=200, at_most=600, seed=1), [reference])
+    tracks = {}
+    for parent, child in progress(edges, len(edges), "joints", enabled=show_progress):
+        start = _start_track(positions, groups, poses, parent, child, chosen)
+        if joint_method == "variance":
+            markers = positions[chosen][:, groups[parent] + groups[child]]
+            start = fit_joint_variance(markers, start, max_iterations=30).centres
+        tracks[parent, child] = start
+
+    shapes, offsets = [], {}
+    for s, group in enumerate(groups):
+        attached = [e for e in edges if s in e]
+        extras = np.stack([tracks[e] for e in attached], 1) if attached else None
+        try:
+            shape = fit_shape(positions[chosen][:, group], extras, reference=int(np.searchsorted(chosen, reference)))
+        except ValueError as exc:
+            raise CalibrationError(f"segment {names[s]!r}: {exc}") from None
+        shapes.append(shape)
+        offsets.update({(s, e): shape.extra_offsets[j] for j, e in enumerate(attached)})
+
+    rotations = {}
+    for parent, child in edges:
+        spread, est = _relative_motion(shapes[parent].pose, shapes[child].pose)
+        if spread < MIN_ROTATION_DEG:
+            raise CalibrationError(
+                f"joint '{names[parent]}-{names[child]}': {names[parent]} and {names[child]} turned only "
+                f"{spread:.1f} deg RMS relative to each other (need {MIN_ROTATION_DEG:g}); record more varied motion")
+        rotations[parent, child] = spread, est
+    joints = []
+    for parent, child in edges:
+        est = rotations[parent, child][1]
+        p_off, c_off = offsets[parent, (parent, child)], offsets[child, (parent, child)]
+        if est.is_hinge and hinge_placement == "neighbours":
+            balls = [e for e in edges if e != (parent, child) and not rotations[e][1].is_hinge]
+            p_off, c_off = place_on_axis(p_off, c_off, est.axis, est.child_axis,
+                                         [offsets[parent, e] for e in balls if parent in e],
+                                         [offsets[child, e] for e in balls if child in e])
+        pp, pc = shapes[parent].pose, shapes[child].pose
+        track = joint_track(pp.matrices(), pp.translations, pc.matrices(), pc.translations, p_off, c_off)
+        _, mean, sd = distance_stats(track, positions[chosen][:, groups[parent] + groups[child]], ALPHA)
+        joints.append(Joint(
+            name=f"{names[parent]}-{names[child]}", parent=names[parent], child=names[child],
+            kind="hinge" if est.is_hinge else "ball", parent_offset=_vec(p_off), child_offset=_vec(c_off),
+            axis=_vec(est.axis) if est.is_hinge else None, cost=float(costs[parent, child]), distance_mean=mean,
+            distance_sd=sd))
+    segments_out = [Segment(name=names[s], markers=[labels[m] for m in g],
+                            marker_offsets=[_vec(o) for o in shapes[s].marker_offsets]) for s, g in enumerate(groups)]
+    return SkeletonModel(name=name, segments=segments_out, joints=joints, root=names[root])
+
+
+def _vec(v: np.ndarray) -> tuple[float, float, float]:
+    return (float(v[0]), float(v[1]), float(v[2]))
+
+
+def _marker_poses(markers: np.ndarray, reference: int) -> PoseFit | None:
+    """Poses of a segment from its markers alone (all frames), or None when they cannot fix its orientation."""
+    if markers.shape[1] < 3:
+        return None
+    try:
+        return fit_shape(markers, reference=reference).pose
+    except ValueError:
+        return None
+
+
+def _start_track(positions: np.ndarray, groups: Sequence[Sequence[int]], poses: Sequence[PoseFit | None], a: int,
+                 b: int, frames: np.ndarray) -> np.ndarray:
+    """Initial joint centres on ``frames``: the closed-form centre of rotation (from all frames) when both
+    orientations are known, else the centroid of both segments' markers (Schoenauer's start)."""
+    pa, pb = poses[a], poses[b]
+    if pa is None or pb is None:
+        return marker_centroid(positions[frames][:, list(groups[a]) + list(groups[b])])
+    est = _closed_form(pa, pb)
+    return joint_track(pa.matrices()[frames], pa.translations[frames], pb.matrices()[frames],
+                       pb.translations[frames], est.parent_offset, est.child_offset)
+
+
+def _closed_form(parent: PoseFit, child: PoseFit) -> CoREstimate:
+    cor = SequentialCoR()
+    cor.update(parent.matrices(), parent.translations, child.matrices(), child.translations)
+    return cor.estimate()
+
+
+def _pair_costs(positions: np.ndarray, groups: Sequence[Sequence[int]], poses: Sequence[PoseFit | None],
+                frames: np.ndarray, joint_method: JointMethod, show_progress: bool) -> np.ndarray:
+    """Symmetric joint-cost matrix of every segment pair (``frames``: where the variance cost is evaluated)."""
+    n = len(groups)
+    costs = np.full((n, n), np.inf)
+    starts = {}
+    all_pairs = [(a, b) for a in range(n) for b in range(a + 1, n)]
+    for a, b in progress(all_pairs, len(all_pairs), "joint costs", enabled=show_progress):
+        if joint_method == "closed-form":
+            cost = _closed_form(poses[a], poses[b]).residual
+        else:
+            starts[a, b] = _start_track(positions, groups, poses, a, b, frames)
+            both = poses[a] is not None and poses[b] is not None
+            markers = positions[frames][:, list(groups[a]) + list(groups[b])]
+            cost = distance_stats(starts[a, b], markers)[0] if both else np.inf
+        costs[a, b] = costs[b, a] = cost
+    if joint_method == "variance":
+        shortlist = set()
+        for s in range(n):
+            partners = np.argsort(costs[s])[: CANDIDATES if poses[s] is not None else n]
+            shortlist |= {(min(s, int(o)), max(s, int(o))) for o in partners if o != s}
+        for a, b in progress(sorted(shortlist), len(shortlist), "joint optimisation", enabled=show_progress):
+            markers = positions[frames][:, list(groups[a]) + list(groups[b])]
+            costs[a, b] = costs[b, a] = fit_joint_variance(markers, starts[a, b], max_iterations=8).cost
+    return costs
+
+
+def _relative_motion(parent: PoseFit, child: PoseFit) -> tuple[float, CoREstimate | None]:
+    """RMS angle (deg) of the child's rotation relative to the parent about its mean, and the closed-form centre
+    of rotation with its hinge test (none without two frames where both poses are known)."""
+    rp, rc = parent.matrices(), child.matrices()
+    known = np.isfinite(rp).all((1, 2)) & np.isfinite(rc).all((1, 2))
+    if known.sum() < 2:
+        return 0.0, None
+    rel = Rotation.from_matrix(np.einsum("fba,fbc->fac", rp[known], rc[known]))
+    spread = float(np.degrees(np.sqrt(np.mean((rel.mean().inv() * rel).magnitude() ** 2))))
+    return spread, _closed_form(parent, child)

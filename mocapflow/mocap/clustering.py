@@ -1,0 +1,254 @@
+"""Markers to segments: markers on one rigid segment keep their mutual distances, markers across a joint do not.
+
+Both clusterers work on the spread (standard deviation over time) of every pairwise marker distance:
+
+- ``cluster_spectral`` (Schoenauer 2007, 3.4): Gaussian affinity of the spreads with the local scaling of
+  Zelnik-Manor and Perona (each marker's scale is its spread to its ``neighbour``-th nearest marker), normalised
+  affinity ``D^-1/2 W D^-1/2``, its leading eigenvectors with rows normalised, and k-means on those rows. The
+  number of segments, when not given, is where the eigenvalues drop most (the eigengap).
+- ``cluster_distance_threshold`` (Aristidou 2008, 3.2): markers whose distance spreads stay under a threshold
+  share a segment. ``linkage="complete"`` requires every pair of a segment to be under it (cliques);
+  ``linkage="single"`` links through any chain of such pairs (connected components).
+
+``SegmentTracker`` does the same on a live stream: running sums over a sliding window, O(N^2) vectorised work per
+frame, and a new ``SegmentModel`` only when the partition changes.
+"""
+
+from __future__ import annotations
+
+import os
+import warnings
+from collections import deque
+from collections.abc import Callable, Sequence
+from typing import Literal
+
+import numpy as np
+from scipy.cluster.hierarchy import fcluster, linkage as hierarchy
+from scipy.cluster.vq import kmeans2
+from scipy.spatial.distance import squareform
+
+from mocapflow.mocap.model import Segment, SegmentModel
+
+MIN_PAIR_FRAMES = 10
+"""Frames in which both markers of a pair must be visible for their distance spread to count."""
+
+
+class PairStatistics:
+    """Running count, sum and sum of squares of every pairwise marker distance (upper triangle, shifted sums).
+
+    Each pair's distances are accumulated relative to the first distance seen for it, so that adding and removing
+    thousands of frames does not lose the small variance of a rigid pair to cancellation.
+    """
+
+    def __init__(self, markers: int) -> None:
+        self.markers = markers
+        self.rows, self.cols = np.triu_indices(markers, 1)
+        pairs = len(self.rows)
+        self.count = np.zeros(pairs)
+        self.total = np.zeros(pairs)
+        self.squares = np.zeros(pairs)
+        self.shift = np.full(pairs, np.nan)
+
+    def distances(self, positions: np.ndarray) -> np.ndarray:
+        """(B, P) pairwise distances of (B, N, 3) frames, NaN where a marker is missing."""
+        return np.linalg.norm(positions[:, self.rows] - positions[:, self.cols], axis=-1)
+
+    def add(self, distances: np.ndarray, sign: float = 1.0) -> None:
+        """Add (``sign`` = 1) or remove (-1) the (B, P) distances of some frames."""
+        first = np.isnan(self.shift)
+        if first.any():
+            seen = np.isfinite(distances)
+            has = seen.any(0) & first
+            self.shift[has] = distances[np.argmax(seen[:, has], axis=0), np.flatnonzero(has)]
+        seen = np.isfinite(distances)
+        dev = np.where(seen, distances - np.nan_to_num(self.shift), 0.0)
+        self.count += sign * seen.sum(0)
+        self.total += sign * dev.sum(0)
+        self.squares += sign * (dev * dev).sum(0)
+
+    def spread(self, min_frames: int = MIN_PAIR_FRAMES) -> np.ndarray:
+        """(N, N) standard deviation of each pair's distance (mm); NaN for pairs seen together too rarely."""
+        n = np.maximum(self.count, 1)
+        var = np.maximum(self.squares / n - (self.total / n) ** 2, 0.0)
+        sd = np.where(self.count >= min_frames, np.sqrt(var), np.nan)
+        out = np.zeros((self.markers, self.markers))
+        out[self.rows, self.cols] = sd
+        out[self.cols, self.rows] = sd
+        return out
+
+
+def distance_spread(positions: np.ndarray, min_frames: int = MIN_PAIR_FRAMES, chunk: int = 512) -> np.ndarray:
+    """(N, N) standard deviation over time of every pairwise marker distance of (F, N, 3) trajectories (mm)."""
+    positions = np.asarray(positions, dtype=np.float64)
+    stats = PairStatistics(positions.shape[1])
+    for start in range(0, positions.shape[0], chunk):
+        stats.add(stats.distances(positions[start:start + chunk]))
+    return stats.spread(min_frames)
+
+
+def _groups(assignment: np.ndarray) -> list[list[int]]:
+    """Marker indices per cluster, clusters ordered by their first marker."""
+    groups: dict[int, list[int]] = {}
+    for marker, cluster in enumerate(assignment):
+        groups.setdefault(int(cluster), []).append(marker)
+    return sorted(groups.values(), key=lambda g: g[0])
+
+
+def _unseen_as_far(spread: np.ndarray) -> np.ndarray:
+    """Pairs never seen together count as far apart as the farthest pair seen (they share no evidence)."""
+    far = np.nanmax(spread) if np.isfinite(spread).any() else 1.0
+    return np.where(np.isfinite(spread), spread, max(far, 1.0))
+
+
+def spectral_embedding(spread: np.ndarray, neighbour: int = 3,
+                       floor_mm: float = 1e-3) -> tuple[np.ndarray, np.ndarray]:
+    """Eigenvalues (descending) and eigenvectors of the locally scaled, normalised affinity of a spread matrix."""
+    d = _unseen_as_far(spread)
+    n = d.shape[0]
+    ranked = np.sort(d + np.diag(np.full(n, np.inf)), axis=1)
+    sigma = np.maximum(ranked[:, min(neighbour, n - 1) - 1], floor_mm)
+    w = np.exp(-(d * d) / np.outer(sigma, sigma))
+    np.fill_diagonal(w, 0.0)
+    inv = 1.0 / np.sqrt(np.maximum(w.sum(1), 1e-300))
+    values, vectors = np.linalg.eigh(inv[:, None] * w * inv[None, :])
+    return values[::-1], vectors[:, ::-1]
+
+
+def eigengap_k(values: np.ndarray, k_max: int | None = None) -> int:
+    """Number of clusters where consecutive eigenvalues (descending) drop most."""
+    k_max = len(values) - 1 if k_max is None else min(k_max, len(values) - 1)
+    if k_max < 1:
+        return 1
+    return int(np.argmax(values[:k_max] - values[1:k_max + 1])) + 1
+
+
+def partition_spectral(spread: np.ndarray, k: int | None = None, *, neighbour: int = 3, restarts: int = 10,
+                       seed: int = 0) -> list[list[int]]:
+    """Spectral clustering of a spread matrix (see ``cluster_spectral``)."""
+    n = spread.shape[0]
+    if n == 0:
+        return []
+    if n == 1:
+        return [[0]]
+    values, vectors = spectral_embedding(spread, neighbour)
+    k = eigengap_k(values) if k is None else int(k)
+    if not 1 <= k <= n:
+        raise ValueError(f"cannot make {k} segments from {n} markers")
+    if k == 1:
+        return [list(range(n))]
+    x = vectors[:, :k]
+    y = x / np.maximum(np.linalg.norm(x, axis=1, keepdims=True), 1e-300)
+    rng = np.random.default_rng(seed)
+    best, best_cost = None, np.inf
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # an empty cluster in one restart is simply a worse restart
+        for _ in range(restarts):
+            centres, labels = kmeans2(y, k, minit="++", rng=rng)
+            if len(np.unique(labels)) < k:
+                continue
+            cost = float(((y - centres[labels]) ** 2).sum())
+            if cost < best_cost - 1e-12:
+                best, best_cost = labels, cost
+    if best is None:
+        raise ValueError(f"k-means found no {k} non-empty clusters")
+    return _groups(best)
+
+
+def partition_threshold(spread: np.ndarray, k: int | None = None, *, threshold_mm: float = 5.0,
+                        linkage: Literal["complete", "single"] = "complete") -> list[list[int]]:
+    """Threshold clustering of a spread matrix (see ``cluster_distance_threshold``)."""
+    n = spread.shape[0]
+    if n <= 1:
+        return [list(range(n))]
+    tree = hierarchy(squareform(_unseen_as_far(spread), checks=False), method=linkage)
+    if k is None:
+        labels = fcluster(tree, t=threshold_mm, criterion="distance")
+    else:
+        labels = fcluster(tree, t=int(k), criterion="maxclust")
+    return _groups(labels)
+
+
+def cluster_spectral(positions: np.ndarray, k: int | None = None, *, neighbour: int = 3, restarts: int = 10,
+                     seed: int = 0) -> list[list[int]]:
+    """Segments of (F, N, 3) trajectories by spectral clustering (Schoenauer 3.4.2 with Zelnik-Manor-Perona scaling).
+
+    ``k`` segments, or as many as the eigengap says. ``neighbour`` picks the local scale (small: segments have few
+    markers); k-means is restarted ``restarts`` times from seeded k-means++ starts and the tightest result kept.
+    Returns marker indices per segment.
+    """
+    return partition_spectral(distance_spread(positions), k, neighbour=neighbour, restarts=restarts, seed=seed)
+
+
+def cluster_distance_threshold(positions: np.ndarray, k: int | None = None, *, threshold_mm: float = 5.0,
+                               linkage: Literal["complete", "single"] = "complete") -> list[list[int]]:
+    """Segments of (F, N, 3) trajectories: markers whose distance spreads stay under ``threshold_mm`` (Aristidou 3.2).
+
+    With ``k`` given, the threshold is the one that yields exactly ``k`` segments (Schoenauer 3.4.1). Returns marker
+    indices per segment.
+    """
+    return partition_threshold(distance_spread(positions), k, threshold_mm=threshold_mm, linkage=linkage)
+
+
+PARTITIONERS: dict[str, Callable[..., list[list[int]]]] = {
+    "spectral": partition_spectral,
+    "distance-threshold": partition_threshold,
+}
+"""Clustering methods by name, each taking a spread matrix and ``k``."""
+
+
+def segment_names(groups: Sequence[Sequence[int]], labels: Sequence[str]) -> list[str]:
+    """A readable, unique name per segment: its markers' common label prefix (``LTH1..LTH4`` -> ``LTH``) when that
+    is at least two characters and unique, else ``segment<i>``."""
+    names = []
+    for i, group in enumerate(groups):
+        prefix = os.path.commonprefix([labels[m] for m in group]).rstrip("_-: ") if len(group) > 1 else ""
+        names.append(prefix if len(prefix) >= 2 else f"segment{i}")
+    counts = {name: names.count(name) for name in names}
+    return [name if counts[name] == 1 else f"segment{i}" for i, name in enumerate(names)]
+
+
+def segment_model(groups: Sequence[Sequence[int]], labels: Sequence[str]) -> SegmentModel:
+    """The ``SegmentModel`` of a partition given as marker indices."""
+    names = segment_names(groups, labels)
+    return SegmentModel(segments=[Segment(name=name, markers=[labels[m] for m in group])
+                                  for name, group in zip(names, groups, strict=True)])
+
+
+class SegmentTracker:
+    """Streaming clusterer: distance spreads over a sliding window, re-clustered every ``every`` frames.
+
+    ``update`` returns a ``SegmentModel`` after the warm-up (``warmup`` frames, default one window) whenever the
+    partition differs from the last one returned, else None. ``options`` go to the partitioner (``k``,
+    ``neighbour``, ``threshold_mm``...).
+    """
+
+    def __init__(self, labels: Sequence[str], *, window: int = 600, warmup: int | None = None, every: int = 30,
+                 method: Literal["spectral", "distance-threshold"] = "spectral", **options: object) -> None:
+        if method not in PARTITIONERS:
+            raise ValueError(f"unknown clustering method {method!r}; choose one of {', '.join(PARTITIONERS)}")
+        self.labels = list(labels)
+        self.window = window
+        self.warmup = window if warmup is None else warmup
+        self.every = every
+        self.partition = PARTITIONERS[method]
+        self.options = options
+        self.stats = PairStatistics(len(self.labels))
+        self.history: deque[np.ndarray] = deque()
+        self.frames = 0
+        self.current: list[list[int]] | None = None
+
+    def update(self, frame_positions: np.ndarray) -> SegmentModel | None:
+        """Add one (N, 3) frame (NaN for missing markers)."""
+        d = self.stats.distances(np.asarray(frame_positions, dtype=np.float64)[None])
+        self.stats.add(d)
+        self.history.append(d)
+        if len(self.history) > self.window:
+            self.stats.add(self.history.popleft(), -1.0)
+        self.frames += 1
+        if self.frames < self.warmup or (self.frames - self.warmup) % self.every:
+            return None
+        groups = self.partition(self.stats.spread(), **self.options)
+        if groups == self.current:
+            return None
+        self.current = groups
+        return segment_model(groups, self.labels)

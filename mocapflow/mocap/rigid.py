@@ -1,0 +1,103 @@
+"""Rigid parameters of segments (Schoenauer 2007, 3.8.1): marker and joint offsets averaged over many frames.
+
+Each segment is lined up with its reference-frame shape in every usable frame by Horn's method (``cor.fit_pose``);
+the markers and joint centres then form a cloud of positions per point in the segment frame. Frames whose fit
+residual is far above the typical one are dropped, and in each cloud the samples farther from the mean than the
+cloud's standard deviation are dropped before averaging again. The averages are the segment's marker offsets and its
+joint offsets, in the frame of ``model.py``: origin at the markers' centroid, axes parallel to the world in the
+reference frame.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from mocapflow.mocap.cor import PoseFit, fit_pose
+from mocapflow.mocap.model import SkeletonModel
+
+RESIDUAL_MADS = 4.0
+"""A frame is an outlier when its fit residual exceeds the median by this many (normal-scaled) MADs."""
+
+
+@dataclass
+class SegmentShape:
+    """A segment's averaged shape and its pose in every frame."""
+
+    marker_offsets: np.ndarray  # (n, 3) in the segment frame
+    extra_offsets: np.ndarray  # (k, 3) joint centres in the segment frame
+    pose: PoseFit  # per frame, against marker_offsets (and extra_offsets when the markers alone do not suffice);
+    # NaN where the visible points do not fix all three angles
+    frames_used: int
+
+
+def robust_mean(cloud: np.ndarray) -> np.ndarray:
+    """Mean of a (F, 3) cloud after dropping samples farther from the first mean than its standard deviation
+    (Schoenauer 3.8.1 step 4); NaN samples are ignored."""
+    cloud = cloud[np.isfinite(cloud).all(1)]
+    if len(cloud) == 0:
+        return np.full(3, np.nan)
+    mean = cloud.mean(0)
+    dist = np.linalg.norm(cloud - mean, axis=1)
+    sigma = np.sqrt((dist ** 2).mean())
+    keep = dist <= sigma
+    return cloud[keep].mean(0) if keep.any() else mean
+
+
+def inlier_frames(residual: np.ndarray) -> np.ndarray:
+    """Frames whose fit residual is not an outlier (median + ``RESIDUAL_MADS`` scaled MADs); NaN residuals excluded."""
+    finite = np.isfinite(residual)
+    if not finite.any():
+        return finite
+    med = np.median(residual[finite])
+    mad = 1.4826 * np.median(np.abs(residual[finite] - med))
+    return finite & (residual <= med + RESIDUAL_MADS * max(mad, 1e-9))
+
+
+def fit_shape(markers: np.ndarray, extras: np.ndarray | None = None, reference: int | None = None,
+              iterations: int = 2) -> SegmentShape:
+    """Averaged marker (and joint) offsets of one segment from (F, n, 3) markers and (F, k, 3) joint centres.
+
+    The pose is fitted on the markers when there are at least three, else on markers and joint centres together
+    (Schoenauer treats both alike, which lets a two-marker segment turn about its marker line). Only frames where
+    every point is present are used; ``reference`` is the frame whose orientation defines the axes (default: the
+    first complete one). The shape is refitted ``iterations`` times against the averaged one (generalised Procrustes).
+    Raises ValueError when no frame has every point, or none of those fixes the orientation.
+    """
+    markers = np.asarray(markers, dtype=np.float64)
+    frames, n, _ = markers.shape
+    extras = np.zeros((frames, 0, 3)) if extras is None else np.asarray(extras, dtype=np.float64)
+    points = np.concatenate([markers, extras], axis=1)
+    fit_count = n if n >= 3 else points.shape[1]
+    complete = np.isfinite(points).all((1, 2))
+    if not complete.any():
+        raise ValueError("no frame shows every marker and joint of the segment")
+    ref = int(np.argmax(complete)) if reference is None or not complete[reference] else reference
+    shape = points[ref] - points[ref, :n].mean(0)
+    used = complete
+    for _ in range(iterations):
+        pose = fit_pose(shape[:fit_count], points[:, :fit_count])
+        used = complete & pose.determined & inlier_frames(np.where(complete, pose.residual, np.nan))
+        if not used.any():
+            raise ValueError("no frame fixes the segment's orientation (its points are in a line)")
+        local = np.einsum("fba,fnb->fna", pose.matrices()[used], points[used] - pose.translations[used, None])
+        shape = np.stack([robust_mean(local[:, j]) for j in range(points.shape[1])])
+        shape -= shape[:n].mean(0)
+    pose = fit_pose(shape[:fit_count], points[:, :fit_count])
+    pose.rotations[~pose.determined] = np.nan
+    pose.translations[~pose.determined] = np.nan
+    return SegmentShape(shape[:n], shape[n:], pose, int(used.sum()))
+
+
+def bone_lengths(skeleton: SkeletonModel) -> dict[tuple[str, str], float]:
+    """Distance (mm) between every two joints on the same segment, keyed by the two joint names: a bone's length
+    when the segment has one joint at each end."""
+    on_segment: dict[str, list[tuple[str, np.ndarray]]] = {}
+    for j in skeleton.joints:
+        if j.parent_offset is None or j.child_offset is None:
+            raise ValueError(f"joint {j.name!r} has no offsets: calibrate the skeleton first")
+        on_segment.setdefault(j.parent, []).append((j.name, np.asarray(j.parent_offset)))
+        on_segment.setdefault(j.child, []).append((j.name, np.asarray(j.child_offset)))
+    return {(a, b): float(np.linalg.norm(pa - pb))
+            for joints in on_segment.values() for i, (a, pa) in enumerate(joints) for b, pb in joints[i + 1:]}

@@ -1,0 +1,124 @@
+"""Fit a calibrated rigid skeleton to marker data, frame by frame (Schoenauer 2007, 3.8.2).
+
+The root is aligned with its markers by Horn's method; every other segment, from the root down, only rotates about
+its joint with its parent, which stays where the parent puts it, so the skeleton never comes apart. Like the thesis's
+implementation, a segment's fit also uses the joints its children's own markers place. A segment is posed in a frame
+when it has one point (marker, or joint placed by a child) besides its pivot, or two without one; when the points fix
+only one direction the rotation is the one closest to the previous frame's that matches it
+(``cor.fit_pose(hold=True)``).
+
+The result holds everything a motion file needs: world rotations and origins of every segment and the joint centres,
+per frame; ``local_rotations`` gives each segment's rotation relative to its parent (what BVH channels store).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from mocapflow.mocap.cor import fit_pose, joint_track, quaternion_matrices
+from mocapflow.mocap.model import Segment, SkeletonModel
+from mocapflow.progress import progress
+
+
+@dataclass
+class SkeletonPose:
+    """A skeleton's motion: per frame, each segment's pose (``world = R @ local + t``) and each joint's centre."""
+
+    segment_names: list[str]
+    joint_names: list[str]
+    parents: list[int]  # per segment: index of its parent segment, -1 for the root
+    rotations: np.ndarray  # (F, S, 4) scalar-last quaternions, NaN where the segment could not be posed
+    translations: np.ndarray  # (F, S, 3) segment origins in mm
+    joint_centres: np.ndarray  # (F, J, 3) mm
+    residual: np.ndarray  # (F, S) RMS distance between fitted and observed markers, mm
+
+    def local_rotations(self) -> np.ndarray:
+        """(F, S, 4) rotation of each segment relative to its parent (the root's is its world rotation)."""
+        world = quaternion_matrices(self.rotations)
+        parent = world[:, [p if p >= 0 else s for s, p in enumerate(self.parents)]]
+        local = np.where(np.array([p >= 0 for p in self.parents])[None, :, None, None],
+                         np.einsum("fsba,fsbc->fsac", parent, world), world)
+        out = np.full(self.rotations.shape, np.nan)
+        known = np.isfinite(local).all((-1, -2))
+        if known.any():
+            out[known] = Rotation.from_matrix(local[known]).as_quat()
+        return out
+
+
+def _observed(segment: Segment, positions: np.ndarray, column: dict[str, int]) -> tuple[np.ndarray, np.ndarray]:
+    """A segment's marker offsets (n, 3) and their observed trajectories (F, n, 3), NaN for absent labels."""
+    if segment.marker_offsets is None:
+        raise ValueError(f"segment {segment.name!r} has no marker offsets: calibrate the skeleton first")
+    observed = np.full((positions.shape[0], len(segment.markers), 3), np.nan)
+    for k, label in enumerate(segment.markers):
+        if label in column:
+            observed[:, k] = positions[:, column[label]]
+    return np.asarray(segment.marker_offsets, dtype=np.float64), observed
+
+
+def _place(matrices: np.ndarray, translations: np.ndarray, offset: Sequence[float]) -> np.ndarray:
+    return np.einsum("fab,b->fa", matrices, np.asarray(offset, dtype=np.float64)) + translations
+
+
+def solve(skeleton: SkeletonModel, positions: np.ndarray, labels: Sequence[str], *,
+          show_progress: bool = False) -> SkeletonPose:
+    """Pose the rigid ``skeleton`` in every frame of (F, N, 3) labelled trajectories (NaN gaps).
+
+    Each segment is fitted to its visible markers plus, like Schoenauer's implementation, the joints it shares with
+    its children wherever a child's own markers place them; non-root segments turn about the joint placed by their
+    parent. Where the parent's pose was not fixed by data in a frame and the segment has three points of its own, it
+    is fitted freely instead, so that a guessed orientation does not spread down the chain. Markers of the skeleton
+    missing from ``labels`` count as never seen. Raises ValueError when the skeleton is not calibrated (no offsets).
+    """
+    positions = np.asarray(positions, dtype=np.float64)
+    frames = positions.shape[0]
+    column = {label: i for i, label in enumerate(labels)}
+    names = [s.name for s in skeleton.segments]
+    index = {n: i for i, n in enumerate(names)}
+    for j in skeleton.joints:
+        if j.parent_offset is None or j.child_offset is None:
+            raise ValueError(f"joint {j.name!r} has no offsets: calibrate the skeleton first")
+    inner = {j.child: j for j in skeleton.joints}
+    parents = [index[inner[n].parent] if n in inner else -1 for n in names]
+    order = [index[skeleton.root]]
+    for s in order:
+        order += [index[j.child] for j in skeleton.joints if j.parent == names[s]]
+    data = [_observed(segment, positions, column) for segment in skeleton.segments]
+    alone = [fit_pose(local, observed) for local, observed in data]
+    rotations = np.full((frames, len(names), 4), np.nan)
+    translations = np.full((frames, len(names), 3), np.nan)
+    residual = np.full((frames, len(names)), np.nan)
+    determined = np.zeros((frames, len(names)), bool)
+    for s in progress(order, len(order), "solve", enabled=show_progress):
+        local, observed = data[s]
+        outer = [j for j in skeleton.joints if j.parent == names[s]]
+        extra_local = np.array([j.parent_offset for j in outer]).reshape(-1, 3)
+        extra_world = np.stack([
+            np.where(alone[index[j.child]].determined[:, None],
+                     _place(alone[index[j.child]].matrices(), alone[index[j.child]].translations, j.child_offset),
+                     np.nan) for j in outer], axis=1) if outer else np.zeros((frames, 0, 3))
+        points_local = np.concatenate([local, extra_local])
+        points = np.concatenate([observed, extra_world], axis=1)
+        pivot_local = pivot_world = None
+        if parents[s] >= 0:
+            joint, p = inner[names[s]], parents[s]
+            pivot_local = np.asarray(joint.child_offset, dtype=np.float64)
+            pivot_world = _place(quaternion_matrices(rotations[:, p]), translations[:, p], joint.parent_offset)
+            own = np.isfinite(points).all(-1).sum(1) >= 3
+            pivot_world[~determined[:, p] & own] = np.nan
+        fit = fit_pose(points_local, points, pivot_local, pivot_world, hold=True)
+        rotations[:, s], translations[:, s], determined[:, s] = fit.rotations, fit.translations, fit.determined
+        fitted = np.einsum("fab,nb->fna", fit.matrices(), local) + fit.translations[:, None]
+        seen = np.isfinite(observed).all(-1)
+        err = np.where(seen, ((fitted - observed) ** 2).sum(-1), 0.0).sum(1)
+        residual[:, s] = np.where(seen.any(1), np.sqrt(err / np.maximum(seen.sum(1), 1)), np.nan)
+    matrices = quaternion_matrices(rotations)
+    centres = np.stack([
+        joint_track(matrices[:, index[j.parent]], translations[:, index[j.parent]], matrices[:, index[j.child]],
+                    translations[:, index[j.child]], np.asarray(j.parent_offset), np.asarray(j.child_offset))
+        for j in skeleton.joints], axis=1) if skeleton.joints else np.zeros((frames, 0, 3))
+    return SkeletonPose(names, [j.name for j in skeleton.joints], parents, rotations, translations, centres, residual)
