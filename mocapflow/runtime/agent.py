@@ -36,12 +36,19 @@ from pydantic import BaseModel, Field, ValidationError
 
 from mocapflow.errors import MocapflowError
 from mocapflow.messages import DecodeError, NodeStats, decode
+from mocapflow.runtime.keys import (
+    agent_key,
+    deploy_key,
+    launcher_key,
+    log_key,
+    procs_key,
+    stop_key,
+)
 from mocapflow.runtime.plugins import PluginNotFound, load
 from mocapflow.runtime.session import open_client
 from mocapflow.runtime.supervisor import Proc, Supervisor
 from mocapflow.runtime.worker import WorkerSpec
 
-AGENTS = "mocapflow/_agents"
 STATUS_PERIOD_S = 1.0
 LAUNCHER_GRACE_S = 5.0
 
@@ -50,30 +57,6 @@ log = logging.getLogger("mocapflow.agent")
 
 class AgentError(MocapflowError):
     """Agents needed by a graph are missing, refuse a deployment, or were lost for good."""
-
-
-def agent_key(name: str = "*") -> str:
-    return f"{AGENTS}/{name}"
-
-
-def deploy_key(name: str) -> str:
-    return f"{AGENTS}/{name}/deploy"
-
-
-def stop_key(name: str) -> str:
-    return f"{AGENTS}/{name}/stop"
-
-
-def procs_key(prefix: str, node: str = "*") -> str:
-    return f"{prefix}/_procs/{node}"
-
-
-def log_key(prefix: str, machine: str = "*") -> str:
-    return f"{prefix}/_log/{machine}"
-
-
-def launcher_key(prefix: str, run: str = "*") -> str:
-    return f"{prefix}/_launcher/{run}"
 
 
 class Placement(BaseModel):

@@ -1,4 +1,5 @@
-"""Key expressions: data on ``{prefix}/{node}/{output}``; runtime services under reserved ``_`` chunks."""
+"""Key expressions: data on ``{prefix}/{node}/{output}``; runtime services under reserved ``_`` chunks
+(docs/wire-format.md and docs/lab-deployment.md list them all)."""
 
 from __future__ import annotations
 
@@ -17,3 +18,30 @@ def alive_key(prefix: str, node: str = "*") -> str:
 
 def schema_key(prefix: str, type_name: str = "*") -> str:
     return f"{prefix}/_schema/{type_name}"
+
+
+AGENTS = "mocapflow/_agents"
+
+
+def agent_key(name: str = "*") -> str:
+    return f"{AGENTS}/{name}"
+
+
+def deploy_key(name: str) -> str:
+    return f"{AGENTS}/{name}/deploy"
+
+
+def stop_key(name: str) -> str:
+    return f"{AGENTS}/{name}/stop"
+
+
+def procs_key(prefix: str, node: str = "*") -> str:
+    return f"{prefix}/_procs/{node}"
+
+
+def log_key(prefix: str, machine: str = "*") -> str:
+    return f"{prefix}/_log/{machine}"
+
+
+def launcher_key(prefix: str, run: str = "*") -> str:
+    return f"{prefix}/_launcher/{run}"

@@ -35,15 +35,17 @@ from mocapflow.runtime.agent import (
     Deployment,
     Placement,
     ProcStatus,
+    keep_clock_origin,
+)
+from mocapflow.runtime.graph import NAME, Graph
+from mocapflow.runtime.keys import (
     agent_key,
     deploy_key,
-    keep_clock_origin,
     launcher_key,
     log_key,
     procs_key,
     stop_key,
 )
-from mocapflow.runtime.graph import NAME, Graph
 from mocapflow.runtime.node import Node
 from mocapflow.runtime.security import security_path
 from mocapflow.runtime.session import DEFAULT_ENDPOINT, open_client, open_router
