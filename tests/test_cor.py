@@ -126,6 +126,36 @@ def test_sequential_cor_detects_a_hinge_and_picks_the_minimum_norm_point_on_its_
     assert abs(est.parent_offset @ axis + est.child_offset @ axis) < 1.0
 
 
+def test_a_near_hinge_with_skin_artefact_is_located_along_its_axis_only_within_its_axial_uncertainty() -> None:
+    # a knee: flexion plus +-0.1 rad of other rotations, and a 5 mm artefact of the child's cluster that follows the
+    # joint angles (as soft tissue does); exact poses otherwise
+    rng = np.random.default_rng(11)
+    frames = 800
+    t = np.arange(frames) / 100
+    parent_joint, child_joint = np.array([10.0, -20.0, -180.0]), np.array([-5.0, 15.0, 160.0])
+    rp = Rotation.from_rotvec(rng.normal(size=(frames, 3)) * 0.8)
+    angles = np.column_stack([0.1 * np.sin(2.3 * t), 0.6 + 0.6 * np.sin(t), 0.1 * np.sin(3.1 * t + 1)])
+    rc = rp * Rotation.from_rotvec(angles)
+    tp = rng.normal(size=(frames, 3)) * 300
+    tc = rp.apply(parent_joint) + tp - rc.apply(child_joint)
+    tc += rc.apply(5.0 * np.column_stack([np.sin(2.3 * t), np.cos(t), np.sin(3.1 * t + 1)]))
+    cor = SequentialCoR()
+    cor.update(rp.as_matrix(), tp, rc.as_matrix(), tc)
+    est = cor.estimate()
+    assert not est.is_hinge and abs(abs(est.axis[1]) - 1) < 0.01  # not an exact hinge; its axis is the flexion's
+    along = abs((est.parent_offset - parent_joint) @ est.axis)
+    across = np.linalg.norm(est.parent_offset - parent_joint - (est.parent_offset - parent_joint) @ est.axis * est.axis)
+    assert along > 10.0 > across  # the artefact moves the centre along the axis, hardly across it
+    assert along < est.axial_uncertainty
+    # the leverage is what moving the centre along the axis (the parent's side refitted) adds to the mean misfit
+    shift = 20.0
+    q = est.child_offset + shift * est.child_axis
+    rpm, rcm = rp.as_matrix(), rc.as_matrix()
+    p = np.einsum("fba,fb->fa", rpm, np.einsum("fab,b->fa", rcm, q) + tc - tp).mean(0)
+    misfit = np.einsum("fab,b->fa", rpm, p) + tp - np.einsum("fab,b->fa", rcm, q) - tc
+    assert np.isclose((misfit ** 2).sum(1).mean(), est.residual ** 2 + est.leverage * shift ** 2, rtol=1e-6)
+
+
 def test_joint_track_uses_the_visible_side_during_occlusions() -> None:
     s = _two_segments(frames=50, noise=0.0)
     rp, rc = s["rp"].as_matrix(), s["rc"].as_matrix()

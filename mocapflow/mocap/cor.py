@@ -170,10 +170,17 @@ class CoREstimate:
     axis: np.ndarray  # (3,) unit direction of least relative rotation (the hinge axis), in the parent's frame
     child_axis: np.ndarray  # (3,) the same direction in the child's frame
     frames: int
+    leverage: float  # mean squared misfit (mm^2) that moving the centre 1 mm along the axis adds (parent refitted)
 
     @property
     def is_hinge(self) -> bool:
         return self.ratio < HINGE_RATIO
+
+    @property
+    def axial_uncertainty(self) -> float:
+        """Largest shift of the centre along the axis (mm) that a misfit as large as the residual can cause: the
+        estimate moves by ``<J a, e> / |J a|^2 <= |e| / |J a|`` (Cauchy-Schwarz) for an artefact ``e``."""
+        return self.residual / np.sqrt(self.leverage) if self.leverage > 0 else np.inf
 
     def __iter__(self) -> Iterator:
         """Unpacks as ``parent_offset, child_offset, residual = estimate``."""
@@ -256,7 +263,8 @@ class SequentialCoR:
             shift = -(p @ axis + q @ axis_child) / 2
             p, q = p + shift * axis, q + shift * axis_child
         sse = m * (p @ p + q @ q) - 2 * p @ s @ q + 2 * p @ u - 2 * q @ v + self.dd
-        return CoREstimate(p, q, float(np.sqrt(max(sse, 0.0) / m)), ratio, axis, axis_child, self.m)
+        return CoREstimate(p, q, float(np.sqrt(max(sse, 0.0) / m)), ratio, axis, axis_child, self.m,
+                           float(max(values[0], 0.0) / m))
 
 
 def joint_track(parent_r: np.ndarray, parent_t: np.ndarray, child_r: np.ndarray, child_t: np.ndarray,
