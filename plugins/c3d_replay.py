@@ -1,4 +1,10 @@
-"""File tracker: replays a C3D or TRC recording in real time, as a tracker would stream it."""
+"""File tracker: replays a C3D or TRC recording in real time, as a tracker would stream it.
+
+The file goes through ``read_markers``, the reader of the offline commands, so both see the same numbers: positions
+in mm whatever the file's unit, zeros and invalid residuals as missing, ``Subject:`` label prefixes dropped when
+unambiguous, labels past 255 (POINT:LABELS2...) kept, analog channels and model outputs skipped. A file that cannot
+be read (not C3D/TRC, truncated, no points) stops the node at start with a one-line reason naming the file.
+"""
 
 from __future__ import annotations
 
@@ -18,8 +24,9 @@ class ReplayConfig(BaseModel):
     path: str = Field(description="C3D or TRC file to replay")
     speed: float = Field(default=1.0, gt=0, le=100, description="time factor: 2 replays twice as fast")
     loop: bool = Field(default=False, description="start again at the end instead of ending the stream")
-    start: int = Field(default=0, ge=0, description="first frame to replay (0 = the file's first)")
-    end: int | None = Field(default=None, ge=1, description="replay up to this frame, exclusive (none = to the end)")
+    start: int = Field(default=0, ge=0, description="first frame to replay, counted from the file's first (0)")
+    end: int | None = Field(default=None, ge=1, description="replay up to this frame, exclusive, counted like start "
+                            "(none = to the end)")
     unlabelled: bool = Field(default=False, description="strip labels and shuffle points, like a passive tracker")
     seed: int = Field(default=0, description="shuffle seed in unlabelled mode")
 
@@ -31,8 +38,9 @@ class ReplayConfig(BaseModel):
 
 
 class FileReplay(Node):
-    """Streams a marker file at its own rate (times ``speed``); frame numbers count from 0 and keep rising when
-    looping, so downstream stages see one continuous capture."""
+    """Streams a marker file at its own rate (times ``speed``). Frame numbers are the file's own (its first frame
+    number plus the row), so a recording of the stream is numbered like the file; when looping they keep rising, so
+    downstream stages see one continuous capture. The stream ends after the last frame unless looping."""
 
     Config = ReplayConfig
     outputs = {"markers": Output(MarkerFrame, doc="the file's markers, labelled or as an unlabelled point cloud")}
@@ -44,6 +52,9 @@ class FileReplay(Node):
         if config.start >= end:
             raise ValueError(f"{config.path}: start frame {config.start} is past the last frame ({end - 1})")
         self.positions = data.positions[config.start:end]
+        if not np.isfinite(self.positions).all(axis=2).any():
+            raise ValueError(f"{config.path}: no marker position in frames {config.start} to {end - 1}")
+        self.first_frame = data.first_frame + config.start
         self.labels = data.labels
         self.file_rate = data.rate
         self.rate = data.rate * config.speed
@@ -59,6 +70,6 @@ class FileReplay(Node):
             points = points[~np.isnan(points).any(axis=1)]
             points = points[np.random.default_rng([self.config.seed, index]).permutation(len(points))]
             labels = None
-        self.publish("markers", MarkerFrame(frame=index, capture_ns=time.time_ns(), rate=self.file_rate,
-                                            positions=points, labels=labels))
+        self.publish("markers", MarkerFrame(frame=self.first_frame + index, capture_ns=time.time_ns(),
+                                            rate=self.file_rate, positions=points, labels=labels))
         return True

@@ -26,7 +26,9 @@ class RecorderConfig(BaseModel):
 
 
 class Recorder(Node):
-    """Writes every received frame at its frame number; frames that never arrived are left missing (NaN)."""
+    """Writes every received frame at its frame number; frames that never arrived are left missing (NaN). Joint
+    centres become one extra point per joint name ever received (the skeleton may change during a run), missing in
+    frames whose pose lacks that joint."""
 
     Config = RecorderConfig
     inputs = {
@@ -38,15 +40,14 @@ class Recorder(Node):
         super().__init__(config, publish, name)
         self.frames: dict[int, np.ndarray] = {}
         self.flags: dict[int, np.ndarray] = {}
-        self.joints: dict[int, np.ndarray] = {}
+        self.joints: dict[str, dict[int, np.ndarray]] = {}  # joint name -> frame -> centre
         self.labels: list[str] | None = None
-        self.joint_names: list[str] = []
         self.rate = 0.0
 
     def process(self, port: str, message: MarkerFrame | Pose) -> None:
         if isinstance(message, Pose):
-            self.joint_names = message.joint_names
-            self.joints[message.frame] = message.joint_centres
+            for name, centre in zip(message.joint_names, message.joint_centres, strict=True):
+                self.joints.setdefault(name, {})[message.frame] = centre
             return
         if self.labels is None and message.labels is not None:
             self.labels = message.labels
@@ -69,12 +70,11 @@ class Recorder(Node):
                 flags[i - first, : len(p)] = self.flags[i]
         labels = self.labels if self.labels and len(self.labels) == width else [f"P{i + 1:03d}" for i in range(width)]
         extra = {}
-        for j, name in enumerate(self.joint_names):
-            track = np.full((last - first + 1, 3), np.nan)
-            for i, centres in self.joints.items():
+        for name, centres in self.joints.items():
+            track = extra[name] = np.full((last - first + 1, 3), np.nan)
+            for i, centre in centres.items():
                 if first <= i <= last:
-                    track[i - first] = centres[j]
-            extra[name] = track
+                    track[i - first] = centre
         path = Path(self.config.path)
         path.parent.mkdir(parents=True, exist_ok=True)
         write_markers(path, MarkerData(positions=positions, labels=labels, rate=self.rate, first_frame=first,

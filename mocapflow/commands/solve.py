@@ -1,4 +1,5 @@
-"""``mocapflow solve IN --skeleton SKELETON.json -o OUT``: joint centres and segment rotations in every frame."""
+"""``mocapflow solve IN --skeleton SKELETON.json -o OUT``: joint centres and segment rotations in every frame, written
+as marker points (.c3d/.trc), per-frame JSON, or a BVH animation (.bvh) for animation tools."""
 
 from __future__ import annotations
 
@@ -15,8 +16,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("input", help="labelled marker file (.c3d or .trc)")
     p.add_argument("--skeleton", required=True, help="skeleton written by `mocapflow calibrate` (.json)")
     p.add_argument("-o", "--output", required=True,
-                   help="output: .c3d/.trc (input markers plus one point per joint) or .json (per-frame joint "
-                        "centres and segment poses)")
+                   help="output: .c3d/.trc (input markers plus one point per joint), .json (per-frame joint "
+                        "centres and segment poses) or .bvh (the skeleton's animation)")
+    p.add_argument("--bvh-order", default="ZXY", choices=["ZXY", "XYZ", "ZYX", "YXZ", "XZY", "YZX"],
+                   help="Euler order of the BVH rotation channels (default ZXY)")
     p.set_defaults(func=run)
 
 
@@ -32,13 +35,14 @@ def run(args: argparse.Namespace) -> int:
     import orjson
     from pydantic import ValidationError
 
+    from mocapflow.io.bvh import skeleton_bvh, write_bvh
     from mocapflow.io.markers import MarkerData, read_markers, write_markers
     from mocapflow.mocap.model import SkeletonModel
     from mocapflow.mocap.solve import solve
 
     out = Path(args.output)
-    if out.suffix.lower() not in (".c3d", ".trc", ".json"):
-        raise MocapflowError(f"{out}: output must be .c3d, .trc or .json")
+    if out.suffix.lower() not in (".c3d", ".trc", ".json", ".bvh"):
+        raise MocapflowError(f"{out}: output must be .c3d, .trc, .json or .bvh")
     try:
         skeleton = SkeletonModel.model_validate_json(Path(args.skeleton).read_bytes())
     except FileNotFoundError:
@@ -68,6 +72,11 @@ def run(args: argparse.Namespace) -> int:
             ],
         }
         out.write_bytes(orjson.dumps(document))
+    elif out.suffix.lower() == ".bvh":
+        try:
+            write_bvh(out, skeleton_bvh(skeleton, pose, data.rate, args.bvh_order))
+        except ValueError as exc:
+            raise MocapflowError(f"{args.skeleton}: cannot be written as BVH: {exc}") from None
     else:
         clash = sorted(set(pose.joint_names) & set(data.labels))
         if clash:

@@ -74,8 +74,8 @@ def is_c3d(path: Path) -> bool:
 def _check_layout(path: Path) -> tuple[int, int]:
     """Check the header and parameter records against the file before ezc3d sees it: (first frame, frame count).
 
-    ezc3d reads a truncated file silently (fewer frames) and trusts every size the file declares, so those are
-    checked here.
+    ezc3d reads a truncated file silently (fewer frames), trusts every size the file declares and crashes on a file
+    with no 3D points, so those are checked here.
     """
     try:
         size = path.stat().st_size
@@ -106,6 +106,8 @@ def _check_layout(path: Path) -> tuple[int, int]:
         raise MocapFileError(f"{path}: corrupt C3D header (data start block {data_start})")
     if size < expected:
         raise MocapFileError(f"{path}: truncated C3D file ({size} bytes, the header announces {expected})")
+    if n_points == 0:  # ezc3d 1.7 crashes (segfault) on a file of analog channels only
+        raise MocapFileError(f"{path}: the C3D file holds no 3D points")
     with path.open("rb") as stream:
         stream.seek((parameter_block - 1) * BLOCK)
         section = stream.read(MAX_PARAMETER_BLOCKS * BLOCK)
