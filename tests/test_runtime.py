@@ -180,3 +180,45 @@ def test_introspection_commands_see_a_live_run(tmp_path: Path, free_endpoint: st
     finally:
         out, _ = run.communicate(timeout=60)
     assert run.returncode == 0, out
+
+
+def test_model_reaches_a_node_that_starts_late(tmp_path: Path, free_endpoint: str) -> None:
+    """The joint estimator publishes its skeleton once; a skeleton publisher restarted later still receives it from
+    the model cache and goes on posing every frame."""
+    from mocapflow.mocap.simulator import simulate, truth_skeleton
+
+    sim = Simulator(SimulatorConfig(rig="rods", rate=RATE, seed=3))
+    reference = simulate(SimulatorConfig(rig="rods", rate=RATE, seed=3, noise_mm=0.0), 1).true_positions[0]
+    skeleton_file = tmp_path / "rods.json"
+    skeleton_file.write_text(truth_skeleton(sim.rig, reference).model_dump_json())
+    name = f"late{free_endpoint.rsplit(':', 1)[1]}"
+    prefix = f"mocapflow/{name}"
+    path = tmp_path / "late.yaml"
+    path.write_text(f"""
+name: {name}
+zenoh: {{listen: ["{free_endpoint}"]}}
+nodes:
+  tracker: {{plugin: simulator, config: {{rig: rods, rate: {RATE}, seed: 3, frames: {8 * RATE}}}}}
+  joints: {{plugin: joints-closed-form, inputs: {{markers: tracker/markers}},
+            config: {{skeleton: {skeleton_file}, refine: false}}}}
+  skeleton: {{plugin: skeleton, inputs: {{markers: tracker/markers, skeleton: joints/skeleton}}}}
+  recorder: {{plugin: recorder, inputs: {{markers: tracker/markers, pose: skeleton/pose}},
+              config: {{path: {tmp_path / 'late.c3d'}}}}}
+""")
+    run = start(["run", str(path)], tmp_path)
+    wait_for_frames(free_endpoint, prefix, "skeleton", 2 * RATE)
+    os.kill(worker_pid(prefix, "skeleton"), signal.SIGKILL)
+    out, _ = run.communicate(timeout=60)
+    assert run.returncode == 0, out
+    assert "[skeleton] stopped" in out and "restart 1" in out
+    c3d = ezc3d.c3d(str(tmp_path / "late.c3d"))
+    labels = c3d["parameters"]["POINT"]["LABELS"]["value"]
+    joint = c3d["data"]["points"][:3, labels.index(sim.joint_names[0])].T  # (F, 3)
+    posed = ~np.isnan(joint[:, 0])
+    # posed before the kill (from the frame after the model was published), not while the node was down, and again
+    # after its restart, to the last frame
+    runs = np.split(posed, np.flatnonzero(np.diff(posed.astype(int))) + 1)
+    posed_runs = [len(r) for r in runs if r[0]]
+    assert posed[-1] and len(posed_runs) == 2 and posed_runs[0] > RATE and posed_runs[1] > RATE, posed_runs
+    truth = np.stack([sim.frame(i).joint_centres[0] for i in range(len(joint))])
+    assert np.nanmax(np.linalg.norm(joint - truth, axis=1)) < 5.0

@@ -163,3 +163,33 @@ def validate(graph: Graph, source: str = "graph") -> dict[str, type[Node]]:
     if errors:
         raise GraphError(f"{source}: " + "; ".join(errors) if len(errors) == 1 else f"{source}:\n  " + "\n  ".join(errors))
     return classes
+
+
+def end_inputs(graph: Graph, classes: dict[str, type[Node]]) -> dict[str, list[str]]:
+    """For each node, the data inputs whose end of stream it waits for before finishing.
+
+    That is every linked data input, except feedback: an input whose source node is itself fed, directly or not, by
+    this node (the labeller's predictions from the filler) ends only after this node has ended, so waiting for it
+    would never finish. Waiting for the others (a recorder's poses, not only its markers) loses no tail frame.
+    """
+    feeds: dict[str, set[str]] = {name: set() for name in graph.nodes}
+    for name, spec in graph.nodes.items():
+        for link in spec.inputs.values():
+            feeds[link.partition("/")[0]].add(name)
+
+    def downstream(start: str) -> set[str]:
+        seen, todo = set(), [start]
+        while todo:
+            for nxt in feeds[todo.pop()]:
+                if nxt not in seen:
+                    seen.add(nxt)
+                    todo.append(nxt)
+        return seen
+
+    return {
+        name: sorted(
+            port for port, link in spec.inputs.items()
+            if not classes[name].inputs[port].state and link.partition("/")[0] not in downstream(name)
+        )
+        for name, spec in graph.nodes.items()
+    }

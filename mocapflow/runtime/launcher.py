@@ -37,7 +37,7 @@ from mocapflow.runtime.agent import (
     ProcStatus,
     keep_clock_origin,
 )
-from mocapflow.runtime.graph import NAME, Graph
+from mocapflow.runtime.graph import NAME, Graph, end_inputs
 from mocapflow.runtime.keys import (
     agent_key,
     deploy_key,
@@ -306,12 +306,13 @@ class Launcher:
                 " router: pass --connect ENDPOINT (see docs/lab-deployment.md), or remove 'machine' to run here"
             )
         endpoints = self.connect or client_endpoints(self.listen)
+        ends = end_inputs(graph, classes)
         all_procs = {
             name: Proc(
                 spec=WorkerSpec(
                     node=name, plugin=spec.plugin, config=spec.config, prefix=self.prefix,
                     inputs={p: f"{self.prefix}/{link}" for p, link in spec.inputs.items()},
-                    connect=endpoints, peers=list(graph.nodes),
+                    connect=endpoints, peers=list(graph.nodes), end_inputs=ends[name],
                     security=str(self.security) if self.security else None,
                 ),
                 source=classes[name].is_source(), restart=spec.restart, max_restarts=spec.max_restarts,

@@ -24,7 +24,8 @@ class NoConfig(BaseModel):
 @dataclass(frozen=True)
 class Input:
     """An input port. ``state`` inputs carry models (segments, skeleton): a late joiner receives the latest one at
-    once. A ``required`` data input must be linked, and the node finishes when all of them have ended."""
+    once. A ``required`` input must be linked. A node finishes when every data input it is fed by (feedback loops
+    aside, see ``graph.end_inputs``) has ended."""
 
     type: type[Message]
     required: bool = True

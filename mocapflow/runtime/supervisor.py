@@ -120,8 +120,11 @@ class Supervisor:
         """Sources first, then let end-of-stream drain the graph, then terminate, then kill. ``tick`` runs while
         waiting (the launcher prints logs from it)."""
         self.stopping = True
-        self._signal([p for p in self.procs.values() if p.source], signal.SIGTERM)
-        for grace, sig in ((DRAIN_S, signal.SIGTERM), (TERM_S, signal.SIGKILL), (TERM_S, None)):
+        sources = [p for p in self.procs.values() if p.source]
+        self._signal(sources, signal.SIGTERM)
+        # A source that failed sent no end of stream: nothing downstream of it would drain, so do not wait for it.
+        drain = DRAIN_S if not any(p.state in ("failed", "restarting") for p in sources) else 0.0
+        for grace, sig in ((drain, signal.SIGTERM), (TERM_S, signal.SIGKILL), (TERM_S, None)):
             deadline = time.monotonic() + grace
             while self.alive() and time.monotonic() < deadline:
                 self.poll()

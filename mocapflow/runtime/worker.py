@@ -5,7 +5,8 @@ locks), paces sources in real time, publishes statistics, holds a liveliness tok
 cleanly on end of stream or SIGTERM.
 
 End of stream is a Zenoh DELETE sample on a data key: a source sends it when it has no more frames, and a node sends
-it on its own outputs once every required data input has ended, so a finite run drains in order and stops by itself.
+it on its own outputs once every data input it waits for has ended (``graph.end_inputs``: all linked data inputs
+but feedback), so a finite run drains in order and stops by itself.
 
 Exit codes: 0 finished; 2 configuration error (never restarted); anything else is a crash the supervisor may restart.
 """
@@ -55,6 +56,9 @@ class WorkerSpec(BaseModel):
     inputs: dict[str, str] = Field(default_factory=dict, description="input port -> key expression")
     connect: list[str] = Field(default_factory=list)
     peers: list[str] = Field(default_factory=list, description="nodes a source waits for before emitting")
+    end_inputs: list[str] | None = Field(
+        default=None, description="inputs whose end of stream ends the node (default: its required data inputs)"
+    )
     clock_origin_ns: int | None = Field(
         default=None, description="sources: wall-clock time of frame 0, given when resuming after a restart"
     )
@@ -129,7 +133,7 @@ class Worker:
                 )
         self.node = node_cls(config, self._publish, spec.node)
         self._subscribers = [self._subscribe(port, key) for port, key in spec.inputs.items()]
-        self._open_inputs = {
+        self._open_inputs = set(spec.end_inputs) if spec.end_inputs is not None else {
             p for p, i in node_cls.inputs.items() if i.required and not i.state and p in spec.inputs
         }
         self._stats_pub = session.declare_publisher(

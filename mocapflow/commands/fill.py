@@ -1,0 +1,82 @@
+"""``mocapflow fill IN -o OUT [--skeleton SKELETON.json]``: fill marker gaps frame by frame, exactly as the live
+filler would (it never looks ahead), and record in the output's flags how each sample was obtained."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+
+from mocapflow.errors import MocapflowError
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("fill", help="fill occluded markers with the real-time Kalman and rigid-body filler")
+    p.add_argument("input", help="labelled marker file (.c3d or .trc)")
+    p.add_argument("-o", "--output", required=True, help="filled marker file (.c3d or .trc): same labels and order")
+    p.add_argument("--skeleton", help="skeleton (.json, from `mocapflow calibrate`); without one, segments, shapes "
+                                      "and joints are learned from the frames seen so far")
+    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                   help="filler setting, e.g. --set joint_anchors=hidden (fields of FillerConfig)")
+    p.add_argument("--joints", action="store_true",
+                   help="also write the skeleton's joint centres, tracked through occlusions, as extra points")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    import yaml
+    from pydantic import ValidationError
+
+    from mocapflow.io.markers import MarkerData, read_markers, write_markers
+    from mocapflow.mocap.filler import FillCase, FillerConfig, GapFiller
+    from mocapflow.plugins.joints import load_skeleton
+    from mocapflow.progress import progress
+
+    out = Path(args.output)
+    if out.suffix.lower() not in (".c3d", ".trc"):
+        raise MocapflowError(f"{out}: output must be .c3d or .trc")
+    values = {}
+    for item in args.overrides:
+        key, sep, value = item.partition("=")
+        if not sep:
+            raise MocapflowError(f"--set {item!r}: expected KEY=VALUE")
+        values[key] = yaml.safe_load(value)
+    try:
+        config = FillerConfig.model_validate(values)
+    except ValidationError as exc:
+        raise MocapflowError("; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in exc.errors())) from None
+    skeleton = load_skeleton(args.skeleton) if args.skeleton else None
+    if args.joints and skeleton is None:
+        raise MocapflowError("--joints needs --skeleton: learned joints come and go while they are learned")
+    data = read_markers(args.input)
+    if skeleton is not None and not {m for s in skeleton.segments for m in s.markers} & set(data.labels):
+        raise MocapflowError(f"{args.input}: none of the skeleton's markers is in the file")
+
+    filler = GapFiller(data.labels, data.rate, config, skeleton)
+    positions = np.full(data.positions.shape, np.nan)
+    flags = np.zeros(data.positions.shape[:2], dtype=np.uint8)
+    joints = [j.name for j in skeleton.joints] if args.joints and skeleton is not None else []
+    centres = {name: np.full((data.n_frames, 3), np.nan) for name in joints}
+    for f in progress(range(data.n_frames), data.n_frames, "fill"):
+        result = filler.update(data.positions[f])
+        positions[f], flags[f] = result.positions, result.flags
+        if joints and result.joint_centres is not None:  # by name: learned joint offsets change the body
+            for name, centre in zip(filler.joint_names, result.joint_centres, strict=True):
+                if name in centres:
+                    centres[name][f] = centre
+
+    extra = dict(data.extra)
+    for name, track in centres.items():
+        extra[name if name not in data.labels else f"joint_{name}"] = track
+    out.parent.mkdir(parents=True, exist_ok=True)
+    write_markers(out, MarkerData(positions=positions, labels=data.labels, rate=data.rate,
+                                  first_frame=data.first_frame, flags=flags, extra=extra))
+    counts = np.bincount(flags.ravel(), minlength=len(FillCase))
+    missing_before = int((~np.isfinite(data.positions).all(-1)).sum())
+    filled = ", ".join(f"{case.name.lower().replace('_', ' ')} {counts[case]}" for case in FillCase
+                       if case > FillCase.OBSERVED and counts[case])
+    print(f"wrote {out}: {data.n_frames} frames, {data.n_markers} markers; {missing_before} missing samples, "
+          f"{missing_before - counts[FillCase.MISSING]} filled ({filled or 'none'}), "
+          f"{counts[FillCase.MISSING]} left missing")
+    return 0

@@ -1,0 +1,74 @@
+"""``mocapflow label IN -o OUT``: unlabelled point clouds to labelled marker trajectories."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from mocapflow.errors import MocapflowError
+
+if TYPE_CHECKING:
+    from mocapflow.mocap.labelling import LabellerConfig
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("label", help="give every marker of an unlabelled C3D/TRC capture one persistent label")
+    p.add_argument("input", help="C3D or TRC file of unlabelled points (slot order meaningless from frame to frame)")
+    p.add_argument("-o", "--output", required=True, help="labelled .c3d or .trc file to write")
+    p.add_argument("--gate", type=float, metavar="MM", help="largest frame-to-frame prediction error (default 30)")
+    p.add_argument("--reid-gate", type=float, metavar="MM",
+                   help="largest error when a lost marker is found again from its neighbours (default 30)")
+    p.add_argument("--confirm", type=int, metavar="FRAMES",
+                   help="frames a new point must live to count as a marker, not a ghost (default 5)")
+    p.add_argument("--markers", type=int, metavar="N", help="number of physical markers, when known")
+    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                   help="any other labeller setting, e.g. --set max_coast_s=0.2 (see mocapflow.mocap.labelling)")
+    p.set_defaults(func=run)
+
+
+def _config(args: argparse.Namespace) -> LabellerConfig:
+    """LabellerConfig from the options; a bad value is a one-line error naming the setting."""
+    import yaml
+    from pydantic import ValidationError
+
+    from mocapflow.mocap.labelling import LabellerConfig
+
+    values = {}
+    for item in args.overrides:
+        key, sep, value = item.partition("=")
+        if not sep:
+            raise MocapflowError(f"--set {item!r}: expected KEY=VALUE")
+        values[key.strip()] = yaml.safe_load(value)
+    named = {"gate_mm": args.gate, "reid_gate_mm": args.reid_gate, "confirm_frames": args.confirm,
+             "expected_markers": args.markers}
+    values.update({key: value for key, value in named.items() if value is not None})
+    try:
+        return LabellerConfig.model_validate(values)
+    except ValidationError as exc:
+        raise MocapflowError("; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in exc.errors())) from None
+
+
+def run(args: argparse.Namespace) -> int:
+    from mocapflow.io.markers import MarkerData, read_markers, write_markers
+    from mocapflow.mocap.labelling import label_sequence
+    from mocapflow.progress import progress
+
+    config = _config(args)
+    data = read_markers(args.input)
+    points = data.positions
+    if not np.isfinite(points).all(axis=2).any():
+        raise MocapflowError(f"{args.input}: no points to label")
+    tracks, labels = label_sequence(progress(points, len(points), "label"), data.rate, config)
+    if not labels:
+        raise MocapflowError(f"{args.input}: no point lived long enough to be a marker (see --confirm)")
+    out = Path(args.output)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    write_markers(out, MarkerData(positions=tracks, labels=labels, rate=data.rate, first_frame=data.first_frame))
+    given = int(np.isfinite(points).all(axis=2).sum())
+    kept = int(np.isfinite(tracks).all(axis=2).sum())
+    print(f"wrote {out}: {len(labels)} markers over {len(tracks)} frames at {data.rate:g} Hz; "
+          f"{kept}/{given} points labelled ({100.0 * kept / given:.2f} %), the rest dropped as ghosts")
+    return 0

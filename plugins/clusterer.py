@@ -1,0 +1,65 @@
+"""Limb clusterers: which markers form rigid segments, from the spread of their mutual distances."""
+
+from __future__ import annotations
+
+from typing import ClassVar, Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from mocapflow.messages import MarkerFrame, Segments
+from mocapflow.mocap.clustering import SegmentTracker
+from mocapflow.runtime.node import Input, Node, Output
+
+
+class ClustererConfig(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    window_s: float = Field(default=5.0, gt=0, description="sliding window of distance statistics (s)")
+    every_s: float = Field(default=0.5, gt=0, description="how often the partition is computed again (s)")
+    segments: int | None = Field(default=None, ge=2, description="number of segments; none: chosen from the data")
+
+
+class DistanceClustererConfig(ClustererConfig):
+    threshold_mm: float = Field(default=5.0, gt=0, description="largest distance spread within a segment (mm)")
+
+
+class SpectralClusterer(Node):
+    """Spectral clustering of the distance-spread graph with local scaling (Schoenauer 2007, 3.4). Publishes a
+    segment model after one window and again only when it changes."""
+
+    Config: ClassVar[type[ClustererConfig]] = ClustererConfig
+    method: ClassVar[Literal["spectral", "distance-threshold"]] = "spectral"
+    inputs = {"markers": Input(MarkerFrame, doc="labelled markers")}
+    outputs = {"segments": Output(Segments, state=True, doc="the current segment model")}
+
+    def __init__(self, config: ClustererConfig, publish, name: str = "clusterer") -> None:  # noqa: ANN001
+        super().__init__(config, publish, name)
+        self.tracker: SegmentTracker | None = None
+
+    def options(self) -> dict[str, object]:
+        return {"k": self.config.segments}
+
+    def process(self, port: str, message: MarkerFrame) -> None:
+        if message.labels is None:
+            raise ValueError("the clusterer needs labelled markers: link it after a labeller")
+        if self.tracker is None or self.tracker.labels != message.labels:
+            # new markers were confirmed upstream: start the statistics again over the new set
+            window = max(2, round(self.config.window_s * message.rate))
+            self.tracker = SegmentTracker(message.labels, window=window,
+                                          every=max(1, round(self.config.every_s * message.rate)),
+                                          method=self.method, **self.options())
+        model = self.tracker.update(message.positions)
+        if model is not None:
+            self.log.info("segments: %s", "; ".join(f"{s.name}: {' '.join(s.markers)}" for s in model.segments))
+            self.publish("segments", Segments(frame=message.frame, capture_ns=message.capture_ns,
+                                              segments=model.segments))
+
+
+class DistanceClusterer(SpectralClusterer):
+    """Markers whose mutual distances vary less than a threshold form a segment (Aristidou 2008, 3.2)."""
+
+    Config = DistanceClustererConfig
+    method = "distance-threshold"
+
+    def options(self) -> dict[str, object]:
+        return {"k": self.config.segments, "threshold_mm": self.config.threshold_mm}

@@ -1,0 +1,97 @@
+"""Joint estimators: centres of rotation between segments, topology and rigid parameters -> the skeleton model."""
+
+from __future__ import annotations
+
+from collections import deque
+from pathlib import Path
+from typing import ClassVar, Literal
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+
+from mocapflow.errors import CalibrationError
+from mocapflow.messages import MarkerFrame, Segments, Skeleton
+from mocapflow.mocap.calibration import build_skeleton
+from mocapflow.mocap.model import SkeletonModel
+from mocapflow.runtime.node import Input, Node, Output
+
+
+class JointsConfig(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    skeleton: str | None = Field(default=None, description="SKELETON.json to publish at once (no warm-up)")
+    refine: bool = Field(default=True, description="estimate the skeleton again from live data")
+    window_s: float = Field(default=20.0, gt=0, description="recent motion the estimate uses (s)")
+    every_s: float = Field(default=5.0, gt=0, description="time between two estimates (s)")
+
+
+def load_skeleton(path: str | Path) -> SkeletonModel:
+    """A SKELETON.json written by ``mocapflow calibrate``."""
+    try:
+        return SkeletonModel.model_validate_json(Path(path).read_text())
+    except OSError as exc:
+        raise CalibrationError(f"{path}: cannot read the skeleton: {exc.strerror}") from None
+    except ValueError as exc:
+        raise CalibrationError(f"{path}: not a skeleton file: {str(exc).splitlines()[0]}") from None
+
+
+class VarianceJoints(Node):
+    """Joint positions minimising the variance of marker-to-joint distances (Schoenauer 2007, 3.5), topology by
+    minimum spanning tree, rigid parameters by Horn's method; recomputed over a sliding window of recent frames."""
+
+    Config = JointsConfig
+    joint_method: ClassVar[Literal["variance", "closed-form"]] = "variance"
+    inputs = {
+        "markers": Input(MarkerFrame, doc="labelled (or filled) markers"),
+        "segments": Input(Segments, required=False, state=True, doc="segment model; without it no estimate is made"),
+    }
+    outputs = {"skeleton": Output(Skeleton, state=True, doc="the current skeleton model")}
+
+    def __init__(self, config: JointsConfig, publish, name: str = "joints") -> None:  # noqa: ANN001
+        super().__init__(config, publish, name)
+        self.seed = load_skeleton(config.skeleton) if config.skeleton else None
+        self.published = False
+        self.segments: Segments | None = None
+        self.frames: deque[np.ndarray] = deque()
+        self.labels: list[str] | None = None
+        self.next_estimate = 0
+
+    def process(self, port: str, message: MarkerFrame | Segments) -> None:
+        if isinstance(message, Segments):
+            self.segments = message
+            return
+        if self.seed is not None and not self.published:
+            self.published = True
+            self.publish("skeleton", Skeleton(frame=message.frame, capture_ns=message.capture_ns, skeleton=self.seed))
+        if not self.config.refine or message.labels is None:
+            return
+        if message.labels != self.labels:
+            self.labels, self.next_estimate = message.labels, 0
+            self.frames.clear()
+        self.frames.append(message.positions)
+        window = round(self.config.window_s * message.rate)
+        while len(self.frames) > window:
+            self.frames.popleft()
+        self.next_estimate -= 1
+        if self.segments is None or self.next_estimate > 0 or len(self.frames) < window // 2:
+            return
+        self.next_estimate = round(self.config.every_s * message.rate)
+        index = {label: i for i, label in enumerate(self.labels)}
+        groups = [[index[m] for m in s.markers if m in index] for s in self.segments.segments]
+        try:
+            skeleton = build_skeleton(np.stack(self.frames), self.labels, message.rate, [g for g in groups if g],
+                                      self.joint_method, show_progress=False)
+        except CalibrationError as exc:
+            self.log.warning("no skeleton yet: %s", exc)
+            return
+        self.published = True
+        self.log.info("skeleton: root %s, joints %s", skeleton.root,
+                      ", ".join(f"{j.parent}-{j.child}" for j in skeleton.joints))
+        self.publish("skeleton", Skeleton(frame=message.frame, capture_ns=message.capture_ns, skeleton=skeleton))
+
+
+class ClosedFormJoints(VarianceJoints):
+    """Centres of rotation by the closed-form least-squares solution of Aristidou 2008, 4.4 (6 x 6 system, Schur
+    complement), topology by minimum spanning tree; recomputed over a sliding window of recent frames."""
+
+    joint_method = "closed-form"

@@ -1,0 +1,56 @@
+"""Skeleton publisher: per-frame segment rotations and joint centres of the parameterised skeleton."""
+
+from __future__ import annotations
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+
+from mocapflow.messages import MarkerFrame, Pose, Skeleton
+from mocapflow.mocap.model import SkeletonModel
+from mocapflow.mocap.solve import solve
+from mocapflow.plugins.joints import load_skeleton
+from mocapflow.runtime.node import Input, Node, Output
+
+
+class SkeletonConfig(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    skeleton: str | None = Field(default=None, description="SKELETON.json to use until a model arrives")
+
+
+class SkeletonPublisher(Node):
+    """Fits the rigid skeleton to each frame, root first (Schoenauer 2007, 3.8.2). Fed with filled markers, joint
+    centres stay available through occlusions."""
+
+    Config = SkeletonConfig
+    inputs = {
+        "markers": Input(MarkerFrame, doc="labelled, preferably filled, markers"),
+        "skeleton": Input(Skeleton, required=False, state=True, doc="the skeleton model to fit"),
+    }
+    outputs = {"pose": Output(Pose, doc="joint centres and segment rotations")}
+
+    def __init__(self, config: SkeletonConfig, publish, name: str = "skeleton") -> None:  # noqa: ANN001
+        super().__init__(config, publish, name)
+        self.model: SkeletonModel | None = load_skeleton(config.skeleton) if config.skeleton else None
+
+    def process(self, port: str, message: MarkerFrame | Skeleton) -> None:
+        self.process_batch(port, [message])
+
+    def process_batch(self, port: str, messages: list[MarkerFrame | Skeleton]) -> None:
+        """Frames that queued up are solved together: the solver is vectorised over frames."""
+        if port == "skeleton":
+            self.model = messages[-1].skeleton
+            return
+        labels = messages[0].labels
+        if self.model is None or labels is None:
+            return
+        if any(m.labels != labels for m in messages):  # the marker set changed inside the batch: split it
+            cut = next(i for i, m in enumerate(messages) if m.labels != labels)
+            self.process_batch(port, messages[:cut])
+            self.process_batch(port, messages[cut:])
+            return
+        pose = solve(self.model, np.stack([m.positions for m in messages]).astype(np.float64), labels)
+        for i, m in enumerate(messages):
+            self.publish("pose", Pose(frame=m.frame, capture_ns=m.capture_ns, joint_names=pose.joint_names,
+                                      joint_centres=pose.joint_centres[i], segment_names=pose.segment_names,
+                                      rotations=pose.rotations[i], translations=pose.translations[i]))

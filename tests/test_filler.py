@@ -1,0 +1,345 @@
+"""Occlusion filling against ground truth: every occlusion case of Aristidou 2008 ch. 5 on simulated and real data,
+causality, unfillable markers, degenerate input, and the vectorised Kalman bank against filterpy's filter."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from filterpy.kalman import KalmanFilter
+
+from mocapflow.mocap.filler import FillCase, FillerConfig, GapFiller, fill_sequence, kabsch, nearest_on_circle
+from mocapflow.mocap.kalman import ConstantVelocityBank
+from mocapflow.mocap.model import SkeletonModel
+from mocapflow.mocap.rigs import make_rig
+from mocapflow.mocap.simulator import SimRecording, SimulatorConfig, simulate, truth_skeleton
+
+RATE = 120.0
+GAP = slice(300, 300 + 360)  # 3 s
+CAMERA = np.array([4000.0, -3000.0, 2000.0])
+
+
+@pytest.fixture(scope="module")
+def rec() -> SimRecording:
+    return simulate(SimulatorConfig(rig="human", rate=RATE, noise_mm=0.5, skin_mm=1.0, seed=7), GAP.stop + 60)
+
+
+@pytest.fixture(scope="module")
+def skeleton(rec: SimRecording) -> SkeletonModel:
+    return truth_skeleton(make_rig("human"), rec.true_positions[0])
+
+
+def markers(skeleton: SkeletonModel, segment: str) -> list[str]:
+    return next(s.markers for s in skeleton.segments if s.name == segment)
+
+
+def fill_gap(rec: SimRecording, skeleton: SkeletonModel | None, hidden: list[str], rays: bool = False,
+             config: FillerConfig | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[int]]:
+    """Delete ``hidden`` markers over GAP, fill; returns filled positions, flags, joint centres and the indices."""
+    idx = [rec.labels.index(m) for m in hidden]
+    x = rec.positions.copy()
+    x[GAP, idx] = np.nan
+    filler = GapFiller(rec.labels, rec.rate, config, skeleton)
+    out, flags, centres = [], [], []
+    for f in range(len(x)):
+        ray = None
+        if rays and GAP.start <= f < GAP.stop:
+            ray = np.full((len(rec.labels), 6), np.nan)
+            ray[idx, :3] = CAMERA
+            ray[idx, 3:] = rec.true_positions[f, idx] - CAMERA
+        result = filler.update(x[f], ray)
+        out.append(result.positions)
+        flags.append(result.flags)
+        centres.append(result.joint_centres if skeleton is not None else np.zeros((0, 3)))
+    return np.array(out), np.array(flags), np.array(centres, dtype=float), idx
+
+
+def gap_error(rec: SimRecording, out: np.ndarray, idx: list[int]) -> float:
+    return float(np.linalg.norm(out[GAP, idx] - rec.true_positions[GAP, idx], axis=-1).mean())
+
+
+def joint_error(rec: SimRecording, centres: np.ndarray, joints: list[str]) -> float:
+    j = [rec.joint_names.index(name) for name in joints]
+    return float(np.linalg.norm(centres[GAP][:, j] - rec.joint_centres[GAP][:, j], axis=-1).mean())
+
+
+@pytest.mark.parametrize(("case", "hidden", "code", "bound_mm", "joints", "cor_mm"), [
+    ("one missing", [("left_forearm", 0)], FillCase.ONE_MISSING, 3.0, ["left_elbow", "left_wrist"], 3.0),
+    ("two missing", [("left_forearm", 0), ("left_forearm", 1)], FillCase.TWO_MISSING, 4.0,
+     ["left_elbow", "left_wrist"], 3.0),
+    ("all missing, neighbours visible", [("left_shank", i) for i in range(4)], FillCase.VIA_JOINT, 6.0,
+     ["left_knee", "left_ankle"], 3.0),
+    ("one on each of two segments", [("right_thigh", 0), ("right_shank", 1)], FillCase.ONE_MISSING, 3.0,
+     ["right_knee"], 3.0),
+])
+def test_case_error_against_truth(rec: SimRecording, skeleton: SkeletonModel, case: str,
+                                  hidden: list[tuple[str, int]], code: FillCase, bound_mm: float, joints: list[str],
+                                  cor_mm: float) -> None:
+    names = [markers(skeleton, seg)[i] for seg, i in hidden]
+    out, flags, centres, idx = fill_gap(rec, skeleton, names)
+    assert (flags[GAP][:, idx] == code).all(), case
+    assert gap_error(rec, out, idx) < bound_mm
+    assert joint_error(rec, centres, joints) < cor_mm
+
+
+def test_both_segments_hidden_stays_attached(rec: SimRecording, skeleton: SkeletonModel) -> None:
+    """Forearm and hand hidden: the forearm hangs from the elbow (code 5), the hand from the estimated wrist
+    (code 6); the hand never leaves the reach of the elbow, unlike a free-running constant rotor."""
+    hand, forearm = markers(skeleton, "left_hand"), markers(skeleton, "left_forearm")
+    out, flags, centres, idx = fill_gap(rec, skeleton, forearm + hand)
+    assert (flags[GAP][:, idx[:3]] == FillCase.VIA_JOINT).all()
+    assert (flags[GAP][:, idx[3:]] == FillCase.CONSTANT_ROTOR).all()
+    elbow = centres[GAP][:, rec.joint_names.index("left_elbow")]
+    reach = np.linalg.norm(rec.true_positions[:, idx[3:]] - rec.joint_centres[:, [rec.joint_names.index(
+        "left_elbow")]], axis=-1).max()
+    assert (np.linalg.norm(out[GAP][:, idx[3:]] - elbow[:, None], axis=-1) <= reach + 5).all()
+    assert np.isfinite(out[GAP][:, idx]).all()
+
+
+def test_single_camera_rays(rec: SimRecording, skeleton: SkeletonModel) -> None:
+    """Markers seen by one camera (5.3.5): better than the same gap without the ray."""
+    names = [markers(skeleton, "left_forearm")[0], markers(skeleton, "left_upper_arm")[1]]
+    out, flags, _, idx = fill_gap(rec, skeleton, names, rays=True)
+    assert (flags[GAP][:, idx] == FillCase.RAY).all()
+    with_rays = gap_error(rec, out, idx)
+    without, _, _, _ = fill_gap(rec, skeleton, names)
+    assert with_rays < 1.2
+    assert with_rays < gap_error(rec, without, idx)
+
+
+def test_thesis_mode_is_worse_than_default(rec: SimRecording, skeleton: SkeletonModel) -> None:
+    """The thesis's choices (joints only for hidden segments, constant rotor) against the defaults, two missing."""
+    names = markers(skeleton, "left_forearm")[:2]
+    default, _, _, idx = fill_gap(rec, skeleton, names)
+    thesis, _, _, _ = fill_gap(rec, skeleton, names, config=FillerConfig(joint_anchors="hidden",
+                                                                           hidden_rotation="rotor"))
+    assert gap_error(rec, default, idx) < gap_error(rec, thesis, idx)
+
+
+def test_kalman_only_without_segments(rec: SimRecording) -> None:
+    """No skeleton and no learning: a short dropout is bridged by the marker's filter (code 2); a long gap is given
+    up after ``extrapolate_max_s`` and left NaN with flag 0."""
+    config = FillerConfig(learn=False)
+    x = rec.positions.copy()
+    x[100:104, 0] = np.nan
+    x[200:400, 1] = np.nan
+    out, flags = fill_sequence(x, rec.labels, rec.rate, config)
+    assert (flags[100:104, 0] == FillCase.KALMAN).all()
+    assert np.linalg.norm(out[100:104, 0] - rec.true_positions[100:104, 0], axis=-1).max() < 10.0
+    limit = round(config.extrapolate_max_s * rec.rate)
+    assert (flags[200:200 + limit, 1] == FillCase.KALMAN).all()
+    assert (flags[200 + limit:400, 1] == FillCase.MISSING).all()
+    assert np.isnan(out[200 + limit:400, 1]).all()
+
+
+def test_unfillable_markers_stay_nan(rec: SimRecording, skeleton: SkeletonModel) -> None:
+    """A marker never seen has nothing to fill from, even on a segment with visible markers whose pose is not yet
+    known; it is filled once its segment has a pose."""
+    x = rec.positions[:20].copy()
+    x[:, 0] = np.nan
+    filler = GapFiller(rec.labels, rec.rate, FillerConfig(learn=False))
+    first = filler.update(x[0])
+    assert np.isnan(first.positions[0]).all() and first.flags[0] == FillCase.MISSING
+    assert first.joint_centres is None
+    filler = GapFiller(rec.labels, rec.rate, skeleton=skeleton)
+    result = filler.update(x[0])
+    assert result.flags[0] == FillCase.ONE_MISSING  # three pelvis markers visible fix the pose at once
+    assert np.linalg.norm(result.positions[0] - rec.true_positions[0, 0]) < 5.0
+
+
+def test_degenerate_input_does_not_crash(rec: SimRecording, skeleton: SkeletonModel) -> None:
+    n = len(rec.labels)
+    filler = GapFiller(rec.labels, rec.rate, skeleton=skeleton)
+    for frame in (np.full((n, 3), np.nan), rec.positions[0], np.full((n, 3), np.nan), np.full((n, 3), np.inf)):
+        result = filler.update(frame)
+        assert result.positions.shape == (n, 3) and result.flags.shape == (n,)
+    partial = rec.positions[1].copy()
+    partial[3, 1] = np.nan  # one NaN coordinate makes the whole marker missing
+    assert filler.update(partial).flags[3] != FillCase.OBSERVED
+    empty = GapFiller([], RATE)
+    assert empty.update(np.zeros((0, 3))).positions.shape == (0, 3)
+    out, flags = fill_sequence(np.zeros((0, n, 3)), rec.labels, RATE)
+    assert out.shape == (0, n, 3) and flags.shape == (0, n)
+    with pytest.raises(ValueError):
+        filler.update(np.zeros((n + 1, 3)))
+    with pytest.raises(ValueError):
+        GapFiller(rec.labels, 0.0)
+    with pytest.raises(ValueError):
+        FillerConfig(no_such_setting=1)
+
+
+def test_causal(rec: SimRecording) -> None:
+    """Filling the first K frames gives exactly the first K frames of filling the whole, learning included."""
+    x = rec.positions.copy()
+    x[250:400, [5, 20, 21]] = np.nan
+    whole, whole_flags = fill_sequence(x, rec.labels, rec.rate)
+    k = 330
+    part, part_flags = fill_sequence(x[:k], rec.labels, rec.rate)
+    np.testing.assert_array_equal(part, whole[:k])
+    np.testing.assert_array_equal(part_flags, whole_flags[:k])
+
+
+def test_learns_segments_and_joints_without_skeleton(rec: SimRecording) -> None:
+    """No skeleton: segments, shapes and joints are learned online, then a 3 s gap of one marker is filled."""
+    hidden = ["LTH2"]
+    out, flags, _, idx = fill_gap(rec, None, hidden)
+    assert (flags[GAP][:, idx] == FillCase.ONE_MISSING).mean() > 0.95
+    assert gap_error(rec, out, idx) < 4.0
+
+
+def test_set_skeleton_mid_stream(rec: SimRecording, skeleton: SkeletonModel) -> None:
+    """A model arriving mid-gap is used from the next frame on; a model without offsets is completed online."""
+    idx = rec.labels.index("LFA1")
+    filler = GapFiller(rec.labels, rec.rate, FillerConfig(learn=False))
+    for f in range(GAP.start):
+        filler.update(rec.positions[f])
+    x = rec.positions[GAP.start].copy()
+    x[idx] = np.nan
+    assert filler.update(x).flags[idx] == FillCase.KALMAN
+    filler.set_skeleton(skeleton)
+    x = rec.positions[GAP.start + 1].copy()
+    x[idx] = np.nan
+    result = filler.update(x)
+    assert result.flags[idx] == FillCase.ONE_MISSING
+    assert np.linalg.norm(result.positions[idx] - rec.true_positions[GAP.start + 1, idx]) < 3.0
+
+    bare = skeleton.model_copy(update={
+        "segments": [s.model_copy(update={"marker_offsets": None}) for s in skeleton.segments],
+        "joints": [j.model_copy(update={"parent_offset": None, "child_offset": None}) for j in skeleton.joints]})
+    filler = GapFiller(rec.labels, rec.rate, skeleton=bare)
+    for f in range(len(rec.positions)):
+        filler.update(rec.positions[f])
+    learned = filler.skeleton
+    assert learned is not None and len(learned.segments) == len(skeleton.segments)
+    assert {j.name for j in learned.joints} == {j.name for j in skeleton.joints}
+
+
+def test_predict_next_is_the_filters_prediction() -> None:
+    """A marker in uniform motion is predicted exactly one frame ahead; a marker never seen has no prediction."""
+    filler = GapFiller(["a", "b"], 100.0, FillerConfig(learn=False))
+    for f in range(50):
+        filler.update(np.array([[10.0 * f, 0.0, 5.0], [np.nan] * 3]))
+    nxt = filler.predict_next()
+    np.testing.assert_allclose(nxt[0], [500.0, 0.0, 5.0], atol=1e-3)
+    assert np.isnan(nxt[1]).all()
+
+
+def test_bank_matches_filterpy() -> None:
+    """The vectorised bank gives the same estimates as one filterpy KalmanFilter per marker and axis."""
+    rng = np.random.default_rng(0)
+    dt, accel, noise = 0.01, 3000.0, 0.7
+    bank = ConstantVelocityBank(3, dt, accel, 500.0)
+    truth = np.cumsum(rng.normal(0, 5, (60, 3, 3)), axis=0)
+    z = truth + rng.normal(0, noise, truth.shape)
+    z[20:30, 1] = np.nan
+    reference = []
+    for m in range(3):
+        for axis in range(3):
+            kf = KalmanFilter(dim_x=2, dim_z=1)
+            kf.F, kf.H, kf.Q, kf.R = bank.F, bank.H, bank.Q, np.array([[noise**2]])
+            kf.x = np.array([z[0, m, axis], 0.0])
+            kf.P = np.diag([noise**2, 500.0**2])
+            track = [kf.x[0]]
+            for f in range(1, 60):
+                kf.predict()
+                if np.isfinite(z[f, m]).all():
+                    kf.update(np.array([z[f, m, axis]]))
+                track.append(kf.x[0])
+            reference.append(track)
+    variance = np.full(3, noise**2)
+    ours = []
+    for f in range(60):
+        if f:
+            bank.predict()
+        bank.update(z[f], variance)
+        ours.append(bank.position.copy())
+    np.testing.assert_allclose(np.array(ours).transpose(1, 2, 0).reshape(9, 60), reference, atol=1e-9)
+
+
+def test_geometry_helpers() -> None:
+    """Batched rigid fit recovers a known transform; the circle point lies on both spheres, nearest the guess."""
+    rng = np.random.default_rng(1)
+    local = rng.normal(0, 50, (4, 5, 3))
+    angle = np.radians(40)
+    r = np.array([[np.cos(angle), -np.sin(angle), 0], [np.sin(angle), np.cos(angle), 0], [0, 0, 1]])
+    world = local @ r.T + [1.0, 2.0, 3.0]
+    weight = np.ones((4, 5))
+    weight[1, 3:] = 0.0
+    weight[2, 2:] = 0.0  # two points cannot fix a rotation
+    rot, t, ok = kabsch(local, np.where(weight[..., None] > 0, world, 0.0), weight)
+    np.testing.assert_allclose(rot[[0, 1, 3]], np.broadcast_to(r, (3, 3, 3)), atol=1e-9)
+    np.testing.assert_allclose(t[[0, 1, 3]], np.broadcast_to([1.0, 2.0, 3.0], (3, 3)), atol=1e-9)
+    assert ok.tolist() == [True, True, False, True]
+    p1, p2 = np.zeros((1, 3)), np.array([[100.0, 0, 0]])
+    point = nearest_on_circle(p1, p2, np.array([80.0]), np.array([60.0]), np.array([[50.0, 10.0, 100.0]]))
+    assert np.isclose(np.linalg.norm(point - p1), 80.0) and np.isclose(np.linalg.norm(point - p2), 60.0)
+    assert point[0, 1] > 0 and point[0, 2] > 0 and np.isclose(point[0, 2] / point[0, 1], 10.0)
+
+
+def test_predict_next_matches_the_next_prior(rec: SimRecording) -> None:
+    """What ``predict_next`` announces is where the next update's filter starts, coasting markers included."""
+    filler = GapFiller(rec.labels, rec.rate, FillerConfig(learn=False))
+    for f in range(40):
+        frame = rec.positions[f].copy()
+        if f >= 30:
+            frame[2] = np.nan  # coasting on its filter alone
+        filler.update(frame)
+    expected = filler.predict_next()
+    frame = np.full((len(rec.labels), 3), np.nan)
+    result = filler.update(frame)  # nothing seen: every marker is its prediction
+    np.testing.assert_allclose(result.positions, expected, atol=1e-9)
+
+
+def test_fill_command(tmp_path, rec: SimRecording, skeleton: SkeletonModel) -> None:  # noqa: ANN001
+    """``mocapflow fill``: same labels and order, gaps filled, flags recorded, joint centres as extra points."""
+    from mocapflow.cli import main
+    from mocapflow.io.markers import MarkerData, read_markers, write_markers
+
+    x = rec.positions[:400].copy()
+    x[200:380, rec.labels.index("LFA2")] = np.nan
+    source, out = tmp_path / "in.c3d", tmp_path / "out.c3d"
+    write_markers(source, MarkerData(positions=x, labels=rec.labels, rate=rec.rate))
+    (tmp_path / "skeleton.json").write_text(skeleton.model_dump_json())
+    assert main(["fill", str(source), "-o", str(out), "--skeleton", str(tmp_path / "skeleton.json"), "--joints"]) == 0
+    data = read_markers(out)
+    assert data.labels == rec.labels
+    m = rec.labels.index("LFA2")
+    assert (data.sample_flags()[200:380, m] == FillCase.ONE_MISSING).all()
+    assert np.linalg.norm(data.positions[200:380, m] - rec.true_positions[200:380, m], axis=-1).mean() < 3.0
+    assert set(data.extra) == {j.name for j in skeleton.joints}
+    assert main(["fill", str(source), "-o", str(tmp_path / "bad.c3d"), "--set", "no_such=1"]) == 2
+
+
+@pytest.mark.parametrize(("file", "groups", "hidden", "bound_mm"), [
+    ("lowerbody_clusters_knee_0401.c3d",
+     {"pelvis": ["LASI", "RASI", "LPSI", "RPSI"], "lthigh": ["LTH1", "LTH2", "LTH3", "LTH4"],
+      "lshank": ["LSH1", "LSH2", "LSH3", "LSH4"], "lfoot": ["LTOE", "LMT5", "LCAL", "LCUN"]},
+     [["LTH2"], ["LSH1", "LSH3"], ["LSH1", "LSH2", "LSH3", "LSH4"]], [5.0, 5.0, 20.0]),
+    ("cmu_85_02.c3d",
+     {"torso": ["CLAV", "STRN", "C7", "T10", "RBAC"], "head": ["LFHD", "RFHD", "LBHD", "RBHD"],
+      "lupperarm": ["LSHO", "LUPA", "LELB"], "lforearm": ["LFRM", "LWRA", "LWRB"]},
+     [["RBHD"], ["LWRA"], ["LFRM", "LWRA", "LWRB"]], [6.0, 100.0, 250.0]),  # breakdance: the forearm twists
+])
+def test_real_recordings(data_dir, file: str, groups: dict[str, list[str]], hidden: list[list[str]],  # noqa: ANN001
+                         bound_mm: list[float]) -> None:
+    """Markers deleted from real recordings over 3 s and filled with a skeleton calibrated on the complete data,
+    against what was deleted (a walking stretch; the CMU trial is breakdance, where a hidden forearm marker's twist
+    is hard to guess); each case also beats the markers' own Kalman filters at least five times over."""
+    from mocapflow.io.markers import read_markers
+    from mocapflow.mocap.calibration import build_skeleton
+
+    data = read_markers(data_dir / file)
+    positions = data.positions[:1500]
+    skeleton = build_skeleton(positions, data.labels, data.rate, [[data.labels.index(m) for m in g]
+                                                                  for g in groups.values()], show_progress=False)
+    gap = slice(1000, 1000 + round(3 * data.rate)) if len(positions) > 1300 else slice(300, 300 + round(3 * data.rate))
+    for names, bound in zip(hidden, bound_mm, strict=True):
+        idx = [data.labels.index(m) for m in names]
+        x = positions.copy()
+        x[gap, idx] = np.nan
+        out, flags = fill_sequence(x[:gap.stop], data.labels, data.rate, skeleton=skeleton)
+        error = np.linalg.norm(out[gap, idx] - positions[gap, idx], axis=-1).mean()
+        assert (flags[gap][:, idx] >= FillCase.ONE_MISSING).all()
+        assert error < bound, (names, error)
+        alone, _ = fill_sequence(x[:gap.stop], data.labels, data.rate, FillerConfig(learn=False,
+                                                                                     extrapolate_max_s=None))
+        assert error * 5 < np.linalg.norm(alone[gap, idx] - positions[gap, idx], axis=-1).mean()

@@ -1,0 +1,205 @@
+"""Labelling against truth: real captures with their identities stripped, the simulator, and staged occlusions."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from mocapflow.mocap.labelling import (
+    Labeller,
+    LabellerConfig,
+    LabelResult,
+    label_sequence,
+    merge_tracks,
+    score_labelling,
+    unlabel,
+)
+
+RATE = 100.0
+
+
+def _clusters(seconds: float = 5.0, noise: float = 0.3, seed: int = 0) -> np.ndarray:
+    """(F, 12, 3): three rigid 4-marker clusters, 0.6 m apart, each turning and travelling on its own."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(int(seconds * RATE)) / RATE
+    shape = np.array([[0, 0, 0], [120, 0, 0], [0, 90, 0], [30, 40, 110]], float)
+    shape -= shape.mean(axis=0)
+    out = []
+    for k in range(3):
+        rot = Rotation.from_rotvec(np.outer(1.3 * t + k, [np.sin(k + 1), np.cos(k), 0.6]) / 1.2)
+        centre = np.stack([600.0 * k + 150 * np.sin(0.7 * t + k), 400 * np.sin(0.4 * t), 1000 + 80 * np.cos(t)], 1)
+        out.append(np.einsum("fij,nj->fni", rot.as_matrix(), shape) + centre[:, None])
+    return np.concatenate(out, axis=1) + rng.normal(0, noise, (len(t), 12, 3))
+
+
+def _wanderers(seconds: float = 4.0) -> np.ndarray:
+    """(F, 4, 3): four markers on unrelated circles, so none has rigid neighbours."""
+    t = np.arange(int(seconds * RATE)) / RATE
+    return np.stack([np.stack([500 * k + 250 * np.cos((2.0 + 0.7 * k) * t), 250 * np.sin((2.0 + 0.7 * k) * t),
+                               1000 + 150 * np.sin((1.1 + 0.9 * k) * t)], 1) for k in range(4)], axis=1)
+
+
+def _stream(labeller: Labeller, truth: np.ndarray, hidden: np.ndarray, seed: int = 1,
+            predictions: np.ndarray | None = None) -> np.ndarray:
+    """Feed shuffled frames; return (F, N) the track each true marker got, -1 where none or hidden."""
+    rng = np.random.default_rng(seed)
+    got = np.full(hidden.shape, -1)
+    for f, frame in enumerate(truth):
+        ids = rng.permutation(np.flatnonzero(~hidden[f]))
+        given = None
+        if predictions is not None:
+            given = np.full((len(labeller.labels), 3), np.nan)
+            given[: min(len(given), predictions.shape[1])] = predictions[f, : len(given)]
+        result = labeller.update(frame[ids], f / RATE, given)
+        got[f, ids] = result.point_track
+    return got
+
+
+def test_api_shapes_and_validation() -> None:
+    truth = _clusters(1.0)
+    labeller = Labeller(LabellerConfig(), RATE)
+    for f in range(10):
+        points = np.vstack([truth[f], np.full((2, 3), np.nan)])
+        result = labeller.update(points, f / RATE)
+        assert isinstance(result, LabelResult)
+        assert result.positions.shape == (len(labeller.labels), 3)
+        assert result.point_track.shape == (14,)
+        assert (result.point_track[-2:] == -1).all()
+    assert labeller.labels == [f"M{i + 1:03d}" for i in range(12)]
+    with pytest.raises(ValueError, match="predictions"):
+        labeller.update(truth[10], 0.1, np.zeros((3, 3)))
+    with pytest.raises(ValueError, match="outside"):
+        labeller.set_segments([[0, 1, 99]])
+    with pytest.raises(ValueError):
+        LabellerConfig(gate_mm=0)
+
+
+def test_clean_sequence_is_labelled_from_the_first_frame() -> None:
+    truth = _clusters(2.0)
+    points, identity = unlabel(truth, RATE, seed=3, gaps_per_s=0.0, ghosts=0.0)
+    tracks, labels = label_sequence(points, RATE)
+    score = score_labelling(tracks, points, identity, truth.shape[1])
+    assert labels == [f"M{i + 1:03d}" for i in range(12)]
+    assert score.accuracy == 1.0 and score.swaps == 0 and score.tracks == 12
+
+
+@pytest.mark.parametrize("segments", [False, True])
+def test_marker_hidden_two_seconds_gets_its_track_back(segments: bool) -> None:
+    """The cluster turns far while one marker is hidden; its neighbours (learnt, or the declared segment) find it."""
+    truth = _clusters(5.0)
+    hidden = np.zeros(truth.shape[:2], bool)
+    hidden[100:300, 0] = True
+    assert np.linalg.norm(truth[300, 0] - truth[99, 0]) > 5 * LabellerConfig().gate_mm
+    # with segments declared, learnt neighbours are ruled out so that only the segment can find the marker
+    config = LabellerConfig(neighbour_sd_mm=0.01, rigid_sd_mm=0.01) if segments else LabellerConfig()
+    labeller = Labeller(config, RATE)
+    got = _stream(labeller, truth[:60], hidden[:60])
+    if segments:
+        labeller.set_segments([got[59, 4 * k: 4 * k + 4].tolist() for k in range(3)])
+    got = np.vstack([got, _stream(labeller, truth[60:], hidden[60:])])
+    before = got[99, 0]
+    assert before >= 0
+    assert got[300, 0] == before, "not re-identified on its first frame back"
+    assert (got[300:, 0] == before).all()
+    assert len(labeller.labels) == 12
+
+
+def test_hidden_marker_without_neighbours_is_a_new_track() -> None:
+    """Control for the test above: with no rigid neighbour and no segment the lost marker cannot be found."""
+    truth = _clusters(5.0)
+    hidden = np.zeros(truth.shape[:2], bool)
+    hidden[100:300, 0] = True
+    labeller = Labeller(LabellerConfig(neighbour_sd_mm=0.01, rigid_sd_mm=0.01), RATE)
+    got = _stream(labeller, truth, hidden)
+    assert got[310, 0] not in (-1, got[99, 0])
+    assert len(labeller.labels) == 13
+
+
+def test_outside_predictions_re_identify() -> None:
+    truth = _wanderers()
+    hidden = np.zeros(truth.shape[:2], bool)
+    hidden[100:200, 0] = True
+    alone = Labeller(LabellerConfig(), RATE)
+    got = _stream(alone, truth, hidden)
+    assert got[210, 0] != got[99, 0]
+    helped = Labeller(LabellerConfig(), RATE)
+    first = _stream(helped, truth[:100], hidden[:100])
+    order = np.argsort(first[99])  # track index -> true marker
+    rest = _stream(helped, truth[100:], hidden[100:], predictions=truth[100:, order])
+    assert rest[100, 0] == first[99, 0]
+    assert len(helped.labels) == 4
+
+
+def test_expected_markers_caps_the_tracks() -> None:
+    truth = _wanderers()
+    hidden = np.zeros(truth.shape[:2], bool)
+    hidden[100:200, 0] = True
+    labeller = Labeller(LabellerConfig(expected_markers=4), RATE)
+    got = _stream(labeller, truth, hidden)
+    assert len(labeller.labels) == 4
+    assert (got[200 + LabellerConfig().confirm_frames:, 0] == got[99, 0]).all()
+
+
+def test_merge_tracks_joins_fragments_only() -> None:
+    truth = _clusters(5.0)
+    split = np.concatenate([truth, truth[:, :1]], axis=1)
+    split[100:, 0] = np.nan  # marker 0: column 0 up to frame 99, then column 12 from frame 300
+    split[:300, 12] = np.nan
+    groups = merge_tracks(split)
+    assert sorted(map(sorted, groups)) == [[0, 12], *[[i] for i in range(1, 12)]]
+    overlapping = split.copy()
+    overlapping[300, 0] = truth[300, 0]  # one shared frame: one marker cannot be in two places
+    assert len(merge_tracks(overlapping)) == 13
+
+
+def test_label_command(tmp_path: Path) -> None:
+    from mocapflow.cli import main
+    from mocapflow.io.markers import MarkerData, read_markers, write_markers
+
+    truth = _clusters(3.0)
+    points, identity = unlabel(truth, RATE, seed=5)
+    source, target = tmp_path / "points.c3d", tmp_path / "labelled.c3d"
+    write_markers(source, MarkerData(positions=points, labels=[f"P{i}" for i in range(points.shape[1])], rate=RATE))
+    assert main(["label", str(source), "-o", str(target), "--gate", "30"]) == 0
+    out = read_markers(target)
+    assert out.rate == RATE and out.labels == [f"M{i + 1:03d}" for i in range(12)]
+    reread = read_markers(source).positions
+    assert score_labelling(out.positions, reread, identity, 12).accuracy >= 0.995
+    assert main(["label", str(source), "-o", str(target), "--set", "gate=3"]) == 2
+
+
+def _report(name: str, score: object) -> None:
+    print(f"\n{name}: {score.summary()}")  # type: ignore[attr-defined]
+
+
+@pytest.mark.parametrize("name,seed", [("lowerbody_clusters_knee_0401.c3d", 0), ("cmu_85_02.c3d", 1)])
+def test_real_capture_with_identities_stripped(data_dir: Path, name: str, seed: int) -> None:
+    from mocapflow.io.markers import read_markers
+
+    data = read_markers(data_dir / name)
+    points, identity = unlabel(data.positions, data.rate, seed=seed, gaps_per_s=0.05, ghosts=1.0)
+    tracks, _ = label_sequence(points, data.rate)
+    score = score_labelling(tracks, points, identity, data.n_markers)
+    _report(name, score)
+    assert score.accuracy >= 0.995
+    assert score.swaps <= 2
+    assert score.ghosts_rejected >= 0.99
+    assert score.markers_found == data.n_markers
+
+
+def test_simulated_human_with_long_gaps_and_ghosts() -> None:
+    from mocapflow.mocap.simulator import SimulatorConfig, simulate
+
+    rec = simulate(SimulatorConfig(rig="human", rate=240, noise_mm=0.5, dropout_rate=0.2, long_gaps=3, ghosts=2,
+                                   unlabelled=True, seed=4), 2400)
+    assert rec.points is not None and rec.identity is not None
+    tracks, _ = label_sequence(rec.points, rec.rate)
+    score = score_labelling(tracks, rec.points, rec.identity, len(rec.labels))
+    _report("simulated human", score)
+    assert score.accuracy >= 0.995
+    assert score.swaps <= 2
+    assert score.ghosts_rejected >= 0.99
+    assert score.markers_found == len(rec.labels)
