@@ -343,3 +343,17 @@ def test_real_recordings(data_dir, file: str, groups: dict[str, list[str]], hidd
         alone, _ = fill_sequence(x[:gap.stop], data.labels, data.rate, FillerConfig(learn=False,
                                                                                      extrapolate_max_s=None))
         assert error * 5 < np.linalg.norm(alone[gap, idx] - positions[gap, idx], axis=-1).mean()
+
+
+def test_second_gap_starts_afresh(rec: SimRecording, skeleton: SkeletonModel) -> None:
+    """A gap after a short reappearance is filled as well as the same gap alone: nothing is carried over from the
+    first gap (its held rotation in particular)."""
+    names = markers(skeleton, "left_thigh")[:2]  # two left: the twist about their line is held (hip: a ball)
+    idx = [rec.labels.index(m) for m in names]
+    x = rec.positions.copy()
+    x[60:250, idx] = np.nan
+    x[GAP, idx] = np.nan
+    config = FillerConfig(joint_anchors="hidden")
+    both, _ = fill_sequence(x, rec.labels, rec.rate, config, skeleton)
+    alone, _, _, _ = fill_gap(rec, skeleton, names, config=config)
+    np.testing.assert_allclose(both[GAP.start + 5:GAP.stop, idx], alone[GAP.start + 5:GAP.stop, idx], atol=0.5)

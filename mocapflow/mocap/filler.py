@@ -113,7 +113,7 @@ class FillerConfig(BaseModel):
     learn_stride: int = Field(4, ge=1, description="frames between two samples of marker distances and poses")
     learn_window_s: float = Field(20.0, gt=0, description="seconds of samples behind the grouping")
     learn_warmup_s: float = Field(2.0, gt=0, description="seconds of samples before the first grouping")
-    regroup_s: float = Field(1.0, gt=0, description="seconds between updates of the learned model")
+    regroup_s: float = Field(2.0, gt=0, description="seconds between updates of the learned model")
     min_joint_rotation_deg: float = Field(
         5.0, gt=0, description="least RMS relative rotation of two segments before a joint between them is trusted")
     min_joint_s: float = Field(2.0, gt=0, description="seconds of usable frames before a learned joint is trusted")
@@ -328,7 +328,6 @@ class _Learner:
     def __init__(self, labels: list[str], rate: float, config: FillerConfig, given: SkeletonModel | None) -> None:
         self.labels = labels
         self.config = config
-        self.rate = rate
         self.tick = max(1, round(config.regroup_s * rate))
         self.min_frames = round(config.min_joint_s * rate / config.learn_stride)  # sampled frames
         self.min_spread = np.radians(config.min_joint_rotation_deg)
@@ -438,10 +437,10 @@ class _Learner:
         if not new.any() or (vis & known).sum() < 3:
             return False
         use = vis & known
-        r, t, ok = kabsch(offsets[use][None], observed[members[use]][None], np.ones((1, int(use.sum()))))
-        if not ok[0]:
+        fit = _fit_one(offsets[use], observed[members[use]], np.ones(int(use.sum())))
+        if fit is None:
             return False
-        offsets[new] = (observed[members[new]] - t[0]) @ r[0]  # R^T (x - t)
+        offsets[new] = (observed[members[new]] - fit[1]) @ fit[0]  # R^T (x - t)
         return True
 
     def _usable(self, body: _Body, flags: np.ndarray) -> np.ndarray:
@@ -633,7 +632,7 @@ class GapFiller:
         self.kf.predict(self._velocity_gain())
         body = self.body
         flags = seen.astype(np.uint8)
-        poses = self._fill_missing(z, seen, flags, rays) if not seen.all() else None
+        poses = None if seen.all() else self._fill_missing(z, seen, flags, rays)
         measured = flags >= _OBSERVED
         measured &= flags != _KALMAN
         self.kf.update(np.where(measured[:, None], z, np.nan), self._variance[flags])
@@ -647,8 +646,9 @@ class GapFiller:
         if body is not None:
             self._pose_r[1], self._pose_t[1], self._pose_ok[1] = self._pose_r[0], self._pose_t[0], self._pose_ok[0]
             self._pose_fresh[1] = self._pose_fresh[0]
-            if poses is None:  # every marker seen: the fit waits until a gap or a reader needs it
+            if poses is None:  # no segment lost a marker: the fit waits until a gap or a reader needs it
                 self._pose_fresh[0] = False
+                self._holds.clear()  # a later gap starts its own holds
             else:  # the constraint's own poses, so estimates cannot creep through the filter's lag
                 self._pose_r[0], self._pose_t[0], self._pose_ok[0] = poses
                 self._pose_fresh[0] = True
@@ -679,10 +679,10 @@ class GapFiller:
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
         """Write measurements for the missing rows of ``z`` and their ``flags``: single-camera markers first
         (6.2.4), then the rigid-body cases, then each filter alone. Returns the segments' poses this frame (R, t,
-        known) when a body is known."""
+        known) when a marker of a segment was missing, else None."""
         n = len(self.labels)
         prior = self.kf.position
-        body = self.body
+        body = self.body if self.body is not None and (~seen & self.body.in_segment).any() else None
         if body is not None:
             self._ensure_poses()
         visible = seen.copy()

@@ -32,11 +32,6 @@ class ConstantVelocityBank:
         """(N, 3) current position estimates; NaN for markers never seen."""
         return self.x[:, 0]
 
-    @property
-    def velocity(self) -> np.ndarray:
-        """(N, 3) current velocity estimates (mm/s); NaN for markers never seen."""
-        return self.x[:, 1]
-
     def predict(self, velocity_gain: np.ndarray | None = None) -> None:
         """Time update of every filter; ``velocity_gain`` (N,) scales velocities first (1 keeps the model as is)."""
         if velocity_gain is not None:
@@ -70,9 +65,3 @@ class ConstantVelocityBank:
         innovation[~live] = 0.0
         self.x += gain[:, :, None] * innovation[:, None, :]
         self.P -= gain[:, :, None] * pht[:, None, :]
-
-    def reset(self, index: np.ndarray) -> None:
-        """Forget the markers in ``index``; each restarts at its next measurement."""
-        self.x[index] = np.nan
-        self.P[index] = 0.0
-        self.started[index] = False
