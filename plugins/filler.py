@@ -8,7 +8,7 @@ from pydantic import Field
 from mocapflow.messages import MarkerFrame, Skeleton
 from mocapflow.mocap.filler import FillerConfig, GapFiller
 from mocapflow.mocap.model import SkeletonModel
-from mocapflow.plugins.joints import load_skeleton
+from mocapflow.io.skeleton import read_skeleton
 from mocapflow.runtime.node import Input, Node, Output
 
 
@@ -33,7 +33,7 @@ class Filler(Node):
     def __init__(self, config: FillerNodeConfig, publish, name: str = "filler") -> None:  # noqa: ANN001
         super().__init__(config, publish, name)
         self.filler_config = FillerConfig.model_validate(config.model_dump(exclude={"skeleton"}))
-        self.model: SkeletonModel | None = load_skeleton(config.skeleton) if config.skeleton else None
+        self.model: SkeletonModel | None = read_skeleton(config.skeleton) if config.skeleton else None
         self.filler: GapFiller | None = None
 
     def process(self, port: str, message: MarkerFrame | Skeleton) -> None:

@@ -3,16 +3,15 @@
 from __future__ import annotations
 
 from collections import deque
-from pathlib import Path
 from typing import ClassVar, Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from mocapflow.errors import CalibrationError
+from mocapflow.io.skeleton import read_skeleton
 from mocapflow.messages import MarkerFrame, Segments, Skeleton
 from mocapflow.mocap.calibration import build_skeleton
-from mocapflow.mocap.model import SkeletonModel
 from mocapflow.runtime.node import Input, Node, Output
 
 
@@ -23,16 +22,6 @@ class JointsConfig(BaseModel):
     refine: bool = Field(default=True, description="estimate the skeleton again from live data")
     window_s: float = Field(default=20.0, gt=0, description="recent motion the estimate uses (s)")
     every_s: float = Field(default=5.0, gt=0, description="time between two estimates (s)")
-
-
-def load_skeleton(path: str | Path) -> SkeletonModel:
-    """A SKELETON.json written by ``mocapflow calibrate``."""
-    try:
-        return SkeletonModel.model_validate_json(Path(path).read_text())
-    except OSError as exc:
-        raise CalibrationError(f"{path}: cannot read the skeleton: {exc.strerror}") from None
-    except ValueError as exc:
-        raise CalibrationError(f"{path}: not a skeleton file: {str(exc).splitlines()[0]}") from None
 
 
 class VarianceJoints(Node):
@@ -49,7 +38,7 @@ class VarianceJoints(Node):
 
     def __init__(self, config: JointsConfig, publish, name: str = "joints") -> None:  # noqa: ANN001
         super().__init__(config, publish, name)
-        self.seed = load_skeleton(config.skeleton) if config.skeleton else None
+        self.seed = read_skeleton(config.skeleton) if config.skeleton else None
         self.published = False
         self.segments: Segments | None = None
         self.frames: deque[np.ndarray] = deque()

@@ -8,7 +8,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from mocapflow.messages import MarkerFrame, Pose, Skeleton
 from mocapflow.mocap.model import SkeletonModel
 from mocapflow.mocap.solve import solve
-from mocapflow.plugins.joints import load_skeleton
+from mocapflow.io.skeleton import read_skeleton
 from mocapflow.runtime.node import Input, Node, Output
 
 
@@ -31,7 +31,7 @@ class SkeletonPublisher(Node):
 
     def __init__(self, config: SkeletonConfig, publish, name: str = "skeleton") -> None:  # noqa: ANN001
         super().__init__(config, publish, name)
-        self.model: SkeletonModel | None = load_skeleton(config.skeleton) if config.skeleton else None
+        self.model: SkeletonModel | None = read_skeleton(config.skeleton) if config.skeleton else None
 
     def process(self, port: str, message: MarkerFrame | Skeleton) -> None:
         self.process_batch(port, [message])

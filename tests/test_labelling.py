@@ -42,10 +42,10 @@ def _wanderers(seconds: float = 4.0) -> np.ndarray:
                                1000 + 150 * np.sin((1.1 + 0.9 * k) * t)], 1) for k in range(4)], axis=1)
 
 
-def _stream(labeller: Labeller, truth: np.ndarray, hidden: np.ndarray, seed: int = 1,
+def _stream(labeller: Labeller, truth: np.ndarray, hidden: np.ndarray, start: int = 0,
             predictions: np.ndarray | None = None) -> np.ndarray:
-    """Feed shuffled frames; return (F, N) the track each true marker got, -1 where none or hidden."""
-    rng = np.random.default_rng(seed)
+    """Feed frames ``start``... shuffled; return (F, N) the track each true marker got, -1 where none or hidden."""
+    rng = np.random.default_rng(start)
     got = np.full(hidden.shape, -1)
     for f, frame in enumerate(truth):
         ids = rng.permutation(np.flatnonzero(~hidden[f]))
@@ -53,7 +53,7 @@ def _stream(labeller: Labeller, truth: np.ndarray, hidden: np.ndarray, seed: int
         if predictions is not None:
             given = np.full((len(labeller.labels), 3), np.nan)
             given[: min(len(given), predictions.shape[1])] = predictions[f, : len(given)]
-        result = labeller.update(frame[ids], f / RATE, given)
+        result = labeller.update(frame[ids], (start + f) / RATE, given)
         got[f, ids] = result.point_track
     return got
 
@@ -71,6 +71,8 @@ def test_api_shapes_and_validation() -> None:
     assert labeller.labels == [f"M{i + 1:03d}" for i in range(12)]
     with pytest.raises(ValueError, match="predictions"):
         labeller.update(truth[10], 0.1, np.zeros((3, 3)))
+    with pytest.raises(ValueError, match="increase"):
+        labeller.update(truth[11], 0.1)
     with pytest.raises(ValueError, match="outside"):
         labeller.set_segments([[0, 1, 99]])
     with pytest.raises(ValueError):
@@ -99,7 +101,7 @@ def test_marker_hidden_two_seconds_gets_its_track_back(segments: bool) -> None:
     got = _stream(labeller, truth[:60], hidden[:60])
     if segments:
         labeller.set_segments([got[59, 4 * k: 4 * k + 4].tolist() for k in range(3)])
-    got = np.vstack([got, _stream(labeller, truth[60:], hidden[60:])])
+    got = np.vstack([got, _stream(labeller, truth[60:], hidden[60:], start=60)])
     before = got[99, 0]
     assert before >= 0
     assert got[300, 0] == before, "not re-identified on its first frame back"
@@ -128,7 +130,7 @@ def test_outside_predictions_re_identify() -> None:
     helped = Labeller(LabellerConfig(), RATE)
     first = _stream(helped, truth[:100], hidden[:100])
     order = np.argsort(first[99])  # track index -> true marker
-    rest = _stream(helped, truth[100:], hidden[100:], predictions=truth[100:, order])
+    rest = _stream(helped, truth[100:], hidden[100:], start=100, predictions=truth[100:, order])
     assert rest[100, 0] == first[99, 0]
     assert len(helped.labels) == 4
 

@@ -45,6 +45,7 @@ def summary(skeleton: SkeletonModel) -> str:
 
 def run(args: argparse.Namespace) -> int:
     from mocapflow.io.markers import read_markers
+    from mocapflow.io.skeleton import write_skeleton
     from mocapflow.mocap.calibration import calibrate
 
     if args.segments is not None and args.segments < 2:
@@ -56,7 +57,7 @@ def run(args: argparse.Namespace) -> int:
     elapsed = time.perf_counter() - start
     out = Path(args.output)
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(skeleton.model_dump_json(indent=2))
+    write_skeleton(out, skeleton)
     print(summary(skeleton))
     print(f"wrote {out}: {len(skeleton.segments)} segments, {len(skeleton.joints)} joints from "
           f"{data.n_frames} frames in {elapsed:.1f} s")

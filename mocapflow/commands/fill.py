@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
+from mocapflow.commands import settings
 from mocapflow.errors import MocapflowError
 
 
@@ -25,28 +26,17 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    import yaml
-    from pydantic import ValidationError
 
     from mocapflow.io.markers import MarkerData, read_markers, write_markers
     from mocapflow.mocap.filler import FillCase, FillerConfig, GapFiller
-    from mocapflow.plugins.joints import load_skeleton
+    from mocapflow.io.skeleton import read_skeleton
     from mocapflow.progress import progress
 
     out = Path(args.output)
     if out.suffix.lower() not in (".c3d", ".trc"):
         raise MocapflowError(f"{out}: output must be .c3d or .trc")
-    values = {}
-    for item in args.overrides:
-        key, sep, value = item.partition("=")
-        if not sep:
-            raise MocapflowError(f"--set {item!r}: expected KEY=VALUE")
-        values[key] = yaml.safe_load(value)
-    try:
-        config = FillerConfig.model_validate(values)
-    except ValidationError as exc:
-        raise MocapflowError("; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in exc.errors())) from None
-    skeleton = load_skeleton(args.skeleton) if args.skeleton else None
+    config = settings(FillerConfig, args.overrides)
+    skeleton = read_skeleton(args.skeleton) if args.skeleton else None
     if args.joints and skeleton is None:
         raise MocapflowError("--joints needs --skeleton: learned joints come and go while they are learned")
     data = read_markers(args.input)

@@ -8,6 +8,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from mocapflow.commands import settings
 from mocapflow.errors import MocapflowError
 
 if TYPE_CHECKING:
@@ -31,24 +32,10 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def _config(args: argparse.Namespace) -> LabellerConfig:
     """LabellerConfig from the options; a bad value is a one-line error naming the setting."""
-    import yaml
-    from pydantic import ValidationError
-
     from mocapflow.mocap.labelling import LabellerConfig
 
-    values = {}
-    for item in args.overrides:
-        key, sep, value = item.partition("=")
-        if not sep:
-            raise MocapflowError(f"--set {item!r}: expected KEY=VALUE")
-        values[key.strip()] = yaml.safe_load(value)
-    named = {"gate_mm": args.gate, "reid_gate_mm": args.reid_gate, "confirm_frames": args.confirm,
-             "expected_markers": args.markers}
-    values.update({key: value for key, value in named.items() if value is not None})
-    try:
-        return LabellerConfig.model_validate(values)
-    except ValidationError as exc:
-        raise MocapflowError("; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in exc.errors())) from None
+    return settings(LabellerConfig, args.overrides, gate_mm=args.gate, reid_gate_mm=args.reid_gate,
+                    confirm_frames=args.confirm, expected_markers=args.markers)
 
 
 def run(args: argparse.Namespace) -> int:

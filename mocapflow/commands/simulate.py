@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
+from mocapflow.commands import settings
 from mocapflow.errors import MocapflowError
 
 
@@ -24,23 +25,12 @@ def truth_path(path: Path) -> Path:
 
 
 def run(args: argparse.Namespace) -> int:
-    import yaml
-    from pydantic import ValidationError
 
     from mocapflow.io.bvh import read_bvh
     from mocapflow.io.markers import MarkerData, write_markers
     from mocapflow.mocap.simulator import SimulatorConfig, simulate
 
-    values = {}
-    for item in args.overrides:
-        key, sep, value = item.partition("=")
-        if not sep:
-            raise MocapflowError(f"--set {item!r}: expected KEY=VALUE")
-        values[key] = yaml.safe_load(value)
-    try:
-        config = SimulatorConfig.model_validate(values)
-    except ValidationError as exc:
-        raise MocapflowError("; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in exc.errors())) from None
+    config = settings(SimulatorConfig, args.overrides)
     if args.frames < 1:
         raise MocapflowError("--frames must be at least 1")
     rec = simulate(config, args.frames, read_bvh(config.bvh) if config.bvh else None)

@@ -33,23 +33,16 @@ def _rows(values: np.ndarray) -> list:
 
 def run(args: argparse.Namespace) -> int:
     import orjson
-    from pydantic import ValidationError
 
     from mocapflow.io.bvh import skeleton_bvh, write_bvh
     from mocapflow.io.markers import MarkerData, read_markers, write_markers
-    from mocapflow.mocap.model import SkeletonModel
+    from mocapflow.io.skeleton import read_skeleton
     from mocapflow.mocap.solve import solve
 
     out = Path(args.output)
     if out.suffix.lower() not in (".c3d", ".trc", ".json", ".bvh"):
         raise MocapflowError(f"{out}: output must be .c3d, .trc, .json or .bvh")
-    try:
-        skeleton = SkeletonModel.model_validate_json(Path(args.skeleton).read_bytes())
-    except FileNotFoundError:
-        raise MocapflowError(f"{args.skeleton}: no such file") from None
-    except ValidationError as exc:
-        raise MocapflowError(f"{args.skeleton}: not a skeleton file ({exc.error_count()} errors, first: "
-                             f"{exc.errors()[0]['msg']})") from None
+    skeleton = read_skeleton(args.skeleton)
     data = read_markers(args.input)
     missing = sorted({m for s in skeleton.segments for m in s.markers} - set(data.labels))
     if len(missing) == sum(len(s.markers) for s in skeleton.segments):

@@ -53,7 +53,7 @@ from scipy.sparse.csgraph import minimum_spanning_tree
 from scipy.spatial.transform import Rotation
 
 from mocapflow.mocap.clustering import SegmentTracker, segment_names
-from mocapflow.mocap.cor import SequentialCoR
+from mocapflow.mocap.cor import SequentialCoR, kabsch
 from mocapflow.mocap.kalman import ConstantVelocityBank
 from mocapflow.mocap.model import Joint, Segment, SkeletonModel
 
@@ -142,28 +142,6 @@ class FillResult:
         if callable(self._centres):
             self._centres = self._centres()
         return self._centres
-
-
-def kabsch(local: np.ndarray, world: np.ndarray, weight: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Weighted least-squares rigid transforms ``world ~ R @ local + t`` for a batch of point sets.
-
-    ``local``/``world`` (B, M, 3) finite, ``weight`` (B, M) with zero for absent points. A batched SVD: this runs
-    every frame, where scipy's ``Rotation.align_vectors`` would take one set per call and ``cor.rotor`` (Horn's
-    eigenvector, plus the quaternion-to-matrix step) costs about twice as much. Returns R (B, 3, 3), t (B, 3) and
-    ``ok`` (B,): False where the points do not fix a rotation (fewer than three, or collinear).
-    """
-    w = weight / np.maximum(weight.sum(axis=1), 1e-300)[:, None]
-    cl = (w[:, None] @ local)[:, 0]
-    cw = (w[:, None] @ world)[:, 0]
-    h = (local - cl[:, None]).transpose(0, 2, 1) @ ((world - cw[:, None]) * w[..., None])
-    u, s, vt = np.linalg.svd(h)
-    r = vt.transpose(0, 2, 1) @ u.transpose(0, 2, 1)  # V U^T, a reflection where its determinant is negative
-    flip = np.linalg.det(r) < 0
-    if flip.any():  # V diag(1, 1, -1) U^T
-        r[flip] -= 2 * vt[flip, 2, :, None] * u[flip, None, :, 2]
-    t = cw - (r @ cl[..., None])[..., 0]
-    ok = ((weight > 0).sum(axis=1) >= 3) & (s[:, 1] > 1e-6 * s[:, 0])
-    return r, t, ok
 
 
 def _fit_one(local: np.ndarray, world: np.ndarray, weight: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:

@@ -35,8 +35,9 @@ from pydantic import BaseModel, ConfigDict, Field
 from scipy.optimize import linear_sum_assignment
 from scipy.spatial.distance import cdist
 
+from mocapflow.mocap.cor import kabsch
+
 _STATS_HZ = 60.0  # distance statistics need no more: markers' mutual distances change slowly
-_RETIRE_S = 0.5  # a lost track placed on another track's marker this long is that marker's earlier track
 _VETO = 3.0  # a point breaking a rigid distance by this many tolerances cannot be that marker
 _CANDIDATES = 3  # snapshots fitted per lost marker
 _SD_FLOOR_MM = 1.0  # spread of a distance within a rigid body, from measurement noise: caps neighbour weights
@@ -110,27 +111,6 @@ def _nanmedian(x: np.ndarray) -> np.ndarray:
     low = np.take_along_axis(ordered, np.maximum((n - 1) // 2, 0), axis=-1)[..., 0]
     high = np.take_along_axis(ordered, n // 2, axis=-1)[..., 0]
     return np.where(n[..., 0] > 0, (low + high) / 2, np.nan)
-
-
-def _rigid_fit(src: np.ndarray, dst: np.ndarray, weight: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Least-squares rotations and translations ``dst ~ R @ src + t`` for a batch of point sets (Kabsch/Horn).
-
-    ``src``, ``dst`` (B, N, 3) and ``weight`` (B, N) >= 0; rows with weight 0 may hold NaN. Batched, with a point set
-    of its own per item, so that every lost track of a frame is fitted in one call.
-    """
-    w = weight[..., None]
-    s = np.where(w > 0, src, 0.0)
-    d = np.where(w > 0, dst, 0.0)
-    count = np.where(w.sum(axis=1) > 0, w.sum(axis=1), 1.0)
-    cs = (w * s).sum(axis=1) / count
-    cd = (w * d).sum(axis=1) / count
-    h = np.einsum("bni,bnj->bij", w * (s - cs[:, None]), d - cd[:, None])
-    u, _, vt = np.linalg.svd(h)
-    flip = np.sign(np.linalg.det(u @ vt))
-    vt[:, 2] *= flip[:, None]
-    r = np.transpose(u @ vt, (0, 2, 1))
-    t = cd - np.einsum("bij,bj->bi", r, cs)
-    return r, t
 
 
 def _gated_cost(pred: np.ndarray, gate: np.ndarray, points: np.ndarray) -> np.ndarray:
@@ -223,7 +203,8 @@ def _place(poses: np.ndarray, now: np.ndarray, trust: np.ndarray,
     typical = _nanmedian(moved_by)[:, None]
     out = (moved_by > np.maximum(3.0 * typical, tolerance)) & ((w > 0).sum(axis=1) >= 4)[:, None]
     w = np.where(((w > 0) & ~out).sum(axis=1, keepdims=True) >= 3, np.where(out, 0.0, w), w)
-    r, t = _rigid_fit(pose[:, 1:], target, w)
+    use = (w > 0)[..., None]  # absent points may hold NaN
+    r, t, _ = kabsch(np.where(use, pose[:, 1:], 0.0), np.where(use, target, 0.0), w)
     moved = np.einsum("bij,bnj->bni", r, pose) + t[:, None]
     sq = np.where(w > 0, ((moved[:, 1:] - target) ** 2).sum(axis=2), 0.0)
     fit = np.sqrt((w * sq).sum(axis=1) / w.sum(axis=1))
@@ -253,6 +234,7 @@ class Labeller:
         self.rate = float(rate)
         self.labels: list[str] = []
         self.frame = 0
+        self._time = -np.inf
         self._stats_every = max(1, round(self.rate / _STATS_HZ))
         k = config.neighbours
         # confirmed tracks: last observation, velocity, consecutive frames seen, neighbours, and a ring of snapshots
@@ -261,13 +243,12 @@ class Labeller:
         self._vel = np.empty((0, 3))
         self._last = np.empty(0)
         self._streak = np.empty(0, np.int64)
-        self._shadowed = np.empty(0, np.int64)
-        self._retired = np.empty(0, bool)
         self._anchors = np.empty((0, k), np.intp)
         self._anchor_w = np.empty((0, k))
         self._poses = np.empty((0, config.poses, k + 1, 3))
         self._pose_count = np.empty(0, np.int64)
         self._pose_time = np.empty(0)
+        self._span = np.empty((0, k, 2))  # nearest and farthest each neighbour has been in the snapshots
         # running distance statistics between confirmed tracks (Welford), and declared segment mates
         self._pair_n = np.empty((0, 0))
         self._pair_mean = np.empty((0, 0))
@@ -302,15 +283,19 @@ class Labeller:
             self._anchors = np.pad(self._anchors, ((0, 0), (0, extra)), constant_values=-1)
             self._anchor_w = np.pad(self._anchor_w, ((0, 0), (0, extra)))
             self._poses = np.pad(self._poses, ((0, 0), (0, 0), (0, extra), (0, 0)), constant_values=np.nan)
+            self._span = np.concatenate([self._span, np.tile([np.inf, -np.inf], (len(self._span), extra, 1))], axis=1)
         self._next_select = -np.inf
 
     def update(self, points: np.ndarray, time: float, predictions: np.ndarray | None = None) -> LabelResult:
-        """Label one frame of points ``(M, 3)`` (NaN rows ignored) captured at ``time`` seconds.
+        """Label one frame of points ``(M, 3)`` (NaN rows ignored) captured at ``time`` seconds (increasing).
 
         ``predictions`` ``(T, 3)``, in track order with NaN where unknown, are positions of the current tracks
         predicted elsewhere (a gap filler); they replace the internal prediction when re-identifying lost tracks.
         """
         cfg = self.config
+        if time <= self._time:
+            raise ValueError(f"frame times must increase: {time} after {self._time}")
+        self._time = time
         pts = np.asarray(points, dtype=float).reshape(-1, 3)
         rows = np.flatnonzero(np.isfinite(pts).all(axis=1))
         z = pts[rows]
@@ -330,8 +315,8 @@ class Labeller:
         taken[pi] = live[ti]
 
         # 2. the others: re-identification from rigid neighbours or outside predictions, else a short coast
-        lost = np.flatnonzero(np.isnan(cur[:, 0]) & ~self._retired)
-        lost_pred, lost_gate, instant = self._lost_predictions(lost, cur, time, predictions)
+        lost = np.flatnonzero(np.isnan(cur[:, 0]))
+        lost_pred, lost_gate, instant = self._lost_predictions(lost, cur, time, predictions, z[taken < 0])
         now_pred = lost_pred.copy()
         now_pred[~instant, 0] = np.nan
         has = np.flatnonzero(np.isfinite(now_pred[..., 0]).any(axis=1))
@@ -362,8 +347,8 @@ class Labeller:
         point_track[rows] = taken
         return LabelResult(positions=cur, point_track=point_track, history=history)
 
-    def _lost_predictions(self, lost: np.ndarray, cur: np.ndarray, time: float,
-                          outside: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def _lost_predictions(self, lost: np.ndarray, cur: np.ndarray, time: float, outside: np.ndarray | None,
+                          free: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Hypotheses ``(L, 2, 3)`` and gates ``(L, 2)`` for the tracks step 1 did not match (NaN where none).
 
         The first places the marker from its neighbours matched in this frame (or is the outside prediction, which
@@ -372,7 +357,9 @@ class Labeller:
         ``(L,)`` mask tells where the first is trusted at once: an outside prediction, or a placement whose misfit and
         spread (``_place``) are within ``instant_fit_mm`` (a rigid segment). A looser placement widens its gate by
         that doubt and is only used for points that have already lived ``confirm_frames`` frames, so a passing ghost
-        cannot take the track; one doubtful by more than ``reid_gate_mm`` is not used at all.
+        cannot take the track; one doubtful by more than ``reid_gate_mm`` is not used at all. Only markers with a
+        ``free`` point (one step 1 left) at distances from three of their seen neighbours that the snapshots have
+        shown (give or take ``reid_gate_mm``) are placed: no other can be found, and most frames need no fit at all.
         """
         cfg = self.config
         pred = np.full((len(lost), 2, 3), np.nan)
@@ -382,13 +369,22 @@ class Labeller:
             return pred, gate, instant
         # each snapshot fitted to the neighbours matched in this frame; the best-fitting pose places the marker
         anchors = self._anchors[lost]
-        place, misfit, spread = _place(self._poses[lost], np.where((anchors >= 0)[..., None], cur[anchors], np.nan),
-                                       self._anchor_w[lost], cfg.instant_fit_mm)
-        pred[:, 0] = place
-        doubt = np.fmax(misfit, spread)
-        pred[~(doubt <= cfg.reid_gate_mm), 0] = np.nan
-        gate[:, 0] += np.where(np.isnan(doubt), 0.0, doubt)
-        instant = doubt <= cfg.instant_fit_mm
+        now = np.where((anchors >= 0)[..., None], cur[anchors], np.nan)
+        if len(free):
+            # a point can only be this marker if its distances to three seen neighbours (or all, if fewer) are ones
+            # the snapshots have shown
+            d = cdist(now.reshape(-1, 3), free).reshape(*now.shape[:2], len(free))
+            span = self._span[lost]
+            fits = (d >= span[..., :1] - cfg.reid_gate_mm) & (d <= span[..., 1:] + cfg.reid_gate_mm)
+            seen = np.isfinite(d[:, :, 0]).sum(axis=1)[:, None]
+            near = np.flatnonzero((fits.sum(axis=1) >= np.minimum(seen, 3)).any(axis=1))
+            place, misfit, spread = _place(self._poses[lost[near]], now[near], self._anchor_w[lost[near]],
+                                           cfg.instant_fit_mm)
+            doubt = np.fmax(misfit, spread)
+            usable = doubt <= cfg.reid_gate_mm
+            pred[near[usable], 0] = place[usable]
+            gate[near, 0] += np.where(np.isnan(doubt), 0.0, doubt)
+            instant[near] = doubt <= cfg.instant_fit_mm
         if outside is not None:
             given = np.isfinite(outside[lost]).all(axis=1)
             pred[given, 0] = outside[lost[given]]
@@ -399,15 +395,11 @@ class Labeller:
         pred[coast, 1] = self._pos[lost[coast]] + self._vel[lost[coast]] * dt[coast, None]
         gate[:, 1] = cfg.gate_mm + 0.5 * cfg.max_accel_mm_s2 * dt**2
         # a prediction on top of a marker already matched points at that marker, seen under another track: what lies
-        # near it is a ghost or that marker, never this one. A track whose neighbours keep placing it on another
-        # track's marker has come back as that track (a duplicate the offline merge joins): it is retired.
+        # near it is a ghost or that marker, never this one
         matched = cur[np.isfinite(cur[:, 0])]
         if len(matched):
             near = cdist(pred.reshape(-1, 3), matched).min(axis=1).reshape(pred.shape[:2])
-            shadowed = near < cfg.gate_mm / 2
-            pred[shadowed] = np.nan
-            self._shadowed[lost] = np.where(shadowed[:, 0], self._shadowed[lost] + 1, 0)
-            self._retired[lost] |= self._shadowed[lost] >= _RETIRE_S * self.rate
+            pred[near < cfg.gate_mm / 2] = np.nan
         return pred, gate, instant
 
     def _signature(self, tracks: np.ndarray, cur: np.ndarray, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -443,6 +435,8 @@ class Labeller:
         """
         cfg = self.config
         free = np.flatnonzero(taken < 0)
+        if len(free) == 0 and len(self._tpos) == 0:
+            return free, free
         pred = self._tpos + self._tvel * (time - self._tlast)[:, None]
         # a point seen once has no velocity yet: its first step may be as long as the fastest marker moves
         gate = cfg.gate_mm + np.where(self._thits == 1, cfg.max_speed_mm_s * (time - self._tlast), 0.0)
@@ -451,16 +445,20 @@ class Labeller:
         measured = (zu - self._tpos[ui]) / (time - self._tlast[ui])[:, None]
         smooth = self._tvel[ui] + cfg.velocity_smoothing * (measured - self._tvel[ui])
         vel = np.where((self._thits[ui] >= 2)[:, None], smooth, measured)
-        for u, p in zip(ui, zu, strict=True):
-            self._thist[u].append((self.frame, p))
-        fresh = np.setdiff1d(np.arange(len(free)), pi)
+        kept = [self._thist[u] for u in ui]
+        for points, p in zip(kept, zu, strict=True):
+            points.append((self.frame, p))
+            if len(points) > self.rate:  # only a tentative track held back by expected_markers grows this long
+                del points[0]
+        unclaimed = np.ones(len(free), bool)
+        unclaimed[pi] = False
+        fresh = np.flatnonzero(unclaimed)
         rows = np.concatenate([free[pi], free[fresh]])
         self._tpos = z[rows]
         self._tvel = np.concatenate([vel, np.zeros((len(fresh), 3))])
         self._tlast = np.full(len(rows), time)
         self._thits = np.concatenate([self._thits[ui] + 1, np.ones(len(fresh), np.int64)])
-        self._thist = [self._thist[u][-int(self.rate) - cfg.confirm_frames:] for u in ui]
-        self._thist += [[(self.frame, p)] for p in z[free[fresh]]]
+        self._thist = kept + [[(self.frame, p)] for p in z[free[fresh]]]
         ready = np.flatnonzero(self._thits >= cfg.confirm_frames)
         return ready, rows[ready]
 
@@ -521,13 +519,12 @@ class Labeller:
         self._vel = np.vstack([self._vel, np.zeros((1, 3))])
         self._last = np.append(self._last, -np.inf)
         self._streak = np.append(self._streak, 0)
-        self._shadowed = np.append(self._shadowed, 0)
-        self._retired = np.append(self._retired, False)
         self._anchors = np.vstack([self._anchors, np.full((1, k), -1, np.intp)])
         self._anchor_w = np.vstack([self._anchor_w, np.zeros((1, k))])
         self._poses = np.concatenate([self._poses, np.full((1, self.config.poses, k + 1, 3), np.nan)])
         self._pose_count = np.append(self._pose_count, 0)
         self._pose_time = np.append(self._pose_time, -np.inf)
+        self._span = np.concatenate([self._span, np.tile([np.inf, -np.inf], (1, k, 1))])
         self._pair_n, self._pair_mean, self._pair_m2 = (
             np.pad(a, ((0, 1), (0, 1))) for a in (self._pair_n, self._pair_mean, self._pair_m2))
         self._mates = np.pad(self._mates, ((0, 1), (0, 1)))
@@ -593,16 +590,24 @@ class Labeller:
         self._poses[moved] = np.nan
         self._pose_count[moved] = 0
         self._pose_time[moved] = -np.inf
+        self._span[moved] = [np.inf, -np.inf]
 
     def _remember(self, seen: np.ndarray, cur: np.ndarray, time: float) -> None:
-        """Snapshot, every ``pose_interval_s``, each seen track together with its neighbours (3 or more seen)."""
+        """Snapshot, every ``pose_interval_s``, each seen track together with its neighbours (3 or more seen), and
+        the range of its distances to each neighbour."""
+        seen = seen[time - self._pose_time[seen] >= self.config.pose_interval_s]
+        if len(seen) == 0:
+            return
         anchors = self._anchors[seen]
         x = np.concatenate([cur[seen, None], np.where((anchors >= 0)[..., None], cur[anchors], np.nan)], axis=1)
-        due = (np.isfinite(x[:, 1:, 0]).sum(axis=1) >= 3) & (time - self._pose_time[seen] >= self.config.pose_interval_s)
+        due = np.isfinite(x[:, 1:, 0]).sum(axis=1) >= 3
         tracks = seen[due]
         self._poses[tracks, self._pose_count[tracks] % self.config.poses] = x[due]
         self._pose_count[tracks] += 1
         self._pose_time[tracks] = time
+        d = _norm(x[due, 1:] - x[due, :1])
+        self._span[tracks, :, 0] = np.fmin(self._span[tracks, :, 0], d)
+        self._span[tracks, :, 1] = np.fmax(self._span[tracks, :, 1], d)
 
 
 def merge_tracks(tracks: np.ndarray, config: LabellerConfig | None = None) -> list[list[int]]:
@@ -620,13 +625,18 @@ def merge_tracks(tracks: np.ndarray, config: LabellerConfig | None = None) -> li
     """
     cfg = config or LabellerConfig()
     groups = [[i] for i in range(tracks.shape[1])]
-    while True:
+    while groups:
         joined = np.stack([np.fmax.reduce(tracks[:, g], axis=1) for g in groups], axis=1)
         seen = np.isfinite(joined[..., 0])
         overlap = seen.T.astype(np.int64) @ seen
         scored = []
+        spreads: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         for i, j in zip(*np.nonzero(np.triu(overlap == 0, 1)), strict=True):
-            score = min(_set_score(joined, seen, i, j, cfg), _set_score(joined, seen, j, i, cfg))
+            for k in (i, j):
+                if k not in spreads:
+                    spreads[k] = _distance_spread(joined, seen, k, cfg.confirm_frames)
+            score = min(_set_score(joined, seen, i, j, spreads[i], cfg),
+                        _set_score(joined, seen, j, i, spreads[j], cfg))
             if score < 1.0:
                 scored.append((score, i, j))
         taken: set[int] = set()
@@ -637,10 +647,25 @@ def merge_tracks(tracks: np.ndarray, config: LabellerConfig | None = None) -> li
                 taken |= {i, j}
         groups = [g for g in groups if g]
         if not taken:
-            return groups
+            break
+    return groups
 
 
-def _set_score(tracks: np.ndarray, seen: np.ndarray, i: int, j: int, cfg: LabellerConfig) -> float:
+def _distance_spread(tracks: np.ndarray, seen: np.ndarray, i: int, least: int) -> tuple[np.ndarray, np.ndarray]:
+    """Mean and standard deviation of track ``i``'s distance to every track over the frames they share; NaN where
+    they share fewer than ``least`` frames (or than ``i`` has)."""
+    d = _norm(tracks[seen[:, i], i, None] - tracks[seen[:, i]])
+    count = np.isfinite(d).sum(axis=0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mean = np.nansum(d, axis=0) / count
+        sd = np.sqrt(np.nansum((d - mean) ** 2, axis=0) / count)
+    few = count < min(len(d), least)
+    mean[few] = sd[few] = np.nan
+    return mean, sd
+
+
+def _set_score(tracks: np.ndarray, seen: np.ndarray, i: int, j: int, spread: tuple[np.ndarray, np.ndarray],
+               cfg: LabellerConfig) -> float:
     """How well track ``j`` fits marker ``i`` in ``j``'s frames, below 1 when it is the same marker.
 
     The median over (at most ``poses``) frames of the smaller of: the distance to where ``i``'s neighbours place it,
@@ -648,12 +673,8 @@ def _set_score(tracks: np.ndarray, seen: np.ndarray, i: int, j: int, cfg: Labell
     units of their tolerance (``_signature``).
     """
     fi, fj = np.flatnonzero(seen[:, i]), np.flatnonzero(seen[:, j])
-    d = _norm(tracks[fi, i, None] - tracks[fi])
-    count = np.isfinite(d).sum(axis=0)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        mean = np.nansum(d, axis=0) / count
-        sd = np.sqrt(np.nansum((d - mean) ** 2, axis=0) / count)
-    known = count >= min(len(fi), cfg.confirm_frames)
+    mean, sd = spread
+    known = np.isfinite(sd)
     known[[i, j]] = False
     b = _evenly(fj, cfg.poses)
     partners = np.flatnonzero(known & (sd <= cfg.rigid_sd_mm))
@@ -736,6 +757,7 @@ class LabellingScore:
     markers_true: int
 
     def summary(self) -> str:
+        """One line for reports and benchmarks."""
         return (f"accuracy {100 * self.accuracy:.3f} %, assigned {100 * self.assigned:.3f} %, swaps {self.swaps}, "
                 f"ghosts rejected {100 * self.ghosts_rejected:.2f} %, {self.tracks} tracks for "
                 f"{self.markers_found}/{self.markers_true} markers ({self.fragments} fragments, "
@@ -813,7 +835,7 @@ def unlabel(positions: np.ndarray, rate: float, seed: int, gaps_per_s: float = 0
         order = rng.permutation(len(cloud))
         clouds.append(cloud[order])
         owners.append(owner[order])
-    width = max(len(c) for c in clouds)
+    width = max((len(c) for c in clouds), default=0)
     points = np.full((n_frames, width, 3), np.nan)
     identity = np.full((n_frames, width), -1)
     for f, (cloud, owner) in enumerate(zip(clouds, owners, strict=True)):
