@@ -249,6 +249,11 @@ def test_closed_form_needs_three_markers_per_segment() -> None:
     groups[2] = groups[2][:2]
     with pytest.raises(CalibrationError, match="fewer than 3 markers"):
         build_skeleton(rec.positions, rec.labels, rec.rate, groups, "closed-form", show_progress=False)
+    # the default falls back to the distance-variance cost, which needs no segment orientation
+    skeleton = build_skeleton(rec.positions, rec.labels, rec.rate, groups, show_progress=False)
+    assert {frozenset((j.parent, j.child)) for j in skeleton.joints} == {
+        frozenset((skeleton.segments[0].name, skeleton.segments[1].name)),
+        frozenset((skeleton.segments[1].name, skeleton.segments[2].name))}
 
 
 def test_a_joint_with_too_little_motion_is_an_error_naming_it() -> None:

@@ -21,9 +21,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="number of segments (default: found from the data)")
     p.add_argument("--method", choices=["spectral", "distance-threshold"], default="spectral",
                    help="marker clustering (default spectral)")
-    p.add_argument("--joints", choices=["closed-form", "variance"], default="closed-form",
-                   help="joint estimator: closed-form centre of rotation (Aristidou; default, more accurate on "
-                        "real skin markers) or distance variance (Schoenauer; also for segments of two markers)")
+    p.add_argument("--joints", choices=["auto", "closed-form", "variance"], default="auto",
+                   help="joint estimator: closed-form centre of rotation (Aristidou; more accurate on real skin "
+                        "markers), distance variance (Schoenauer; works with segments of two markers), or auto "
+                        "(default): closed form unless a segment has only two markers")
     p.add_argument("--name", default=None, help="skeleton name (default: the input file's stem)")
     p.set_defaults(func=run)
 

@@ -56,7 +56,7 @@ CANDIDATES = 3
 """With the variance cost, each segment's joint is optimised towards this many most likely partners (the cheapest
 at the start); other pairs keep their cost at the start, an upper bound, which is far above any real joint's."""
 
-JointMethod = Literal["variance", "closed-form"]
+JointMethod = Literal["auto", "variance", "closed-form"]
 
 
 def sample_frames(frames: int, rate: float, every_s: float = 0.5, jitter_s: float = 1 / 30, at_least: int = 40,
@@ -71,7 +71,7 @@ def sample_frames(frames: int, rate: float, every_s: float = 0.5, jitter_s: floa
 
 def calibrate(positions: np.ndarray, labels: Sequence[str], rate: float, segments: int | None = None,
               method: Literal["spectral", "distance-threshold"] = "spectral",
-              joint_method: JointMethod = "closed-form", *, hinge_placement: Literal["neighbours", "estimator"] =
+              joint_method: JointMethod = "auto", *, hinge_placement: Literal["neighbours", "estimator"] =
               "neighbours", name: str = "skeleton", show_progress: bool = True, **cluster_options: object,
               ) -> SkeletonModel:
     """Segments, topology, joints and rigid parameters of an articulated body from (F, N, 3) labelled trajectories.
@@ -109,12 +109,12 @@ def _clean(positions: np.ndarray, labels: Sequence[str]) -> tuple[np.ndarray, np
 
 
 def build_skeleton(positions: np.ndarray, labels: Sequence[str], rate: float, groups: Sequence[Sequence[int]],
-                   joint_method: JointMethod = "closed-form", *,
+                   joint_method: JointMethod = "auto", *,
                    hinge_placement: Literal["neighbours", "estimator"] = "neighbours", name: str = "skeleton",
                    show_progress: bool = True) -> SkeletonModel:
     """Topology, joints and rigid parameters for a given partition of the markers (indices per segment)."""
-    if joint_method not in ("variance", "closed-form"):
-        raise ValueError(f"unknown joint method {joint_method!r}; choose variance or closed-form")
+    if joint_method not in ("auto", "variance", "closed-form"):
+        raise ValueError(f"unknown joint method {joint_method!r}; choose auto, variance or closed-form")
     positions, _ = _clean(positions, labels)
     frames = positions.shape[0]
     groups = [list(g) for g in groups]
@@ -127,6 +127,12 @@ def build_skeleton(positions: np.ndarray, labels: Sequence[str], rate: float, gr
                                    "needs at least 2; ask for fewer segments or leave that marker out")
     reference = int(np.argmax(np.isfinite(positions).all(-1).sum(1)))
     poses = [_marker_poses(positions[:, g], reference) for g in groups]
+    if joint_method == "auto":
+        # the closed form needs every segment's orientation; segments of two markers leave only the variance cost
+        flat = [seg for seg, pose in zip(names, poses, strict=True) if pose is None]
+        joint_method = "variance" if flat else "closed-form"
+        if flat:
+            log.info("segments %s have fewer than 3 markers: joints by the distance-variance cost", ", ".join(flat))
     if joint_method == "closed-form" and any(pose is None for pose in poses):
         flat = [seg for seg, pose in zip(names, poses, strict=True) if pose is None]
         raise CalibrationError(f"segments {', '.join(flat)} have fewer than 3 markers: the closed-form centre of "
