@@ -9,6 +9,7 @@ timestamp (p50 / p99 over the node's last 4096 frames), as the launcher's final 
 from __future__ import annotations
 
 import socket
+import json
 import subprocess
 import sys
 import tempfile
@@ -31,19 +32,6 @@ def free_endpoint() -> str:
         return f"tcp/127.0.0.1:{s.getsockname()[1]}"
 
 
-def final_table(out: str) -> dict[str, dict[str, str]]:
-    """The launcher's last status table: node -> column -> value."""
-    lines = out.splitlines()
-    head = max(i for i, line in enumerate(lines) if line.startswith("NODE "))
-    columns = lines[head].replace(" Hz", "").replace(" ms", "").split()
-    rows = {}
-    for line in lines[head + 1:]:
-        cells = line.split()
-        if len(cells) != len(columns):
-            break
-        rows[cells[0]] = dict(zip(columns, cells, strict=True))
-    return rows
-
 
 def replay(source: Path, work: Path) -> tuple[str, float, int]:
     """Run the deployment on ``source`` with its own router and key prefix: the launcher's output, wall time, exit."""
@@ -56,7 +44,8 @@ def replay(source: Path, work: Path) -> tuple[str, float, int]:
     path.write_text(yaml.safe_dump(graph, sort_keys=False))
     start = time.perf_counter()
     done = subprocess.run([sys.executable, "-m", "mocapflow.cli", "run", str(path), "--set", f"tracker.path={source}",
-                           "--set", f"recorder.path={work / 'out.c3d'}"], cwd=work, capture_output=True, text=True,
+                           "--set", f"recorder.path={work / 'out.c3d'}", "--summary", str(work / "summary.json")],
+                          cwd=work, capture_output=True, text=True,
                           check=False)
     return done.stdout, time.perf_counter() - start, done.returncode
 
@@ -74,6 +63,7 @@ def main() -> None:
                 print(f"{name}: the run failed (exit {code})\n{out}")
                 continue
             live = read_markers(Path(tmp) / "out.c3d")
+            nodes = json.loads((Path(tmp) / "summary.json").read_text())
         seen = np.isfinite(data.positions).all(-1)
         lost = int((seen & ~np.isfinite(live.positions).all(-1)).sum()) if live.positions.shape[:2] == seen.shape \
             else seen.sum()
@@ -84,9 +74,9 @@ def main() -> None:
               f"frames with joint centres: {posed} ({len(live.extra)} joints over the run)")
         print(f"  {'node':<10} {'rate Hz':>8} {'in':>6} {'out':>6} {'drops':>6} {'errors':>6} {'p50 ms':>7} "
               f"{'p99 ms':>7}")
-        for node, row in final_table(out).items():
-            print(f"  {node:<10} {row['RATE']:>8} {row['IN']:>6} {row['OUT']:>6} {row['DROPS']:>6} {row['ERR']:>6} "
-                  f"{row['P50']:>7} {row['P99']:>7}")
+        for node, n in nodes.items():
+            print(f"  {node:<10} {n['rate_hz']:>8.1f} {n['frames_in']:>6} {n['frames_out']:>6} {n['drops']:>6} "
+                  f"{n['errors']:>6} {n['latency_p50_ms']:>7.2f} {n['latency_p99_ms']:>7.2f}")
 
 
 if __name__ == "__main__":

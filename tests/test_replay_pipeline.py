@@ -4,6 +4,7 @@ one-line reason."""
 
 from __future__ import annotations
 
+import json
 import subprocess
 import sys
 import warnings
@@ -54,19 +55,6 @@ def offline(*args: str | Path) -> None:
     done = cli(*args)
     assert done.returncode == 0, done.stderr
 
-
-def final_table(out: str) -> dict[str, dict[str, str]]:
-    """The launcher's last status table: node -> column -> value."""
-    lines = out.splitlines()
-    head = max(i for i, line in enumerate(lines) if line.startswith("NODE "))
-    columns = lines[head].replace(" Hz", "").replace(" ms", "").split()
-    rows = {}
-    for line in lines[head + 1:]:
-        cells = line.split()
-        if len(cells) != len(columns):
-            break
-        rows[cells[0]] = dict(zip(columns, cells, strict=True))
-    return rows
 
 
 def assert_same_markers(live: MarkerData, reference: MarkerData) -> None:
@@ -144,12 +132,16 @@ def test_simulated_capture_through_the_pipeline_equals_fill(tmp_path: Path, free
 def test_cmu_capture_replays_every_frame(tmp_path: Path, free_endpoint: str, data_dir: Path) -> None:
     source = data_dir / "cmu_85_02.c3d"
     graph, _ = deployment(tmp_path, free_endpoint, "rc")
-    out = finish(start_replay(graph, source, tmp_path / "live.c3d"))
+    summary = tmp_path / "summary.json"
+    run = subprocess.Popen(
+        [*CLI, "run", str(graph), "--set", f"tracker.path={source}", "--set", f"recorder.path={tmp_path / 'live.c3d'}",
+         "--summary", str(summary)], cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    out = finish(run)
     assert "all nodes finished" in out, out
-    table = final_table(out)
-    assert set(table) == {"tracker", "clusterer", "joints", "filler", "skeleton", "recorder"}
-    assert all(row["DROPS"] == "0" and row["ERR"] == "0" for row in table.values()), table
-    assert table["recorder"]["IN"] == "810"
+    nodes = json.loads(summary.read_text())
+    assert set(nodes) == {"tracker", "clusterer", "joints", "filler", "skeleton", "recorder"}
+    assert all(n["state"] == "finished" and n["drops"] == 0 and n["errors"] == 0 for n in nodes.values()), nodes
+    assert nodes["recorder"]["frames_in"] == 810
     data, live = read_markers(source), read_markers(tmp_path / "live.c3d")
     assert live.n_frames == data.n_frames == 810 and live.rate == data.rate == 120.0
     assert live.first_frame == data.first_frame and live.labels == data.labels

@@ -22,6 +22,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                      help="security settings: TLS, login (docs/lab-deployment.md; default $MOCAPFLOW_SECURITY)")
     run.add_argument("--agent-timeout", type=float, default=30.0, metavar="S",
                      help="how long to wait for the agents of 'machine:' placements, at start or when one is lost")
+    run.add_argument("--summary", metavar="FILE.json", default=None,
+                     help="write each node's final state and statistics to a JSON file when the run ends")
     run.set_defaults(func=_run)
 
     val = sub.add_parser("validate", help="check a graph's plugins, ports, link types and configs")
@@ -36,7 +38,7 @@ def _run(args: argparse.Namespace) -> int:
 
     graph = load_graph(args.graph, args.overrides)
     launcher = Launcher(graph, validate(graph), duration=args.duration, listen=args.listen, connect=args.connect,
-                        security=args.security, agent_timeout=args.agent_timeout)
+                        security=args.security, agent_timeout=args.agent_timeout, summary=args.summary)
     return launcher.run()
 
 

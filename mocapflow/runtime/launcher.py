@@ -286,8 +286,10 @@ class Agents:
 class Launcher:
     def __init__(self, graph: Graph, classes: dict[str, type[Node]], *, duration: float | None = None,
                  listen: list[str] | None = None, connect: list[str] | None = None, out: IO[str] = sys.stdout,
-                 security: str | Path | None = None, agent_timeout: float = 30.0) -> None:
+                 security: str | Path | None = None, agent_timeout: float = 30.0,
+                 summary: str | Path | None = None) -> None:
         self.graph = graph
+        self.summary = Path(summary) if summary else None
         self.prefix = graph.key_prefix
         self.duration = duration
         self.out = out
@@ -347,6 +349,14 @@ class Launcher:
             else:
                 p = self.procs[name]
                 yield name, p.spec.plugin, "local", p.state, p.pid, p.restarts
+
+    def summarise(self) -> dict[str, dict[str, Any]]:
+        """Per node: plugin, machine, state, restarts and its last statistics, as written by ``--summary``."""
+        return {
+            name: {"plugin": plugin, "machine": machine, "state": state, "restarts": restarts,
+                   **(self.stats[name].model_dump(exclude={"node", "state"}) if name in self.stats else {})}
+            for name, plugin, machine, state, _pid, restarts in self._rows()
+        }
 
     def table(self) -> str:
         where = f"{'MACHINE':<14}" if self.remote else ""
@@ -442,6 +452,9 @@ class Launcher:
             for s, handler in old.items():
                 signal.signal(s, handler)
             session.close()
+        if self.summary is not None:
+            self.summary.parent.mkdir(parents=True, exist_ok=True)
+            self.summary.write_bytes(orjson.dumps(self.summarise(), option=orjson.OPT_INDENT_2))
         failed = self._failed(final=True)
         if failed:
             self.out.write(f"mocapflow: failed: {', '.join(failed)}\n")
