@@ -6,6 +6,7 @@ from typing import ClassVar, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
+from mocapflow.io.skeleton import read_skeleton
 from mocapflow.messages import MarkerFrame, Segments
 from mocapflow.mocap.clustering import SegmentTracker
 from mocapflow.runtime.node import Input, Node, Output
@@ -17,6 +18,7 @@ class ClustererConfig(BaseModel):
     window_s: float = Field(default=5.0, gt=0, description="sliding window of distance statistics (s)")
     every_s: float = Field(default=0.5, gt=0, description="how often the partition is computed again (s)")
     segments: int | None = Field(default=None, ge=2, description="number of segments; none: chosen from the data")
+    skeleton: str | None = Field(default=None, description="SKELETON.json whose segments are published at once")
 
 
 class DistanceClustererConfig(ClustererConfig):
@@ -25,7 +27,7 @@ class DistanceClustererConfig(ClustererConfig):
 
 class SpectralClusterer(Node):
     """Spectral clustering of the distance-spread graph with local scaling (Schoenauer 2007, 3.4). Publishes a
-    segment model after one window and again only when it changes."""
+    segment model after one window and again only when it changes (at once, when seeded with a saved skeleton)."""
 
     Config: ClassVar[type[ClustererConfig]] = ClustererConfig
     method: ClassVar[Literal["spectral", "distance-threshold"]] = "spectral"
@@ -35,6 +37,7 @@ class SpectralClusterer(Node):
     def __init__(self, config: ClustererConfig, publish, name: str = "clusterer") -> None:  # noqa: ANN001
         super().__init__(config, publish, name)
         self.tracker: SegmentTracker | None = None
+        self.seed = read_skeleton(config.skeleton).segments if config.skeleton else None
 
     def options(self) -> dict[str, object]:
         return {"k": self.config.segments}
@@ -42,6 +45,9 @@ class SpectralClusterer(Node):
     def process(self, port: str, message: MarkerFrame) -> None:
         if message.labels is None:
             raise ValueError("the clusterer needs labelled markers: link it after a labeller")
+        if self.seed is not None:  # a calibrated subject: its segments from the first frame, no warm-up
+            self.publish("segments", Segments(frame=message.frame, capture_ns=message.capture_ns, segments=self.seed))
+            self.seed = None
         if self.tracker is None or self.tracker.labels != message.labels:
             # new markers were confirmed upstream: start the statistics again over the new set
             window = max(2, round(self.config.window_s * message.rate))
