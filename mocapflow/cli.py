@@ -43,6 +43,9 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     except KeyboardInterrupt:
         return 130
+    except BrokenPipeError:  # output piped into a reader that closed early (`| head`): not an error
+        sys.stdout = None  # type: ignore[assignment]  # nothing left to flush at exit
+        return 0
 
 
 if __name__ == "__main__":
