@@ -21,7 +21,8 @@ class SimulatorNode(Node):
 
     Config = SimulatorNodeConfig
     outputs = {
-        "markers": Output(MarkerFrame, doc="raw frames: labelled rows, or a shuffled point cloud when unlabelled"),
+        "markers": Output(MarkerFrame, doc="raw frames: labelled rows (with single-camera rays when cameras are "
+                                           "modelled), or a shuffled point cloud when unlabelled"),
         "truth": Output(SimTruth, doc="identities, true positions and joint centres of each frame"),
     }
 
@@ -39,6 +40,7 @@ class SimulatorNode(Node):
         capture_ns = time.time_ns()
         self.publish("markers", MarkerFrame(
             frame=index, capture_ns=capture_ns, rate=self.rate, positions=frame.points, labels=frame.labels,
+            rays=frame.rays,
         ))
         self.publish("truth", SimTruth(
             frame=index, capture_ns=capture_ns, labels=self.labels, identity=frame.identity,

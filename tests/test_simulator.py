@@ -1,8 +1,9 @@
-"""The simulator against its own ground truth: rigs, determinism, rigidity, noise, occlusions, ghosts, hinges, BVH."""
+"""The simulator against its own ground truth: rigs, determinism, rigidity, noise, occlusions, ghosts, hinges, BVH
+driving, and the camera model with its single-camera rays."""
 
 from __future__ import annotations
 
-from itertools import combinations
+from itertools import combinations, pairwise
 from pathlib import Path
 
 import numpy as np
@@ -10,8 +11,10 @@ import pytest
 from pydantic import ValidationError
 from scipy.spatial.transform import Rotation
 
+from mocapflow.messages import MarkerFrame, decode, encode
 from mocapflow.mocap.rigs import RIG_NAMES, Rig, make_rig
 from mocapflow.mocap.simulator import SimFrame, Simulator, SimulatorConfig, simulate, truth_skeleton
+from mocapflow.plugins.simulator import SimulatorNode, SimulatorNodeConfig
 
 BVH = Path(__file__).resolve().parents[2] / "shared" / "data" / "cmu_131_01.bvh"
 
@@ -376,3 +379,195 @@ def test_bvh_motion_keeps_rigid_segments_and_true_hinges(bvh_sim: Simulator) -> 
         np.testing.assert_allclose(rotvec[:, s], np.outer(rotvec[:, s] @ axis, axis), atol=1e-9)
         angle = np.degrees(rotvec[:, s] @ axis)
         assert np.percentile(angle, 5) > -5 and angle.max() > 60, rig.joint_names[s]  # flexion is positive
+
+
+# ---------------------------------------------------------------------------------------------------- cameras
+
+
+def camera_centres(config: SimulatorConfig) -> np.ndarray:
+    """(C, 3) cameras as documented: evenly spaced on a horizontal circle about the origin, the first on +x."""
+    azimuth = 2 * np.pi * np.arange(config.cameras) / config.cameras
+    r = config.camera_radius_mm
+    return np.stack([r * np.cos(azimuth), r * np.sin(azimuth), np.full(config.cameras, config.camera_height_mm)], 1)
+
+
+def observe(config: SimulatorConfig, frames: range) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Points (F, N, 3), rays (F, N, 6), visible (F, N) and true positions (F, N, 3) of the labelled frames."""
+    sim = Simulator(config)
+    out = [sim.frame(i) for i in frames]
+    return tuple(np.stack([getattr(f, k) for f in out]) for k in ("points", "rays", "visible", "true_positions"))
+
+
+@pytest.mark.parametrize("unlabelled", [False, True])
+def test_no_cameras_is_the_simulator_without_a_camera_model(unlabelled: bool) -> None:
+    plain = Simulator(SimulatorConfig(unlabelled=unlabelled, seed=7, **BUSY))
+    unused = Simulator(SimulatorConfig(unlabelled=unlabelled, seed=7, cameras=0, camera_radius_mm=1000,
+                                       camera_dropout=0.5, **BUSY))
+    for i in (0, 5, 2400):
+        a, b = plain.frame(i), unused.frame(i)
+        assert a.rays is None and b.rays is None
+        assert_same(a, b)
+    assert simulate(SimulatorConfig(**BUSY), 5).rays is None
+
+
+def test_single_camera_markers_arrive_as_rays_through_their_noisy_positions() -> None:
+    noise = 0.5
+    config = SimulatorConfig(cameras=4, rate=60, noise_mm=noise, seed=3, hidden_segments=["left_forearm"])
+    frames = range(0, 3600, 3)  # a minute
+    points, rays, visible, true = observe(config, frames)
+    bare, _, bare_visible, _ = observe(config.model_copy(update={"cameras": 0}), frames)  # same noise draws
+    has_ray = np.isfinite(rays).all(-1)
+    assert np.isnan(rays[~has_ray]).all()
+    assert np.isnan(points[has_ray]).all() and not visible[has_ray].any()
+    np.testing.assert_array_equal(np.isfinite(points).all(-1), visible)
+    np.testing.assert_array_equal(points[visible], bare[visible])  # points are observed as without cameras
+    origin, direction = rays[has_ray][:, :3], rays[has_ray][:, 3:]
+    cameras = camera_centres(config)
+    assert np.linalg.norm(origin[:, None] - cameras[None], axis=-1).min(1).max() < 1e-9
+    np.testing.assert_allclose(np.linalg.norm(direction, axis=1), 1.0, atol=1e-12)
+
+    def off_ray(x: np.ndarray) -> np.ndarray:
+        rel = x - origin
+        along = (rel * direction).sum(1)
+        assert along.min() > 1000  # towards the marker, away from the camera
+        return np.linalg.norm(rel - along[:, None] * direction, axis=1)
+
+    assert off_ray(bare[has_ray]).max() < 1e-6  # through the noisy position a point would have had
+    assert off_ray(true[has_ray]).max() < 5 * noise
+    # A marker hidden by a schedule is seen by no camera; without cameras every other marker would be a point.
+    assert (~bare_visible).sum() > 100
+    assert not (has_ray | visible)[~bare_visible].any()
+    assert not (visible & ~bare_visible).any()
+    # A realistic mix: most markers are points, a few are rays, fewer are missing (none missing without cameras
+    # outside the hidden periods).
+    point, ray = visible[bare_visible].mean(), has_ray[bare_visible].mean()
+    missing = 1 - point - ray
+    assert point > 0.9 and 0.01 < ray < 0.1 and 0.0005 < missing < ray
+
+
+def test_camera_frames_are_deterministic_and_order_independent() -> None:
+    config = SimulatorConfig(cameras=3, camera_dropout=0.2, seed=4, **BUSY)
+    order = [0, 1, 2400, 7, 2401, 1]
+    first = Simulator(config)
+    frames = [first.frame(i) for i in order]
+    again = Simulator(config)
+    for i, f in sorted(zip(order, frames, strict=True), key=lambda x: -x[0]):
+        g = again.frame(i)
+        assert_same(f, g)
+        np.testing.assert_array_equal(f.rays, g.rays)
+    assert np.isfinite(frames[2].rays).all(1).any()
+
+
+def test_one_camera_gives_no_points_and_the_camera_misses_markers_at_random() -> None:
+    frames = range(0, 3000, 10)
+    points, rays, visible, _ = observe(SimulatorConfig(cameras=1, rate=60, seed=5), frames)
+    has_ray = np.isfinite(rays).all(-1)
+    assert not visible.any() and np.isnan(points).all()
+    assert 0.5 < has_ray.mean() < 0.9  # the rest is hidden by the body or out of view
+    config = SimulatorConfig(cameras=4, rate=60, seed=5)
+    _, _, seen_points, _ = observe(config, frames)
+    _, dropped_rays, dropped_points, _ = observe(config.model_copy(update={"camera_dropout": 0.3}), frames)
+    assert not (dropped_points & ~seen_points).any()  # a camera missing a marker only removes observations
+    assert dropped_points.mean() < seen_points.mean() - 0.1 and np.isfinite(dropped_rays).all(-1).mean() > 0.1
+    _, none_rays, none_points, _ = observe(config.model_copy(update={"camera_dropout": 1.0}), range(5))
+    assert not none_points.any() and np.isnan(none_rays).all()
+
+
+def test_more_cameras_see_more() -> None:
+    """2C cameras include the C cameras of the smaller ring: every marker seen as a point stays a point, every marker
+    observed at all stays observed, and the share of rays and missing markers falls."""
+    frames = range(0, 12000, 20)
+    previous, unseen = None, []
+    for cameras in (1, 2, 4, 8):
+        _, rays, visible, _ = observe(SimulatorConfig(cameras=cameras, rate=60, seed=6), frames)
+        observed = visible | np.isfinite(rays).all(-1)
+        if previous is not None:
+            assert not (previous[0] & ~visible).any() and not (previous[1] & ~observed).any()
+        previous = visible, observed
+        unseen.append(1 - visible.mean())
+    assert all(a > b for a, b in pairwise(unseen)) and unseen[-1] < 0.01
+
+
+def test_capsules_sit_just_inside_the_markers() -> None:
+    for name in RIG_NAMES:
+        rig = make_rig(name)
+        sim = Simulator(SimulatorConfig(rig=name, cameras=1))
+        for s in range(len(rig.segments)):
+            children = np.flatnonzero(rig.parents == s)
+            local = rig.marker_offsets[rig.marker_segment == s]
+            end = sim.capsule_ends[s]
+            if len(children):
+                np.testing.assert_array_equal(end, rig.joint_offsets[children[0]])
+            else:  # a leaf: along its markers' centroid, a little beyond
+                centroid = local.mean(0)
+                assert np.linalg.norm(np.cross(end, centroid)) < 1e-9 * np.linalg.norm(end) ** 2
+                assert 1.1 < np.linalg.norm(end) / np.linalg.norm(centroid) < 1.5
+            along = np.clip(local @ end / (end @ end), 0, 1)
+            skin = np.linalg.norm(local - along[:, None] * end, axis=1)
+            assert 0.6 * skin.min() < sim.capsule_radii[s] < 0.95 * skin.min(), (name, rig.segments[s])
+
+
+def test_a_line_of_sight_through_a_capsule_hides_the_marker() -> None:
+    """One camera, no noise: a marker is a ray exactly when, by brute force over points every 0.5 mm along every
+    capsule's axis, its line of sight (beyond the first 5 mm) misses every capsule and the marker is in the camera's
+    35-degree cone. Cases within 0.5 mm or 0.01 degree of the boundary are left out. The camera stands close, so
+    that the body also leaves its cone."""
+    config = SimulatorConfig(cameras=1, camera_radius_mm=2500, rate=60, noise_mm=0.0, seed=8)
+    sim = Simulator(config)
+    rig = sim.rig
+    camera = camera_centres(config)[0]
+    view = np.array([0.0, 0.0, 1000.0]) - camera
+    view /= np.linalg.norm(view)
+    counts = {"seen": 0, "own": 0, "other": 0, "out of view": 0}
+    for i in range(0, 12000, 200):
+        f = sim.frame(i)
+        rot, pos = sim.segment_poses(i)
+        ray = np.isfinite(f.rays).all(1)
+        m = f.true_positions
+        sight = camera - m
+        length = np.linalg.norm(sight, axis=1)
+        angle = np.degrees(np.arccos(sight @ -view / length))
+        start = m + 5 * sight / length[:, None]
+        gap = np.full((len(m), len(rig.segments)), np.inf)
+        for s in range(len(rig.segments)):
+            end = pos[s] + rot[s] @ sim.capsule_ends[s]
+            axis = pos[s] + np.linspace(0, 1, int(np.linalg.norm(end - pos[s]) / 0.5) + 2)[:, None] * (end - pos[s])
+            rel = axis[None] - start[:, None]  # (N, samples, 3)
+            d = (camera - start)[:, None]
+            t = np.clip((rel * d).sum(-1) / (d * d).sum(-1), 0, 1)
+            gap[:, s] = np.linalg.norm(rel - t[..., None] * d, axis=-1).min(1)
+        clearance = gap - sim.capsule_radii
+        clear = np.abs(clearance).min(1) > 0.5
+        clear &= np.abs(angle - 35) > 0.01
+        blocked = (clearance < 0).any(1)
+        in_view = angle < 35
+        np.testing.assert_array_equal(ray[clear], (in_view & ~blocked)[clear], err_msg=f"frame {i}")
+        counts["seen"] += (ray & clear).sum()
+        counts["out of view"] += (~in_view & clear).sum()
+        own = clearance[np.arange(len(m)), rig.marker_segment] < 0
+        counts["own"] += (in_view & own & clear).sum()
+        counts["other"] += (in_view & blocked & ~own & clear).sum()
+    assert min(counts.values()) > 20, counts  # every case is exercised
+
+
+@pytest.mark.parametrize("unlabelled", [False, True])
+def test_simulator_node_publishes_the_rays(unlabelled: bool) -> None:
+    config = SimulatorNodeConfig(cameras=3, rate=60, seed=9, frames=40, unlabelled=unlabelled)
+    sent: list[tuple[str, MarkerFrame]] = []
+    node = SimulatorNode(config, lambda port, msg: sent.append((port, msg)))
+    index = 0
+    while node.emit(index):
+        index += 1
+    markers = [msg for port, msg in sent if port == "markers"]
+    assert index == 40 and len(markers) == 40
+    sim = Simulator(SimulatorConfig(cameras=3, rate=60, seed=9, unlabelled=unlabelled))
+    for message in markers:
+        back = decode(encode(message), MarkerFrame)
+        expected = sim.frame(message.frame).rays
+        if unlabelled:
+            assert back.rays is None and expected is None
+            continue
+        np.testing.assert_allclose(back.rays, expected, rtol=1e-6, atol=1e-3)  # float32 on the wire, NaN kept
+        np.testing.assert_array_equal(np.isnan(back.positions).any(1), ~sim.frame(message.frame).visible)
+    if not unlabelled:
+        assert sum(np.isfinite(m.rays).all(1).sum() for m in markers) > 20

@@ -4,6 +4,18 @@ The rig moves with smooth, lifelike motion (sums of sinusoids at incommensurate 
 retargeted onto the rig) and is observed with Gaussian noise, soft-tissue artefact, dropouts, long gaps, hidden
 segments and ghost points, either as labelled rows or as an unlabelled shuffled point cloud.
 
+With ``cameras`` > 0 an optical camera model decides what the tracker sees. The cameras stand evenly spaced on a
+horizontal circle around the centre of the volume (the first on the +x axis), each aimed at a point 1 m above the
+floor at the centre, with a cone of view of 35 degrees half-angle. The body occludes them: every segment is a
+capsule whose axis runs from its proximal joint centre to the proximal joint of its first child (a leaf segment's
+to just beyond its markers' centroid) and whose radius is a little smaller than the distance of its nearest marker
+from that axis, as markers sit on the skin. A camera sees a marker inside its cone when the line of sight from the
+marker (leaving out the first few millimetres) to the camera centre passes outside every capsule, so a marker on the
+far side of its own limb, or behind another limb or the trunk, is hidden from that camera. A marker hidden by an
+occlusion schedule is seen by no camera, and ``camera_dropout`` makes each camera miss each marker at random. A
+marker seen by two cameras or more is observed as a point; one seen by a single camera arrives as a ray from that
+camera's centre through its noisy position, and is missing from the points; one seen by none is missing.
+
 Every frame is a pure function of (config, frame index): per-frame randomness is seeded by (seed, frame) and
 occlusion schedules by (seed, kind, block of frames), so frames can be produced in any order, live or offline, and a
 restarted simulator resumes exactly where it stopped.
@@ -36,6 +48,11 @@ _HIDDEN_PER_S = 0.1  # hidden periods starting per hidden segment per second
 _GHOST_MM = (20.0, 300.0)  # distance of a ghost from the marker it appears near
 _JOINT_HZ, _ROOT_TURN_HZ, _ROOT_TRAVEL_HZ = (0.2, 1.5), (0.05, 0.3), (0.03, 0.12)
 _WAVES = 3  # sinusoids per degree of freedom
+_CAMERA_AIM_MM = 1000.0  # cameras aim at this height above the centre of the floor
+_CAMERA_HALF_FOV = np.radians(35.0)  # half-angle of a camera's cone of view
+_LEAF_REACH = 1.3  # a leaf segment's capsule axis reaches this many times its markers' centroid from its joint
+_SKIN_FRACTION = 0.8  # capsule radius as a fraction of its nearest marker's distance from the axis
+_SIGHT_CLEAR_MM = 5.0  # the part of a line of sight next to its marker that no capsule blocks
 
 
 class SimulatorConfig(BaseModel):
@@ -62,6 +79,16 @@ class SimulatorConfig(BaseModel):
     )
     unlabelled: bool = Field(default=False, description="publish a shuffled, unlabelled point cloud with ghosts")
     bvh: str | None = Field(default=None, description="BVH file whose motion drives the human rig")
+    cameras: int = Field(
+        default=0, ge=0,
+        description="cameras on a circle around the volume, occluded by the body; a marker seen by one camera arrives "
+                    "as a ray; 0: no camera model, markers are seen unless a gap hides them",
+    )
+    camera_radius_mm: float = Field(default=4000.0, gt=0, description="distance of the cameras from the centre, mm")
+    camera_height_mm: float = Field(default=2500.0, description="height of the cameras above the floor, mm")
+    camera_dropout: float = Field(
+        default=0.0, ge=0, le=1, description="chance that a camera misses a marker it could see, per frame"
+    )
 
     @field_validator("rig")
     @classmethod
@@ -91,8 +118,10 @@ class SimFrame:
     labels: list[str] | None  # marker labels when labelled, None when unlabelled
     identity: np.ndarray  # (rows of points,) true marker index of each row, -1 for a ghost
     true_positions: np.ndarray  # (N, 3) noise-free positions, soft-tissue artefact included
-    visible: np.ndarray  # (N,) bool
+    visible: np.ndarray  # (N,) bool, observed as a point
     joint_centres: np.ndarray  # (J, 3) world joint centres, J = S - 1
+    rays: np.ndarray | None  # (N, 6) single-camera rays (origin, unit direction), NaN rows where none; None
+    # without cameras or when unlabelled
 
 
 @dataclass
@@ -111,6 +140,7 @@ class SimRecording:
     marker_segment: list[str]  # segment of each marker
     points: list[np.ndarray] | None  # unlabelled point clouds per frame
     identity: list[np.ndarray] | None  # their true marker indices, -1 for ghosts
+    rays: np.ndarray | None  # (F, N, 6) single-camera rays, NaN where none; None without cameras or when unlabelled
 
 
 def forward_kinematics(rig: Rig, local: np.ndarray, root: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -305,6 +335,13 @@ class Simulator:
             units = rig.marker_segment[None, :] == np.array(seg)[:, None]
             lengths = (max(1, round(_HIDDEN_S[0] * rate)), max(1, round(_HIDDEN_S[1] * rate)))
             self._gaps.append(_Gaps(config.seed, _HIDDEN, units, _HIDDEN_PER_S / rate, lengths, block))
+        azimuth = 2 * np.pi * np.arange(config.cameras) / max(config.cameras, 1)
+        self.camera_centres = np.stack([config.camera_radius_mm * np.cos(azimuth),
+                                        config.camera_radius_mm * np.sin(azimuth),
+                                        np.full(config.cameras, config.camera_height_mm)], axis=1)
+        aim = np.array([0.0, 0.0, _CAMERA_AIM_MM]) - self.camera_centres
+        self._camera_axes = aim / np.linalg.norm(aim, axis=1, keepdims=True)
+        self.capsule_ends, self.capsule_radii = _capsules(rig)
 
     def _pose(self, i: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         if i < 0:
@@ -333,6 +370,18 @@ class Simulator:
         visible = ~hidden
         rng = np.random.default_rng([cfg.seed, _FRAME, i])
         observed = true + rng.standard_normal(true.shape) * cfg.noise_mm
+        rays = None
+        if cfg.cameras:
+            seen = self._seen(true, rot, pos) & visible[:, None]
+            if cfg.camera_dropout > 0:
+                seen &= rng.random(seen.shape) >= cfg.camera_dropout
+            seen_by = seen.sum(1)
+            visible = seen_by >= 2
+            if not cfg.unlabelled:
+                origin = self.camera_centres[seen.argmax(1)]
+                direction = observed - origin
+                direction /= np.linalg.norm(direction, axis=1, keepdims=True)
+                rays = np.where((seen_by == 1)[:, None], np.concatenate([origin, direction], axis=1), np.nan)
         if cfg.unlabelled:
             count = rng.poisson(cfg.ghosts) if cfg.ghosts > 0 else 0
             direction = rng.standard_normal((count, 3))
@@ -347,7 +396,50 @@ class Simulator:
             points = np.where(visible[:, None], observed, np.nan)
             identity, labels = np.arange(len(true)), self.labels
         return SimFrame(frame=i, time=i / cfg.rate, points=points, labels=labels, identity=identity,
-                        true_positions=true, visible=visible, joint_centres=pos[1:])
+                        true_positions=true, visible=visible, joint_centres=pos[1:], rays=rays)
+
+    def _seen(self, markers: np.ndarray, rot: np.ndarray, pos: np.ndarray) -> np.ndarray:
+        """(N, C) True where a camera sees a marker at ``markers`` (N, 3): inside its cone of view, with a line of
+        sight clear of every segment's capsule (segment poses R (S, 3, 3), t (S, 3)).
+
+        The line of sight is m + a u (u the unit vector towards the camera, a from _SIGHT_CLEAR_MM to the camera's
+        distance L) and a capsule's axis q + b v (b in [0, 1]). Their closest points are found as for any two line
+        segments: the a closest to the other line, clamped; the b closest to that point, clamped; the a closest to
+        that, clamped. Everything is dot products of (S, C, N) arrays."""
+        cams, axes = self.camera_centres, self._camera_axes
+        mm = (markers * markers).sum(1)
+        cm = cams @ markers.T  # (C, N)
+        length = np.sqrt((cams * cams).sum(1)[:, None] - 2 * cm + mm)
+        in_view = axes @ markers.T - (axes * cams).sum(1)[:, None] > np.cos(_CAMERA_HALF_FOV) * length
+        v = np.einsum("sij,sj->si", rot, self.capsule_ends)
+        vv = (v * v).sum(1)[:, None, None]
+        vm, qm = v @ markers.T, pos @ markers.T  # (S, N)
+        vr = (vm - (v * pos).sum(1)[:, None])[:, None]  # v.(m - q), (S, 1, N)
+        rr = (mm - 2 * qm + (pos * pos).sum(1)[:, None])[:, None]  # |m - q|^2
+        uv = ((v @ cams.T)[..., None] - vm[:, None]) / length  # u.v, (S, C, N)
+        ur = (cm - mm - (pos @ cams.T)[..., None] + qm[:, None]) / length  # u.(m - q)
+        a = np.clip((uv * vr - ur * vv) / np.maximum(vv - uv * uv, 1e-9), _SIGHT_CLEAR_MM, length)
+        b = np.clip((uv * a + vr) / vv, 0, 1)
+        nearest = uv * b - ur
+        a = np.clip(nearest, _SIGHT_CLEAR_MM, length)
+        gap2 = rr - b * (2 * vr - b * vv) + a * (a - 2 * nearest)  # |m + a u - q - b v|^2
+        return (in_view & ~(gap2 < self.capsule_radii[:, None, None] ** 2).any(0)).T
+
+
+def _capsules(rig: Rig) -> tuple[np.ndarray, np.ndarray]:
+    """Every segment's capsule: the end of its axis in the segment's frame (S, 3), the axis starting at the frame's
+    origin, and its radius (S,), a little smaller than the distance of the segment's nearest marker from the axis."""
+    nseg = len(rig.segments)
+    ends = np.empty((nseg, 3))
+    for s in range(nseg):
+        children = np.flatnonzero(rig.parents == s)
+        centroid = rig.marker_offsets[rig.marker_segment == s].mean(0)
+        ends[s] = rig.joint_offsets[children[0]] if len(children) else _LEAF_REACH * centroid
+    axis = ends[rig.marker_segment]
+    along = np.clip((rig.marker_offsets * axis).sum(1) / (axis * axis).sum(1), 0, 1)
+    distance = np.linalg.norm(rig.marker_offsets - along[:, None] * axis, axis=1)
+    radii = np.array([distance[rig.marker_segment == s].min() for s in range(nseg)]) * _SKIN_FRACTION
+    return ends, radii
 
 
 def _skin_matrix(rig: Rig, seed: int) -> np.ndarray:
@@ -379,6 +471,7 @@ def simulate(config: SimulatorConfig, frames: int, bvh: Bvh | None = None) -> Si
     centres = np.empty((frames, j, 3))
     points: list[np.ndarray] | None = [] if config.unlabelled else None
     identity: list[np.ndarray] | None = [] if config.unlabelled else None
+    rays = np.empty((frames, n, 6)) if config.cameras and not config.unlabelled else None
     for i in progress(range(frames), frames, "simulate"):
         f = sim.frame(i)
         true[i], visible[i], centres[i] = f.true_positions, f.visible, f.joint_centres
@@ -387,12 +480,14 @@ def simulate(config: SimulatorConfig, frames: int, bvh: Bvh | None = None) -> Si
         if points is not None and identity is not None:
             points.append(f.points)
             identity.append(f.identity)
+        if rays is not None:
+            rays[i] = f.rays
     return SimRecording(
         rate=config.rate, labels=list(rig.marker_labels), positions=positions, true_positions=true, visible=visible,
         joint_names=sim.joint_names, joint_centres=centres,
         joint_parent=[rig.segments[rig.parents[s]] for s in range(1, len(rig.segments))],
         joint_child=list(rig.segments[1:]), marker_segment=[rig.segments[s] for s in rig.marker_segment],
-        points=points, identity=identity,
+        points=points, identity=identity, rays=rays,
     )
 
 
