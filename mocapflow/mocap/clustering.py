@@ -23,7 +23,8 @@ from collections.abc import Callable, Sequence
 from typing import Literal
 
 import numpy as np
-from scipy.cluster.hierarchy import fcluster, linkage as hierarchy
+from scipy.cluster.hierarchy import fcluster
+from scipy.cluster.hierarchy import linkage as hierarchy
 from scipy.cluster.vq import kmeans2
 from scipy.spatial.distance import squareform
 
@@ -51,7 +52,8 @@ class PairStatistics:
 
     def distances(self, positions: np.ndarray) -> np.ndarray:
         """(B, P) pairwise distances of (B, N, 3) frames, NaN where a marker is missing."""
-        return np.linalg.norm(positions[:, self.rows] - positions[:, self.cols], axis=-1)
+        diff = positions[:, self.rows] - positions[:, self.cols]
+        return np.sqrt(np.einsum("bpi,bpi->bp", diff, diff))
 
     def add(self, distances: np.ndarray, sign: float = 1.0) -> None:
         """Add (``sign`` = 1) or remove (-1) the (B, P) distances of some frames."""
@@ -61,7 +63,7 @@ class PairStatistics:
             has = seen.any(0) & first
             self.shift[has] = distances[np.argmax(seen[:, has], axis=0), np.flatnonzero(has)]
         seen = np.isfinite(distances)
-        dev = np.where(seen, distances - np.nan_to_num(self.shift), 0.0)
+        dev = np.where(seen, distances - self.shift, 0.0)  # a pair never seen has no shift yet and no distance
         self.count += sign * seen.sum(0)
         self.total += sign * dev.sum(0)
         self.squares += sign * (dev * dev).sum(0)
@@ -218,18 +220,23 @@ class SegmentTracker:
     """Streaming clusterer: distance spreads over a sliding window, re-clustered every ``every`` frames.
 
     ``update`` returns a ``SegmentModel`` after the warm-up (``warmup`` frames, default one window) whenever the
-    partition differs from the last one returned, else None. ``options`` go to the partitioner (``k``,
-    ``neighbour``, ``threshold_mm``...).
+    partition differs from the last one returned, else None. While the partition holds, the interval between two
+    clusterings doubles, up to ``backoff`` times ``every``; a change brings it back to ``every``. ``options`` go to
+    the partitioner (``k``, ``neighbour``, ``threshold_mm``...).
     """
 
     def __init__(self, labels: Sequence[str], *, window: int = 600, warmup: int | None = None, every: int = 30,
-                 method: Literal["spectral", "distance-threshold"] = "spectral", **options: object) -> None:
+                 backoff: int = 4, method: Literal["spectral", "distance-threshold"] = "spectral",
+                 **options: object) -> None:
         if method not in PARTITIONERS:
             raise ValueError(f"unknown clustering method {method!r}; choose one of {', '.join(PARTITIONERS)}")
         self.labels = list(labels)
         self.window = window
         self.warmup = window if warmup is None else warmup
         self.every = every
+        self.backoff = backoff
+        self.interval = every
+        self.next = self.warmup
         self.partition = PARTITIONERS[method]
         self.options = options
         self.stats = PairStatistics(len(self.labels))
@@ -245,10 +252,13 @@ class SegmentTracker:
         if len(self.history) > self.window:
             self.stats.add(self.history.popleft(), -1.0)
         self.frames += 1
-        if self.frames < self.warmup or (self.frames - self.warmup) % self.every:
+        if self.frames < self.next:
             return None
         groups = self.partition(self.stats.spread(), **self.options)
-        if groups == self.current:
+        unchanged = groups == self.current
+        self.interval = min(2 * self.interval, self.backoff * self.every) if unchanged else self.every
+        self.next = self.frames + self.interval
+        if unchanged:
             return None
         self.current = groups
         return segment_model(groups, self.labels)

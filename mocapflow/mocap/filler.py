@@ -263,6 +263,9 @@ class _Body:
         self.links = [[(j, other, self.joint_offset(j, k), self.joint_offset(j, other)) for j, other in links]
                       for k, links in enumerate(self.neighbours)]
         self.in_segment = self.marker_seg >= 0
+        self.adjacency = np.zeros((s, s), dtype=int)
+        for k, links in enumerate(self.neighbours):
+            self.adjacency[k, [other for _, other in links]] = 1
         usable = [j for j in self.joints if j is not None]
         self.joint_usable = np.array([j is not None for j in self.joints], dtype=bool)
         self.joint_segments = np.array([[j.parent, j.child] for j in usable], dtype=int).reshape(-1, 2)
@@ -274,13 +277,21 @@ class _Body:
         assert jt is not None
         return jt.parent_offset if jt.parent == segment else jt.child_offset
 
-    def poses(self, positions: np.ndarray, use: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Every segment's pose fitted to the markers of ``positions`` (N, 3) selected by ``use`` (N,) bool;
-        ``ok`` is False where they do not fix it."""
+    def poses(self, positions: np.ndarray, use: np.ndarray, segments: np.ndarray | slice = slice(None)
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The poses of ``segments`` (default all) fitted to the markers of ``positions`` (N, 3) selected by ``use``
+        (N,) bool; ``ok`` is False where they do not fix it."""
+        idx = self.idx[segments]
         padded = np.zeros((len(positions) + 1, 3))
         padded[:-1][use] = positions[use]
-        w = np.append(use, False)[self.idx].astype(float)
-        return kabsch(self.local, padded[self.idx], w)
+        w = np.append(use, False)[idx].astype(float)
+        return kabsch(self.local[segments], padded[idx], w)
+
+    def around(self, markers: np.ndarray) -> np.ndarray:
+        """Indices of the segments holding any of ``markers`` (N,) bool, and of their neighbours."""
+        touched = np.zeros(len(self.members), dtype=bool)
+        touched[self.marker_seg[markers & self.in_segment]] = True
+        return np.flatnonzero(touched | (self.adjacency @ touched > 0))
 
 
 def is_complete(skeleton: SkeletonModel) -> bool:
@@ -528,7 +539,7 @@ class GapFiller:
         self._pose_r = np.zeros((2, 0, 3, 3))
         self._pose_t = np.zeros((2, 0, 3))
         self._pose_ok = np.zeros((2, 0), dtype=bool)
-        self._pose_fresh = [True, True]
+        self._pose_fresh = np.zeros((2, 0), dtype=bool)  # per segment: pose this frame / last frame known
         self._learner: _Learner | None = None
         self._pending: SkeletonModel | None = None  # learned, taken up at the next frame
         self._holds: dict[int, tuple[tuple[int, tuple[str, int], tuple[str, int]], np.ndarray, np.ndarray]] = {}
@@ -566,24 +577,29 @@ class GapFiller:
         self._pose_r = np.zeros((2, s, 3, 3))
         self._pose_t = np.zeros((2, s, 3))
         self._pose_ok = np.zeros((2, s), dtype=bool)
-        self._pose_fresh = [False, False]  # fitted from the last two filled frames when next needed
+        self._pose_fresh = np.zeros((2, s), dtype=bool)  # fitted from the last two filled frames when next needed
 
     @staticmethod
-    def _fitted_poses_for(body: _Body, filled: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Every segment's pose fitted to a filled frame; a segment counts as posed only with all its markers."""
+    def _fitted_poses_for(body: _Body, filled: np.ndarray, segments: np.ndarray | slice = slice(None)
+                          ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The poses of ``segments`` (default all) fitted to a filled frame; a segment counts as posed only with all
+        its markers."""
         finite = np.isfinite(filled).all(axis=1)
-        r, t, ok = body.poses(filled, finite)
-        complete = (np.append(finite, False)[body.idx] | ~body.slot).all(axis=1)
+        r, t, ok = body.poses(filled, finite, segments)
+        complete = (np.append(finite, False)[body.idx[segments]] | ~body.slot[segments]).all(axis=1)
         return r, t, ok & complete
 
-    def _ensure_poses(self) -> None:
-        """Fit the poses of the last two frames where they were skipped (frames with every marker seen)."""
-        for age in (0, 1):
-            if not self._pose_fresh[age]:
-                assert self.body is not None
-                self._pose_r[age], self._pose_t[age], self._pose_ok[age] = self._fitted_poses_for(
-                    self.body, self._last[age])
-                self._pose_fresh[age] = True
+    def _ensure_poses(self, segments: np.ndarray | slice = slice(None), ages: tuple[int, ...] = (0, 1)) -> None:
+        """Fit the poses of ``segments`` (default all) in this frame and the last (``ages``) where they were skipped
+        (segments with every marker seen, which no gap needed)."""
+        assert self.body is not None
+        for age in ages:
+            stale = np.arange(len(self.body.members))[segments]
+            stale = stale[~self._pose_fresh[age, stale]]
+            if len(stale):
+                self._pose_r[age, stale], self._pose_t[age, stale], self._pose_ok[age, stale] = (
+                    self._fitted_poses_for(self.body, self._last[age], stale))
+                self._pose_fresh[age, stale] = True
 
     # -- per frame ---------------------------------------------------------------------------------------------
     def predict_next(self) -> np.ndarray:
@@ -627,9 +643,8 @@ class GapFiller:
             if poses is None:  # no segment lost a marker: the fit waits until a gap or a reader needs it
                 self._pose_fresh[0] = False
                 self._holds.clear()  # a later gap starts its own holds
-            else:  # the constraint's own poses, so estimates cannot creep through the filter's lag
-                self._pose_r[0], self._pose_t[0], self._pose_ok[0] = poses
-                self._pose_fresh[0] = True
+            else:  # the constraint's own poses around the gaps, so estimates cannot creep through the filter's lag
+                self._pose_r[0], self._pose_t[0], self._pose_ok[0], self._pose_fresh[0] = poses
             centres = self._centres_later(z, flags)
         if self._learner is not None:  # a new model is taken up from the next frame, so the result and
             # ``joint_names`` keep describing the same body until then
@@ -637,32 +652,40 @@ class GapFiller:
         return FillResult(positions=z, flags=flags, joint_centres=centres)
 
     def _current_poses(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """This frame's segment poses, fitted now if the frame had every marker."""
-        self._ensure_poses()
+        """This frame's segment poses, fitted now where skipped."""
+        self._ensure_poses(ages=(0,))
         return self._pose_r[0].copy(), self._pose_t[0].copy(), self._pose_ok[0].copy()
 
     def _centres_later(self, z: np.ndarray, flags: np.ndarray) -> Callable[[], np.ndarray]:
-        """The joint centres of this frame, computed on first read from its poses (fitted then if skipped)."""
+        """The joint centres of this frame, computed on first read from its poses (fitted then where skipped)."""
         body = self.body
         assert body is not None
         flags = flags.copy()  # the caller may edit the result's arrays before reading the centres
-        if self._pose_fresh[0]:
-            poses = (self._pose_r[0].copy(), self._pose_t[0].copy(), self._pose_ok[0].copy())
-            return lambda: joint_centres(body, poses, flags)
+        r, t, ok = self._pose_r[0].copy(), self._pose_t[0].copy(), self._pose_ok[0].copy()
+        stale = np.flatnonzero(~self._pose_fresh[0])
+        if not len(stale):
+            return lambda: joint_centres(body, (r, t, ok), flags)
         z = z.copy()
-        return lambda: joint_centres(body, self._fitted_poses_for(body, z), flags)
+
+        def centres() -> np.ndarray:
+            r[stale], t[stale], ok[stale] = self._fitted_poses_for(body, z, stale)
+            return joint_centres(body, (r, t, ok), flags)
+        return centres
 
     def _fill_missing(
         self, z: np.ndarray, seen: np.ndarray, flags: np.ndarray, rays: np.ndarray | None,
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
         """Write measurements for the missing rows of ``z`` and their ``flags``: single-camera markers first
         (6.2.4), then the rigid-body cases, then each filter alone. Returns the segments' poses this frame (R, t,
-        known) when a marker of a segment was missing, else None."""
+        known, and which segments these were worked out for: those that lost a marker and their neighbours) when a
+        marker of a segment was missing, else None."""
         n = len(self.labels)
         prior = self.kf.position
         body = self.body if self.body is not None and (~seen & self.body.in_segment).any() else None
+        near = np.zeros(0, dtype=int)
         if body is not None:
-            self._ensure_poses()
+            near = body.around(~seen)
+            self._ensure_poses(near)
         visible = seen.copy()
         if rays is not None:
             rays = np.asarray(rays, dtype=float).reshape(n, 6)
@@ -670,7 +693,7 @@ class GapFiller:
             if ray_rows.any():
                 guess = prior.copy()
                 if body is not None:
-                    est, _, _ = self._constrain(z, visible, prior, ray_rows & body.in_segment, keep=False)
+                    est, _, _ = self._constrain(z, visible, prior, ray_rows & body.in_segment, near, keep=False)
                     guess = np.where(np.isfinite(est), est, guess)
                 ok = ray_rows & np.isfinite(guess).all(axis=1)
                 z[ok] = project_on_rays(guess[ok], rays[ok])
@@ -682,7 +705,10 @@ class GapFiller:
         if body is not None:
             targets = ~visible & body.in_segment
             self._held = set()
-            est, codes, poses = self._constrain(z, visible, prior, targets, keep=True)
+            est, codes, (r, t, posed) = self._constrain(z, visible, prior, targets, near, keep=True)
+            fresh = np.zeros(len(body.members), dtype=bool)
+            fresh[near] = True
+            poses = r, t, posed, fresh
             self._holds = {k: hold for k, hold in self._holds.items() if k in self._held}
             done = targets & np.isfinite(est).all(axis=1)
             if self._max_coast is not None:
@@ -728,11 +754,13 @@ class GapFiller:
             z[i] = origin + ray_s * direction
 
     def _constrain(
-        self, filled: np.ndarray, visible: np.ndarray, prior: np.ndarray, targets: np.ndarray, keep: bool
+        self, filled: np.ndarray, visible: np.ndarray, prior: np.ndarray, targets: np.ndarray, near: np.ndarray,
+        keep: bool,
     ) -> tuple[np.ndarray, np.ndarray, tuple[np.ndarray, np.ndarray, np.ndarray]]:
         """Rigid-body estimates (5.3) of the ``targets`` markers from the ``visible`` ones: (N, 3), case codes, and
-        every segment's pose this frame (R, t, known): fitted to its visible markers when three or more are, else as
-        placed here. ``keep`` stores the two-anchor holds (off for the single-camera pass)."""
+        the poses this frame (R, t, known) of the segments ``near`` the targets (holding one, or a neighbour of
+        one; the others are left unknown): fitted to their visible markers when three or more are, else as placed
+        here. ``keep`` stores the two-anchor holds (off for the single-camera pass)."""
         body = self.body
         assert body is not None
         cfg = self.config
@@ -740,9 +768,11 @@ class GapFiller:
         est = np.full((n, 3), np.nan)
         codes = np.zeros(n, dtype=np.uint8)
         seg_vis = np.bincount(body.marker_seg[visible & body.in_segment], minlength=len(body.members))
-        r_all, t_all, posed = body.poses(filled, visible)  # three or more visible markers fix the pose
+        r_all, t_all = np.zeros((len(body.members), 3, 3)), np.zeros((len(body.members), 3))
+        posed = np.zeros(len(body.members), dtype=bool)
+        r_all[near], t_all[near], posed[near] = body.poses(filled, visible, near)  # three visible markers fix a pose
         seen_posed = posed.copy()  # placed with at least one of their own markers visible
-        segments = np.unique(body.marker_seg[targets & body.in_segment])
+        segments = np.flatnonzero(np.bincount(body.marker_seg[targets & body.in_segment], minlength=len(seg_vis)))
         direct = segments[posed[segments]]
         if len(direct):
             world = body.local[direct] @ r_all[direct].transpose(0, 2, 1) + t_all[direct, None]

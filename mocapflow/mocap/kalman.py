@@ -1,9 +1,8 @@
 """A bank of constant-velocity Kalman filters, one per marker, advanced together (Aristidou 2008, 5.2 and A.2).
 
 Every marker follows the same constant-velocity model (state: position and velocity). Process and measurement noise
-are isotropic, so the three axes of a marker share one 2x2 covariance: the bank stores states as (N, 2, 3) and
-covariances as (N, 2, 2), and one predict or update is a handful of batched numpy operations over all markers at
-once, so its cost stays flat as markers are added.
+are isotropic, so the three axes of a marker share one 2x2 covariance, and one predict or update is a handful of
+batched numpy operations over all markers at once, so its cost stays flat as markers are added.
 """
 
 from __future__ import annotations
@@ -13,7 +12,12 @@ from filterpy.common import Q_discrete_white_noise, kinematic_kf
 
 
 class ConstantVelocityBank:
-    """``n`` independent constant-velocity filters sharing one model; a filter starts at its marker's first sight."""
+    """``n`` independent constant-velocity filters sharing one model; a filter starts at its marker's first sight.
+
+    The model matrices come from filterpy; the bank applies them written out on per-marker arrays (positions and
+    velocities (N, 3), the three distinct covariance entries (N,)), which keeps a predict and an update at a dozen
+    vectorised operations each.
+    """
 
     def __init__(self, n: int, dt: float, accel_sd: float, initial_speed_sd: float) -> None:
         """``accel_sd`` (mm/s^2) is the white-noise acceleration driving the model; ``initial_speed_sd`` (mm/s) the
@@ -22,27 +26,33 @@ class ConstantVelocityBank:
         self.F = np.asarray(model.F, dtype=float)  # (2, 2): [[1, dt], [0, 1]]
         self.H = np.asarray(model.H, dtype=float)  # (1, 2): observes the position
         self.Q = np.asarray(Q_discrete_white_noise(dim=2, dt=dt, var=accel_sd**2), dtype=float)
+        self.dt = float(self.F[0, 1])
         self.initial_speed_var = float(initial_speed_sd) ** 2
-        self.x = np.full((n, 2, 3), np.nan)
-        self.P = np.zeros((n, 2, 2))
+        self.pos = np.full((n, 3), np.nan)
+        self.vel = np.full((n, 3), np.nan)
+        self.p00, self.p01, self.p11 = np.zeros(n), np.zeros(n), np.zeros(n)  # covariance [[p00, p01], [p01, p11]]
         self.started = np.zeros(n, dtype=bool)
 
     @property
     def position(self) -> np.ndarray:
         """(N, 3) current position estimates; NaN for markers never seen."""
-        return self.x[:, 0]
+        return self.pos
 
     def predict(self, velocity_gain: np.ndarray | None = None) -> None:
-        """Time update of every filter; ``velocity_gain`` (N,) scales velocities first (1 keeps the model as is)."""
+        """Time update of every filter; ``velocity_gain`` (N,) scales velocities first (1 keeps the model as is):
+        x <- F x, P <- F P F^T + Q."""
+        dt, q = self.dt, self.Q
         if velocity_gain is not None:
-            self.x[:, 1] *= velocity_gain[:, None]
-        self.x = self.F @ self.x
-        self.P = self.F @ self.P @ self.F.T + self.Q
+            self.vel *= velocity_gain[:, None]
+        self.pos += dt * self.vel
+        self.p00 += 2 * dt * self.p01 + dt * dt * self.p11 + q[0, 0]
+        self.p01 += dt * self.p11 + q[0, 1]
+        self.p11 += q[1, 1]
 
     def predicted_position(self, velocity_gain: np.ndarray | None = None) -> np.ndarray:
         """(N, 3) positions one step ahead as ``predict`` would make them, without changing the state."""
-        velocity = self.x[:, 1] if velocity_gain is None else self.x[:, 1] * velocity_gain[:, None]
-        return self.x[:, 0] + self.F[0, 1] * velocity
+        velocity = self.vel if velocity_gain is None else self.vel * velocity_gain[:, None]
+        return self.pos + self.dt * velocity
 
     def update(self, z: np.ndarray, variance: np.ndarray) -> None:
         """Measurement update with ``z`` (N, 3); rows holding NaN are skipped. ``variance`` (N,): per-axis noise (mm^2).
@@ -52,16 +62,18 @@ class ConstantVelocityBank:
         has = np.isfinite(z).all(axis=1)
         fresh = has & ~self.started
         if fresh.any():
-            self.x[fresh, 0] = z[fresh]
-            self.x[fresh, 1] = 0.0
-            self.P[fresh] = np.diag([0.0, self.initial_speed_var])
-            self.P[fresh, 0, 0] = variance[fresh]
+            self.pos[fresh] = z[fresh]
+            self.vel[fresh] = 0.0
+            self.p00[fresh], self.p01[fresh], self.p11[fresh] = variance[fresh], 0.0, self.initial_speed_var
             self.started |= fresh
-        live = has & ~fresh
-        pht = self.P @ self.H[0]  # (N, 2): P H^T
-        gain = pht / (pht[:, :1] + variance[:, None])  # (N, 2): P H^T (H P H^T + R)^-1
-        gain[~live] = 0.0
-        innovation = z - self.x[:, 0]  # (N, 3)
-        innovation[~live] = 0.0
-        self.x += gain[:, :, None] * innovation[:, None, :]
-        self.P -= gain[:, :, None] * pht[:, None, :]
+            has &= ~fresh
+        p00, p01 = self.p00, self.p01
+        s = p00 + variance  # H P H^T + R
+        k0 = np.where(has, p00 / s, 0.0)  # gain K = P H^T / s
+        k1 = np.where(has, p01 / s, 0.0)
+        innovation = np.where(has[:, None], z - self.pos, 0.0)
+        self.pos += k0[:, None] * innovation
+        self.vel += k1[:, None] * innovation
+        self.p11 -= k1 * p01  # P <- P - K H P
+        self.p01 -= k0 * p01
+        self.p00 -= k0 * p00
