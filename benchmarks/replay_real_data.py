@@ -8,8 +8,8 @@ timestamp (p50 / p99 over the node's last 4096 frames), as the launcher's final 
 
 from __future__ import annotations
 
-import socket
 import json
+import socket
 import subprocess
 import sys
 import tempfile

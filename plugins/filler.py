@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 from pydantic import Field
 
+from mocapflow.io.skeleton import read_skeleton
 from mocapflow.messages import MarkerFrame, Skeleton
 from mocapflow.mocap.filler import FillerConfig, GapFiller
 from mocapflow.mocap.model import SkeletonModel
-from mocapflow.io.skeleton import read_skeleton
 from mocapflow.runtime.node import Input, Node, Output
 
 

@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
+from mocapflow.io.skeleton import read_skeleton
 from mocapflow.messages import MarkerFrame, Pose, Skeleton
 from mocapflow.mocap.model import SkeletonModel
 from mocapflow.mocap.solve import solve
-from mocapflow.io.skeleton import read_skeleton
 from mocapflow.runtime.node import Input, Node, Output
 
 

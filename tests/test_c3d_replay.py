@@ -7,11 +7,11 @@ from pathlib import Path
 import ezc3d
 import numpy as np
 import pytest
-from mocapflow.plugins.c3d_replay import FileReplay, ReplayConfig
 
 from mocapflow.errors import MocapFileError
 from mocapflow.io.markers import MarkerData, write_markers
 from mocapflow.messages import MarkerFrame
+from mocapflow.plugins.c3d_replay import FileReplay, ReplayConfig
 
 RATE = 100.0
 

@@ -5,12 +5,12 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-from mocapflow.plugins.clusterer import ClustererConfig, SpectralClusterer
 
 from mocapflow.io.skeleton import read_skeleton, write_skeleton
 from mocapflow.messages import MarkerFrame, Segments
 from mocapflow.mocap.rigs import make_rig
 from mocapflow.mocap.simulator import SimulatorConfig, simulate, truth_skeleton
+from mocapflow.plugins.clusterer import ClustererConfig, SpectralClusterer
 
 
 def frames(n: int) -> tuple[list[MarkerFrame], list[str]]:

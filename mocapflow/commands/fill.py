@@ -28,8 +28,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
 
     from mocapflow.io.markers import MarkerData, read_markers, write_markers
-    from mocapflow.mocap.filler import FillCase, FillerConfig, GapFiller
     from mocapflow.io.skeleton import read_skeleton
+    from mocapflow.mocap.filler import FillCase, FillerConfig, GapFiller
     from mocapflow.progress import progress
 
     out = Path(args.output)
