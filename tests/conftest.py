@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import socket
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
@@ -26,3 +27,16 @@ def data_dir() -> Path:
     if not DATA.is_dir():
         pytest.skip(f"real data folder {DATA} is absent")
     return DATA
+
+
+@pytest.fixture
+def real_file() -> Callable[[str], Path]:
+    """A file of the shared data folder by name; the test is skipped when it is absent."""
+
+    def find(name: str) -> Path:
+        path = DATA / name
+        if not path.is_file():
+            pytest.skip(f"real data file {path} is absent")
+        return path
+
+    return find

@@ -6,6 +6,7 @@ from __future__ import annotations
 import subprocess
 import sys
 import warnings
+from collections.abc import Callable
 from pathlib import Path
 
 import c3d as c3d_package
@@ -25,15 +26,6 @@ from mocapflow.io.markers import (
     read_markers,
     write_markers,
 )
-
-DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
-
-
-def real_file(name: str) -> Path:
-    path = DATA / name
-    if not path.is_file():
-        pytest.skip(f"real data file {path} is absent")
-    return path
 
 
 def synthetic(frames: int = 60, markers: int = 6, first_frame: int = 1, seed: int = 0) -> MarkerData:
@@ -110,7 +102,7 @@ def write_foreign(path: Path, positions: np.ndarray, labels: list[str], *, units
 # Real files ------------------------------------------------------------------------------------------------------
 
 
-def test_cmu_file_matches_the_c3d_package() -> None:
+def test_cmu_file_matches_the_c3d_package(real_file: Callable[[str], Path]) -> None:
     path = real_file("cmu_85_02.c3d")
     data = read_c3d(path)
     points, labels, first_frame, rate = read_with_c3d_package(path)
@@ -125,7 +117,7 @@ def test_cmu_file_matches_the_c3d_package() -> None:
     assert read_c3d(path, strip_prefix=False).labels == labels
 
 
-def test_vicon_file_gaps_are_nan() -> None:
+def test_vicon_file_gaps_are_nan(real_file: Callable[[str], Path]) -> None:
     path = real_file("lowerbody_clusters_knee_0401.c3d")
     data = read_c3d(path)
     points, labels, first_frame, _ = read_with_c3d_package(path)
@@ -142,7 +134,7 @@ def test_vicon_file_gaps_are_nan() -> None:
 
 
 @pytest.mark.parametrize("name", ["cmu_85_02.c3d", "lowerbody_clusters_knee_0401.c3d"])
-def test_real_file_round_trip(name: str, tmp_path: Path) -> None:
+def test_real_file_round_trip(name: str, tmp_path: Path, real_file: Callable[[str], Path]) -> None:
     original = read_c3d(real_file(name))
     out = tmp_path / "copy.c3d"
     write_c3d(out, original)
@@ -312,7 +304,7 @@ def test_text_file_named_c3d(tmp_path: Path) -> None:
             reader(path)
 
 
-def test_truncated_file(tmp_path: Path) -> None:
+def test_truncated_file(tmp_path: Path, real_file: Callable[[str], Path]) -> None:
     source = real_file("cmu_85_02.c3d").read_bytes()
     path = tmp_path / "half.c3d"
     path.write_bytes(source[: len(source) // 2])
@@ -367,7 +359,7 @@ print(" ".join(outcomes))
 """
 
 
-def test_corrupted_files_are_read_or_refused_never_crash(tmp_path: Path) -> None:
+def test_corrupted_files_are_read_or_refused_never_crash(tmp_path: Path, real_file: Callable[[str], Path]) -> None:
     """Random byte damage: every file is read or refused with MocapFileError; the process neither crashes nor hangs."""
     source = real_file("cmu_85_02.c3d")
     result = subprocess.run([sys.executable, "-c", FUZZ, str(source), str(tmp_path / "damaged.c3d"), "40"],

@@ -3,6 +3,7 @@ other programs produce."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -12,15 +13,6 @@ from mocapflow.errors import MocapFileError
 from mocapflow.io.c3d import read_c3d, write_c3d
 from mocapflow.io.markers import FLAG_ESTIMATED, FLAG_MISSING, FLAG_OBSERVED, MarkerData, read_markers, write_markers
 from mocapflow.io.trc import HEADER_KEYS, read_trc, write_trc
-
-DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
-
-
-def real_file(name: str) -> Path:
-    path = DATA / name
-    if not path.is_file():
-        pytest.skip(f"real data file {path} is absent")
-    return path
 
 
 def as_float32(values: np.ndarray) -> np.ndarray:
@@ -73,7 +65,7 @@ def test_estimated_samples_read_back_observed_and_extra_points_as_markers(tmp_pa
 
 
 @pytest.mark.parametrize("name", ["lowerbody_clusters_knee_0401.c3d", "cmu_85_02.c3d"])
-def test_c3d_to_trc_to_c3d(name: str, tmp_path: Path) -> None:
+def test_c3d_to_trc_to_c3d(name: str, tmp_path: Path, real_file: Callable[[str], Path]) -> None:
     original = read_c3d(real_file(name))
     write_markers(tmp_path / "take.trc", original)
     via_trc = read_markers(tmp_path / "take.trc")

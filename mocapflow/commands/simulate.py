@@ -12,7 +12,8 @@ from mocapflow.errors import MocapflowError
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("simulate", help="write simulated capture to C3D/TRC, with a .truth.npz ground-truth sidecar")
+    p = sub.add_parser("simulate", help="write simulated capture to C3D/TRC, with a .truth.npz sidecar: ground truth, "
+                       "and the single-camera rays when cameras are modelled")
     p.add_argument("-o", "--output", required=True, help="output .c3d or .trc file")
     p.add_argument("--frames", type=int, default=2400, help="number of frames (default 2400)")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
@@ -42,6 +43,8 @@ def run(args: argparse.Namespace) -> int:
         "joint_parent": np.array(rec.joint_parent), "joint_child": np.array(rec.joint_child),
         "marker_segment": np.array(rec.marker_segment), "rate": np.array(rec.rate),
     }
+    if rec.rays is not None:  # a C3D file has no place for them
+        truth["rays"] = rec.rays
     if rec.points is not None:
         width = max(len(p) for p in rec.points)
         positions = np.full((args.frames, width, 3), np.nan)

@@ -532,7 +532,8 @@ class GapFiller:
         self._variance = np.array([1.0, cfg.observed_sd, 1.0, cfg.rigid_sd, cfg.offset_sd, cfg.joint_sd,
                                    cfg.rotor_sd, cfg.ray_sd]) ** 2  # per FillCase; unused where nothing is measured
         self._unmeasured = np.zeros(n, dtype=np.int64)  # frames since a marker was last seen or anchored
-        self._extrapolated = np.zeros(n, dtype=bool)  # this frame: placed by a constant rotor with no anchor
+        self._extrapolated = np.zeros(n, dtype=bool)  # this frame: predicted from its past alone (a constant rotor
+        # with no anchor, or its filter along its ray)
         self._last = np.full((2, n, 3), np.nan)  # the last two filled frames, newest first
         self.body: _Body | None = None
         self._model: SkeletonModel | None = None
@@ -692,10 +693,13 @@ class GapFiller:
             ray_rows = ~seen & np.isfinite(rays).all(axis=1) & (np.linalg.norm(rays[:, 3:], axis=1) > 0)
             if ray_rows.any():
                 guess = prior.copy()
+                anchored = np.zeros(n, dtype=bool)
                 if body is not None:
                     est, _, _ = self._constrain(z, visible, prior, ray_rows & body.in_segment, near, keep=False)
-                    guess = np.where(np.isfinite(est), est, guess)
+                    anchored = np.isfinite(est).all(axis=1)
+                    guess[anchored] = est[anchored]
                 ok = ray_rows & np.isfinite(guess).all(axis=1)
+                self._extrapolated |= ok & ~anchored  # nothing holds it along its ray: there it coasts to rest
                 z[ok] = project_on_rays(guess[ok], rays[ok])
                 if body is not None and self.config.ray_distances:
                     self._fit_rays(z, seen, rays, np.flatnonzero(ok & body.in_segment))

@@ -335,10 +335,7 @@ class Simulator:
             units = rig.marker_segment[None, :] == np.array(seg)[:, None]
             lengths = (max(1, round(_HIDDEN_S[0] * rate)), max(1, round(_HIDDEN_S[1] * rate)))
             self._gaps.append(_Gaps(config.seed, _HIDDEN, units, _HIDDEN_PER_S / rate, lengths, block))
-        azimuth = 2 * np.pi * np.arange(config.cameras) / max(config.cameras, 1)
-        self.camera_centres = np.stack([config.camera_radius_mm * np.cos(azimuth),
-                                        config.camera_radius_mm * np.sin(azimuth),
-                                        np.full(config.cameras, config.camera_height_mm)], axis=1)
+        self.camera_centres = camera_ring(config.cameras, config.camera_radius_mm, config.camera_height_mm)
         aim = np.array([0.0, 0.0, _CAMERA_AIM_MM]) - self.camera_centres
         self._camera_axes = aim / np.linalg.norm(aim, axis=1, keepdims=True)
         self.capsule_ends, self.capsule_radii = _capsules(rig)
@@ -424,6 +421,13 @@ class Simulator:
         a = np.clip(nearest, _SIGHT_CLEAR_MM, length)
         gap2 = rr - b * (2 * vr - b * vv) + a * (a - 2 * nearest)  # |m + a u - q - b v|^2
         return (in_view & ~(gap2 < self.capsule_radii[:, None, None] ** 2).any(0)).T
+
+
+def camera_ring(cameras: int, radius_mm: float, height_mm: float) -> np.ndarray:
+    """(C, 3) centres of ``cameras`` evenly spaced on a horizontal circle about the vertical axis through the origin,
+    the first on +x."""
+    azimuth = 2 * np.pi * np.arange(cameras) / max(cameras, 1)
+    return np.stack([radius_mm * np.cos(azimuth), radius_mm * np.sin(azimuth), np.full(cameras, height_mm)], axis=1)
 
 
 def _capsules(rig: Rig) -> tuple[np.ndarray, np.ndarray]:

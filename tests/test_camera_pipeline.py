@@ -1,0 +1,71 @@
+"""Single-camera rays through the live pipeline over real Zenoh: the simulated tracker's camera model publishes them,
+the occlusion filler puts those markers on their rays, and the recording equals the same filling done offline."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from mocapflow.io.markers import read_markers
+from mocapflow.io.skeleton import write_skeleton
+from mocapflow.mocap.filler import FillCase, FillerConfig, GapFiller
+from mocapflow.mocap.rigs import make_rig
+from mocapflow.mocap.simulator import SimulatorConfig, simulate, truth_skeleton
+
+FRAMES = 360
+
+
+def test_rays_from_the_simulated_cameras_reach_the_filler(tmp_path: Path, free_endpoint: str) -> None:
+    tracker = {"rate": 120, "seed": 7, "noise_mm": 0.5, "skin_mm": 1.0, "cameras": 3}
+    rec = simulate(SimulatorConfig(**tracker), FRAMES)
+    assert rec.rays is not None
+    ray = np.isfinite(rec.rays).all(-1)
+    assert ray.mean() > 0.05
+    skeleton = truth_skeleton(make_rig("human"), rec.true_positions[0])
+    write_skeleton(tmp_path / "skeleton.json", skeleton)
+    name = f"rays{free_endpoint.rsplit(':', 1)[1]}"
+    graph = {
+        "name": name, "prefix": f"mocapflow/{name}", "zenoh": {"listen": [free_endpoint]},
+        "nodes": {
+            "tracker": {"plugin": "simulator", "config": {**tracker, "frames": FRAMES}},
+            "filler": {"plugin": "occlusion-filler", "inputs": {"markers": "tracker/markers"},
+                       "config": {"skeleton": str(tmp_path / "skeleton.json")}},
+            "recorder": {"plugin": "recorder", "inputs": {"markers": "filler/markers"},
+                         "config": {"path": str(tmp_path / "live.c3d")}},
+        },
+    }
+    (tmp_path / "graph.yaml").write_text(yaml.safe_dump(graph, sort_keys=False))
+    run = subprocess.run([sys.executable, "-m", "mocapflow.cli", "run", str(tmp_path / "graph.yaml"), "--duration",
+                          "60"], capture_output=True, text=True, timeout=120, check=False)
+    assert run.returncode == 0 and "all nodes finished" in run.stdout + run.stderr, run.stdout + run.stderr
+    live = read_markers(tmp_path / "live.c3d")
+    assert live.positions.shape == rec.positions.shape and live.flags is not None
+
+    # the same filling offline, from the frames as they travel (float32 on the wire)
+    filler = GapFiller(rec.labels, rec.rate, FillerConfig(), skeleton)
+    wire = rec.positions.astype(np.float32).astype(np.float64)
+    rays = rec.rays.astype(np.float32).astype(np.float64)
+    offline = np.array([filler.update(wire[f], rays[f]).positions for f in range(FRAMES)])
+    np.testing.assert_array_equal(live.flags == FillCase.RAY, ray)
+    np.testing.assert_allclose(live.positions, offline, rtol=0, atol=1e-2)  # C3D stores float32
+    error = np.linalg.norm(live.positions[ray] - rec.true_positions[ray], axis=-1).mean()
+    assert error < 2.5, error
+
+
+def test_simulate_command_keeps_the_rays_beside_the_file(tmp_path: Path) -> None:
+    out = tmp_path / "cams.c3d"
+    done = subprocess.run([sys.executable, "-m", "mocapflow.cli", "simulate", "-o", str(out), "--frames", "60",
+                           "--set", "cameras=3", "--set", "rate=120"], capture_output=True, text=True, timeout=120,
+                          check=False)
+    assert done.returncode == 0, done.stderr
+    rays = np.load(out.with_suffix(".truth.npz"))["rays"]
+    expected = simulate(SimulatorConfig(cameras=3, rate=120), 60)
+    assert expected.rays is not None
+    np.testing.assert_array_equal(rays, expected.rays)
+    positions = read_markers(out).positions
+    assert np.isnan(positions[np.isfinite(rays).all(-1)]).all()  # a ray's marker is not a point in the file
+    assert np.isfinite(rays).all(-1).any()
