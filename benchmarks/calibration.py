@@ -39,7 +39,7 @@ def row(name: str, positions: object, labels: list[str], rate: float) -> None:
     for method in METHODS:
         try:
             skeleton, seconds = timed(calibrate, positions, labels, rate, joint_method=method, show_progress=False)
-        except Exception as exc:  # noqa: BLE001 - a method that does not apply is a result
+        except Exception as exc:  # a method that does not apply is a result
             cells.append(f"- ({type(exc).__name__})")
             continue
         _, solve_s = timed(solve, skeleton, positions, labels)

@@ -1,9 +1,10 @@
-"""Real captures through the live pipeline at their native rate: deployments/c3d-replay.yaml run on each shared C3D file.
+"""Real captures through the live pipeline at their native rate: deployments/c3d-replay.yaml on each shared C3D file.
 
 Run as ``python benchmarks/replay_real_data.py`` (about 80 s: the files are replayed in real time). For each file it
 prints the frames in the file and in the recording, samples the file has but the recording lacks, the frames with
-joint centres (the skeleton is learnt online: none before the joint estimator's first model), and per node the frames in and out, the drops, the errors and the latency from the tracker's capture
-timestamp (p50 / p99 over the node's last 4096 frames), as the launcher's final table gives them.
+joint centres (the skeleton is learnt online: none before the joint estimator's first model), and per node the frames
+in and out, the drops, the errors and the latency from the tracker's capture timestamp (p50 / p99 over the node's last
+4096 frames), as the launcher's final table gives them.
 """
 
 from __future__ import annotations

@@ -359,7 +359,7 @@ def cmu() -> None:
             try:
                 skeleton, seconds = timed(calibrate, data.positions, data.labels, data.rate, joint_method=method,
                                           show_progress=False)
-            except Exception as exc:  # noqa: BLE001 - the error is the result
+            except Exception as exc:  # the error is the result
                 print(f"| {name} | {method} | error: {exc} | | | | |")
                 continue
             pose = solve(skeleton, data.positions, data.labels)

@@ -131,7 +131,7 @@ def lower_body() -> None:
 
     complete = np.isfinite(positions).all((1, 2))
     f = int(np.nanargmin(np.where(complete, np.minimum(bend("L"), bend("R")), np.nan)))  # a knee bent most
-    from skeleton_accuracy import LowerBody  # noqa: PLC0415 - the clinical landmarks of the accuracy table
+    from skeleton_accuracy import LowerBody  # the clinical landmarks of the accuracy table
 
     landmarks = LowerBody(data).landmarks()
     references = np.array([landmarks[k][f] for k in landmarks])

@@ -15,7 +15,7 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from mocapflow.io.markers import read_markers
 from mocapflow.messages import MarkerFrame
-from mocapflow.runtime.node import Node, Output
+from mocapflow.runtime.node import Node, Output, Publish
 
 
 class ReplayConfig(BaseModel):
@@ -45,7 +45,7 @@ class FileReplay(Node):
     Config = ReplayConfig
     outputs = {"markers": Output(MarkerFrame, doc="the file's markers, labelled or as an unlabelled point cloud")}
 
-    def __init__(self, config: ReplayConfig, publish, name: str = "tracker") -> None:  # noqa: ANN001
+    def __init__(self, config: ReplayConfig, publish: Publish, name: str = "tracker") -> None:
         super().__init__(config, publish, name)
         data = read_markers(config.path)
         end = min(config.end or len(data.positions), len(data.positions))

@@ -9,7 +9,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from mocapflow.io.skeleton import read_skeleton
 from mocapflow.messages import MarkerFrame, Segments
 from mocapflow.mocap.clustering import SegmentTracker
-from mocapflow.runtime.node import Input, Node, Output
+from mocapflow.runtime.node import Input, Node, Output, Publish
 
 
 class ClustererConfig(BaseModel):
@@ -34,7 +34,7 @@ class SpectralClusterer(Node):
     inputs = {"markers": Input(MarkerFrame, doc="labelled markers")}
     outputs = {"segments": Output(Segments, state=True, doc="the current segment model")}
 
-    def __init__(self, config: ClustererConfig, publish, name: str = "clusterer") -> None:  # noqa: ANN001
+    def __init__(self, config: ClustererConfig, publish: Publish, name: str = "clusterer") -> None:
         super().__init__(config, publish, name)
         self.tracker: SegmentTracker | None = None
         self.seed = read_skeleton(config.skeleton).segments if config.skeleton else None

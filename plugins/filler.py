@@ -9,7 +9,7 @@ from mocapflow.io.skeleton import read_skeleton
 from mocapflow.messages import MarkerFrame, Skeleton
 from mocapflow.mocap.filler import FillerConfig, GapFiller
 from mocapflow.mocap.model import SkeletonModel
-from mocapflow.runtime.node import Input, Node, Output
+from mocapflow.runtime.node import Input, Node, Output, Publish
 
 
 class FillerNodeConfig(FillerConfig):
@@ -30,7 +30,7 @@ class Filler(Node):
         "predictions": Output(MarkerFrame, doc="predicted positions for the next frame"),
     }
 
-    def __init__(self, config: FillerNodeConfig, publish, name: str = "filler") -> None:  # noqa: ANN001
+    def __init__(self, config: FillerNodeConfig, publish: Publish, name: str = "filler") -> None:
         super().__init__(config, publish, name)
         self.filler_config = FillerConfig.model_validate(config.model_dump(exclude={"skeleton"}))
         self.model: SkeletonModel | None = read_skeleton(config.skeleton) if config.skeleton else None

@@ -12,7 +12,7 @@ from mocapflow.errors import CalibrationError
 from mocapflow.io.skeleton import read_skeleton
 from mocapflow.messages import MarkerFrame, Segments, Skeleton
 from mocapflow.mocap.calibration import build_skeleton
-from mocapflow.runtime.node import Input, Node, Output
+from mocapflow.runtime.node import Input, Node, Output, Publish
 
 
 class JointsConfig(BaseModel):
@@ -36,7 +36,7 @@ class VarianceJoints(Node):
     }
     outputs = {"skeleton": Output(Skeleton, state=True, doc="the current skeleton model")}
 
-    def __init__(self, config: JointsConfig, publish, name: str = "joints") -> None:  # noqa: ANN001
+    def __init__(self, config: JointsConfig, publish: Publish, name: str = "joints") -> None:
         super().__init__(config, publish, name)
         self.seed = read_skeleton(config.skeleton) if config.skeleton else None
         self.published = False

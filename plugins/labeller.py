@@ -6,7 +6,7 @@ import numpy as np
 
 from mocapflow.messages import MarkerFrame, Segments
 from mocapflow.mocap.labelling import Labeller, LabellerConfig
-from mocapflow.runtime.node import Input, Node, Output
+from mocapflow.runtime.node import Input, Node, Output, Publish
 
 
 class LabellerNode(Node):
@@ -21,7 +21,7 @@ class LabellerNode(Node):
     }
     outputs = {"markers": Output(MarkerFrame, doc="labelled markers, NaN where not seen")}
 
-    def __init__(self, config: LabellerConfig, publish, name: str = "labeller") -> None:  # noqa: ANN001
+    def __init__(self, config: LabellerConfig, publish: Publish, name: str = "labeller") -> None:
         super().__init__(config, publish, name)
         self.labeller: Labeller | None = None
         self.predictions: MarkerFrame | None = None

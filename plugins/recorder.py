@@ -9,7 +9,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from mocapflow.io.markers import MarkerData, write_markers
 from mocapflow.messages import MarkerFrame, Pose
-from mocapflow.runtime.node import Input, Node
+from mocapflow.runtime.node import Input, Node, Publish
 
 
 class RecorderConfig(BaseModel):
@@ -36,7 +36,7 @@ class Recorder(Node):
         "pose": Input(Pose, required=False, doc="solved poses: joint centres are written as extra points"),
     }
 
-    def __init__(self, config: RecorderConfig, publish, name: str = "recorder") -> None:  # noqa: ANN001
+    def __init__(self, config: RecorderConfig, publish: Publish, name: str = "recorder") -> None:
         super().__init__(config, publish, name)
         self.frames: dict[int, np.ndarray] = {}
         self.flags: dict[int, np.ndarray] = {}

@@ -9,7 +9,7 @@ from pydantic import Field
 from mocapflow.io.bvh import read_bvh
 from mocapflow.messages import MarkerFrame, SimTruth
 from mocapflow.mocap.simulator import Simulator, SimulatorConfig
-from mocapflow.runtime.node import Node, Output
+from mocapflow.runtime.node import Node, Output, Publish
 
 
 class SimulatorNodeConfig(SimulatorConfig):
@@ -26,7 +26,7 @@ class SimulatorNode(Node):
         "truth": Output(SimTruth, doc="identities, true positions and joint centres of each frame"),
     }
 
-    def __init__(self, config: SimulatorNodeConfig, publish, name: str = "simulator") -> None:  # noqa: ANN001
+    def __init__(self, config: SimulatorNodeConfig, publish: Publish, name: str = "simulator") -> None:
         super().__init__(config, publish, name)
         sim_config = SimulatorConfig.model_validate(config.model_dump(exclude={"frames"}))
         self.sim = Simulator(sim_config, read_bvh(config.bvh) if config.bvh else None)

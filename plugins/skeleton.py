@@ -9,7 +9,7 @@ from mocapflow.io.skeleton import read_skeleton
 from mocapflow.messages import MarkerFrame, Pose, Skeleton
 from mocapflow.mocap.model import SkeletonModel
 from mocapflow.mocap.solve import solve
-from mocapflow.runtime.node import Input, Node, Output
+from mocapflow.runtime.node import Input, Node, Output, Publish
 
 
 class SkeletonConfig(BaseModel):
@@ -29,7 +29,7 @@ class SkeletonPublisher(Node):
     }
     outputs = {"pose": Output(Pose, doc="joint centres and segment rotations")}
 
-    def __init__(self, config: SkeletonConfig, publish, name: str = "skeleton") -> None:  # noqa: ANN001
+    def __init__(self, config: SkeletonConfig, publish: Publish, name: str = "skeleton") -> None:
         super().__init__(config, publish, name)
         self.model: SkeletonModel | None = read_skeleton(config.skeleton) if config.skeleton else None
 

@@ -10,7 +10,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from mocapflow.messages import MarkerFrame, Pose, Skeleton
-from mocapflow.runtime.node import Input, Node
+from mocapflow.runtime.node import Input, Node, Publish
 
 
 class ViewerConfig(BaseModel):
@@ -31,7 +31,7 @@ class Viewer(Node):
         "skeleton": Input(Skeleton, required=False, state=True, doc="joint tree for the bones"),
     }
 
-    def __init__(self, config: ViewerConfig, publish, name: str = "viewer") -> None:  # noqa: ANN001
+    def __init__(self, config: ViewerConfig, publish: Publish, name: str = "viewer") -> None:
         super().__init__(config, publish, name)
         try:
             import matplotlib
@@ -59,7 +59,8 @@ class Viewer(Node):
         if isinstance(message, Skeleton):
             # a bone joins a joint to the joint of its parent segment's own parent joint
             joint_of_child = {j.child: j.name for j in message.skeleton.joints}
-            self.bones = [(joint_of_child[j.parent], j.name) for j in message.skeleton.joints if j.parent in joint_of_child]
+            self.bones = [(joint_of_child[j.parent], j.name) for j in message.skeleton.joints
+                          if j.parent in joint_of_child]
             return
         if isinstance(message, Pose):
             self.pose = message

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 from functools import cache
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -196,7 +197,7 @@ def test_a_near_hinge_is_placed_level_with_its_neighbours() -> None:
     assert along["estimator"] > 15.0 and along["neighbours"] < 3.0
 
 
-def test_real_lower_body_gives_the_expert_segments_and_tree(data_dir) -> None:  # noqa: ANN001
+def test_real_lower_body_gives_the_expert_segments_and_tree(data_dir: Path) -> None:
     from mocapflow.io.markers import read_markers
 
     data = read_markers(data_dir / "lowerbody_clusters_knee_0401.c3d")
@@ -275,7 +276,7 @@ def test_a_joint_with_too_little_motion_is_an_error_naming_it() -> None:
     assert "deg" in str(info.value)
 
 
-def test_calibrate_and_solve_commands(tmp_path) -> None:  # noqa: ANN001
+def test_calibrate_and_solve_commands(tmp_path: Path) -> None:
     from mocapflow.cli import main
     from mocapflow.io.markers import MarkerData, read_markers, write_markers
 

@@ -4,6 +4,7 @@ segmentation, and the streaming tracker against the batch statistics."""
 from __future__ import annotations
 
 from functools import cache
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -74,7 +75,7 @@ def test_segment_names_use_the_common_label_prefix() -> None:
     assert segment_names([[0, 1], [4, 5, 6]], labels) == ["LTH", "segment1"]
 
 
-def test_real_lower_body_segments_match_the_expert_segmentation(data_dir) -> None:  # noqa: ANN001
+def test_real_lower_body_segments_match_the_expert_segmentation(data_dir: Path) -> None:
     from mocapflow.io.markers import read_markers
 
     data = read_markers(data_dir / "lowerbody_clusters_knee_0401.c3d")

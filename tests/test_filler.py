@@ -3,6 +3,8 @@ causality, unfillable markers, degenerate input, and the vectorised Kalman bank 
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 from filterpy.kalman import KalmanFilter
@@ -290,7 +292,7 @@ def test_predict_next_matches_the_next_prior(rec: SimRecording) -> None:
     np.testing.assert_allclose(result.positions, expected, atol=1e-9)
 
 
-def test_fill_command(tmp_path, rec: SimRecording, skeleton: SkeletonModel) -> None:  # noqa: ANN001
+def test_fill_command(tmp_path: Path, rec: SimRecording, skeleton: SkeletonModel) -> None:
     """``mocapflow fill``: same labels and order, gaps filled, flags recorded, joint centres as extra points."""
     from mocapflow.cli import main
     from mocapflow.io.markers import MarkerData, read_markers, write_markers
@@ -320,7 +322,7 @@ def test_fill_command(tmp_path, rec: SimRecording, skeleton: SkeletonModel) -> N
       "lupperarm": ["LSHO", "LUPA", "LELB"], "lforearm": ["LFRM", "LWRA", "LWRB"]},
      [["RBHD"], ["LWRA"], ["LFRM", "LWRA", "LWRB"]], [6.0, 100.0, 250.0]),  # breakdance: the forearm twists
 ])
-def test_real_recordings(data_dir, file: str, groups: dict[str, list[str]], hidden: list[list[str]],  # noqa: ANN001
+def test_real_recordings(data_dir: Path, file: str, groups: dict[str, list[str]], hidden: list[list[str]],
                          bound_mm: list[float]) -> None:
     """Markers deleted from real recordings over 3 s and filled with a skeleton calibrated on the complete data,
     against what was deleted (a walking stretch; the CMU trial is breakdance, where a hidden forearm marker's twist

@@ -6,6 +6,7 @@ import json
 import subprocess
 import sys
 import textwrap
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -118,7 +119,7 @@ FOREIGN_READER = textwrap.dedent(
 )
 
 
-def test_a_client_without_mocapflow_decodes_a_frame(tmp_path, free_endpoint) -> None:  # noqa: ANN001
+def test_a_client_without_mocapflow_decodes_a_frame(tmp_path: Path, free_endpoint: str) -> None:
     from mocapflow.runtime.session import open_router
 
     script = tmp_path / "reader.py"

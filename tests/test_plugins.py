@@ -40,7 +40,7 @@ def test_clusterer_learns_segments_after_its_window_and_repeats_only_changes() -
         node.process("markers", message)
     assert len(sent) == 1 and sent[0].frame == 119  # after one window, then no change
     rig = make_rig("rods")
-    truth = {frozenset(l for l, s in zip(rig.marker_labels, rig.marker_segment, strict=True) if s == k)
+    truth = {frozenset(label for label, s in zip(rig.marker_labels, rig.marker_segment, strict=True) if s == k)
              for k in range(len(rig.segments))}
     assert {frozenset(s.markers) for s in sent[0].segments} == truth
     assert np.all([len(s.markers) >= 3 for s in sent[0].segments])

@@ -13,6 +13,7 @@ from pathlib import Path
 import ezc3d
 import numpy as np
 import orjson
+import zenoh
 
 from mocapflow.mocap.simulator import Simulator, SimulatorConfig
 from mocapflow.runtime.session import open_client
@@ -67,7 +68,7 @@ def wait_for_frames(endpoint: str, prefix: str, node: str, frames: int, timeout:
     """Block until ``node`` reports having handled ``frames`` input frames in its stats."""
     done = threading.Event()
 
-    def on_stats(sample) -> None:  # noqa: ANN001
+    def on_stats(sample: zenoh.Sample) -> None:
         if orjson.loads(sample.payload.to_bytes())["frames_in"] >= frames:
             done.set()
 

@@ -8,6 +8,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -105,7 +106,7 @@ def _node_chain(hops: int, rate: float, seconds: float) -> dict[str, list[float]
         try:
             time.sleep(1.0)
             with open_client([endpoint]) as session:
-                def listener(key: str):  # noqa: ANN202
+                def listener(key: str) -> Callable[[zenoh.Sample], None]:
                     def on_sample(sample: zenoh.Sample) -> None:
                         if sample.kind == zenoh.SampleKind.PUT:
                             msg = decode(sample.payload.to_bytes(), MarkerFrame)

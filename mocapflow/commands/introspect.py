@@ -55,7 +55,8 @@ def _plugins(args: argparse.Namespace) -> int:
     names = [args.name] if args.name else sorted(available())
     for name in names:
         info = load(name).describe()
-        ports = lambda d: ", ".join(f"{k}: {v['type']}" + ("" if v.get("required", True) else "?") for k, v in d.items()) or "-"  # noqa: E731
+        ports = lambda d: ", ".join(  # noqa: E731
+            f"{k}: {v['type']}" + ("" if v.get("required", True) else "?") for k, v in d.items()) or "-"
         print(f"{name}: {info['doc']}\n  inputs:  {ports(info['inputs'])}\n  outputs: {ports(info['outputs'])}")
         props = info["config"].get("properties", {})
         required = set(info["config"].get("required", []))
@@ -87,7 +88,8 @@ def _nodes(args: argparse.Namespace) -> int:
         fmt = lambda v: "-" if v is None else f"{v:.2f}"  # noqa: E731
         name = key.replace("/_alive/", "/")
         print(f"{name:<44}{s.get('state', '?'):<10}{s.get('pid', '-'):>8}{fmt(s.get('rate_hz')):>10}"
-              f"{fmt(s.get('latency_p50_ms')):>8}{fmt(s.get('latency_p99_ms')):>8}{s.get('drops', 0):>7}{s.get('errors', 0):>5}")
+              f"{fmt(s.get('latency_p50_ms')):>8}{fmt(s.get('latency_p99_ms')):>8}{s.get('drops', 0):>7}"
+              f"{s.get('errors', 0):>5}")
     return 0
 
 

@@ -17,7 +17,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("-o", "--output", required=True, help="output .c3d or .trc file")
     p.add_argument("--frames", type=int, default=2400, help="number of frames (default 2400)")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
-                   help="simulator setting, e.g. --set rig=rods --set unlabelled=true (see `mocapflow plugins simulator`)")
+                   help="simulator setting, e.g. --set rig=rods --set cameras=4 (see `mocapflow plugins simulator`)")
     p.set_defaults(func=run)
 
 

@@ -41,7 +41,8 @@ class Joint(BaseModel):
     axis: Vec3 | None = Field(default=None, description="hinge axis in the parent's local frame (unit vector)")
     cost: float | None = Field(default=None, description="joint cost used for the topology (lower is better)")
     distance_mean: float | None = Field(default=None, description="mean marker-to-joint distance (mm)")
-    distance_sd: float | None = Field(default=None, description="mean standard deviation of marker-to-joint distance (mm)")
+    distance_sd: float | None = Field(
+        default=None, description="mean standard deviation of marker-to-joint distance (mm)")
 
 
 class SegmentModel(BaseModel):

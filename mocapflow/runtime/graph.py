@@ -145,7 +145,8 @@ def validate(graph: Graph, source: str = "graph") -> dict[str, type[Node]]:
         for port, link in spec.inputs.items():
             where = f"nodes.{name}.inputs.{port}"
             if port not in cls.inputs:
-                errors.append(f"{where}: plugin {spec.plugin!r} has no input {port!r} (inputs: {', '.join(cls.inputs) or 'none'})")
+                errors.append(f"{where}: plugin {spec.plugin!r} has no input {port!r} "
+                              f"(inputs: {', '.join(cls.inputs) or 'none'})")
                 continue
             src, slash, out = link.partition("/")
             if not slash or src not in graph.nodes:
@@ -155,13 +156,16 @@ def validate(graph: Graph, source: str = "graph") -> dict[str, type[Node]]:
             if src_cls is None:
                 continue
             if out not in src_cls.outputs:
-                errors.append(f"{where}: node {src!r} has no output {out!r} (outputs: {', '.join(src_cls.outputs) or 'none'})")
+                errors.append(f"{where}: node {src!r} has no output {out!r} "
+                              f"(outputs: {', '.join(src_cls.outputs) or 'none'})")
                 continue
             want, have = cls.inputs[port].type, src_cls.outputs[out].type
             if want is not have:
-                errors.append(f"{where}: type mismatch: {link} carries {have.type_name}, input expects {want.type_name}")
+                errors.append(
+                    f"{where}: type mismatch: {link} carries {have.type_name}, input expects {want.type_name}")
     if errors:
-        raise GraphError(f"{source}: " + "; ".join(errors) if len(errors) == 1 else f"{source}:\n  " + "\n  ".join(errors))
+        raise GraphError(f"{source}: " + "; ".join(errors) if len(errors) == 1
+                         else f"{source}:\n  " + "\n  ".join(errors))
     return classes
 
 

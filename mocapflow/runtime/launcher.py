@@ -145,7 +145,8 @@ class Launcher:
             rows.append(
                 f"{name:<14.14}{plugin:<20.20}{where}{state:<11}{pid or '-':>8}"
                 f"{fmt(s.rate_hz if s else None):>9}{fmt(s.latency_p50_ms if s else None):>8}"
-                f"{fmt(s.latency_p99_ms if s else None):>8}{(s.frames_in if s else 0):>8}{(s.frames_out if s else 0):>8}"
+                f"{fmt(s.latency_p99_ms if s else None):>8}{(s.frames_in if s else 0):>8}"
+                f"{(s.frames_out if s else 0):>8}"
                 f"{(s.drops if s else 0):>6}{(s.errors if s else 0):>5}{restarts:>9}"
             )
         return "\n".join(rows)
@@ -204,7 +205,8 @@ class Launcher:
             with session.declare_subscriber(keys.stats_key(self.prefix), self._on_stats), \
                     serve_schemas(session, self.prefix), agents or nullcontext():
                 where = ", ".join(self.connect) if self.connect else f"embedded router on {', '.join(self.listen)}"
-                self.out.write(f"mocapflow: running {self.graph.name!r} ({len(self.specs)} nodes, {where}, keys {self.prefix}/...)\n")
+                self.out.write(f"mocapflow: running {self.graph.name!r} ({len(self.specs)} nodes, {where}, "
+                               f"keys {self.prefix}/...)\n")
                 try:
                     if agents is not None:
                         self.out.write(f"mocapflow: waiting for agents {', '.join(agents.machines)}\n")

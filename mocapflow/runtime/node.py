@@ -16,6 +16,9 @@ from pydantic import BaseModel, ConfigDict
 
 from mocapflow.messages import Message
 
+Publish = Callable[[str, Message], None]
+"""How a node sends a message: ``publish(output_port, message)``."""
+
 
 class NoConfig(BaseModel):
     model_config = ConfigDict(extra="forbid")
@@ -56,7 +59,7 @@ class Node:
 
     rate: float = 0.0
 
-    def __init__(self, config: Any, publish: Callable[[str, Message], None], name: str = "node") -> None:
+    def __init__(self, config: Any, publish: Publish, name: str = "node") -> None:
         self.config = config
         self.name = name
         self._publish = publish
