@@ -40,11 +40,11 @@ from mocapflow.mocap.cor import kabsch  # noqa: E402
 from mocapflow.mocap.filler import FillerConfig, GapFiller  # noqa: E402
 from mocapflow.mocap.model import SkeletonModel  # noqa: E402
 from mocapflow.mocap.rigs import make_rig  # noqa: E402
-from mocapflow.mocap.simulator import SimulatorConfig, simulate, truth_skeleton  # noqa: E402
+from mocapflow.mocap.simulator import SimulatorConfig, camera_ring, simulate, truth_skeleton  # noqa: E402
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 GAP_S = 3.0
-CAMERA = np.array([4000.0, -3000.0, 2000.0])  # a camera 5.4 m away for the single-camera rays
+RING = camera_ring(8, 4000.0, 2500.0)  # the simulator's camera placement, about the recording's centre
 CASES = ("one missing", "two missing", "all missing", "one on each of two segments", "one-camera, one on each")
 METHODS = ("skeleton", "thesis", "learned", "kalman", "linear", "spline")
 THESIS = {"one missing": "2.58/5.9", "two missing": "6.55/9.5", "all missing": "19.45/12.1",
@@ -144,19 +144,27 @@ def pick(ds: Dataset, case: str, rng: np.random.Generator) -> tuple[list[str], l
         j.name for j in joints if seg in (j.parent, j.child)]
 
 
-def run_filler(ds: Dataset, x: np.ndarray, start: int, stop: int, hidden: list[int], rays: bool,
+def single_cameras(ds: Dataset, count: int, rng: np.random.Generator) -> np.ndarray:
+    """(count, 3) centres of the cameras that see each of ``count`` hidden markers through a gap: each drawn from an
+    8-camera ring (radius 4 m, height 2.5 m) about the recording's horizontal centre."""
+    centre = np.nanmean(ds.truth, axis=(0, 1)) * [1.0, 1.0, 0.0]
+    return centre + RING[rng.integers(0, len(RING), count)]
+
+
+def run_filler(ds: Dataset, x: np.ndarray, start: int, stop: int, hidden: list[int], cameras: np.ndarray | None,
                config: FillerConfig, skeleton: SkeletonModel | None) -> tuple[np.ndarray, dict[str, np.ndarray]]:
-    """Fill frames first..stop-1 (first: 1 s before the gap with a skeleton, else 0); filled frames and joints."""
+    """Fill frames first..stop-1 (first: 1 s before the gap with a skeleton, else 0); filled frames and joints.
+    With ``cameras`` (one per hidden marker), each hidden marker arrives as the ray from its camera through it."""
     first = max(start - round(ds.rate), 0) if skeleton is not None else 0
     filler = GapFiller(ds.labels, ds.rate, config, skeleton)
     out = np.full((stop - start, len(ds.labels), 3), np.nan)
     centres: dict[str, np.ndarray] = {}
     for f in range(first, stop):
         ray = None
-        if rays and f >= start:
+        if cameras is not None and f >= start:
             ray = np.full((len(ds.labels), 6), np.nan)
-            ray[hidden, :3] = CAMERA
-            ray[hidden, 3:] = ds.truth[f, hidden] - CAMERA
+            ray[hidden, :3] = cameras
+            ray[hidden, 3:] = ds.truth[f, hidden] - cameras
         result = filler.update(x[f], ray)
         if f >= start:
             out[f - start] = result.positions
@@ -190,7 +198,7 @@ def one_run(ds: Dataset, case: str, rng: np.random.Generator) -> dict[str, tuple
     stop = start + gap
     x = ds.observed.copy()
     x[start:stop, hidden] = np.nan
-    rays = case.startswith("one-camera")
+    rays = single_cameras(ds, len(hidden), rng) if case.startswith("one-camera") else None
     late = ds.learn_from_s is not None and start >= ds.learn_from_s * ds.rate
     fills: dict[str, Callable[[], tuple[np.ndarray, dict[str, np.ndarray] | None]]] = {
         "skeleton": lambda: run_filler(ds, x, start, stop, hidden, rays, FillerConfig(), ds.skeleton),
@@ -206,7 +214,7 @@ def one_run(ds: Dataset, case: str, rng: np.random.Generator) -> dict[str, tuple
     for method, fill in fills.items():
         if method == "learned" and not late:
             continue
-        if method in ("linear", "spline") and rays:
+        if method in ("linear", "spline") and rays is not None:
             continue  # interpolation has no use for a ray
         out, centres = fill()
         marker = float(np.nanmean(np.linalg.norm(out[:, hidden] - ds.truth[start:stop, hidden], axis=-1)))
@@ -219,12 +227,12 @@ def one_run(ds: Dataset, case: str, rng: np.random.Generator) -> dict[str, tuple
     return scores
 
 
-def table(ds: Dataset, runs: int, seed: int) -> None:
+def table(ds: Dataset, runs: int, seed: int, cases: tuple[str, ...]) -> None:
     print(f"\n{ds.name}: {len(ds.labels)} markers, {len(ds.skeleton.segments)} segments, "
           f"{len(ds.skeleton.joints)} joints; {runs} gaps of {GAP_S:g} s per case; marker mm / joint centre mm")
     print(f"{'case':<30}" + "".join(f"{m:>15}" for m in METHODS) + f"{'thesis':>12}")
-    rng = np.random.default_rng(seed)
-    for case in CASES:
+    for case in cases:
+        rng = np.random.default_rng([seed, CASES.index(case)])
         results: dict[str, list[tuple[float, float]]] = {}
         for _ in range(runs):
             for method, score in one_run(ds, case, rng).items():
@@ -240,18 +248,58 @@ def table(ds: Dataset, runs: int, seed: int) -> None:
         print(f"{case:<30}" + "".join(cells) + f"{THESIS[case]:>12}", flush=True)
 
 
+def camera_table(frames: int) -> None:
+    """The simulator's camera model on a simulated human: markers seen by one camera arrive as rays, markers seen by
+    none are missing, as the body occludes them. Error (mm) of the filled markers against the truth, per kind."""
+    bvh_path = DATA / "cmu_131_01.bvh"
+    bvh = read_bvh(bvh_path) if bvh_path.is_file() else None
+    print(f"\nsimulated human, camera model ({'CMU 131_01 BVH' if bvh else 'synthetic'} motion, 0.5 mm noise, 2 mm "
+          f"skin artefact), {frames} frames at 120 Hz; mean error (mm) of single-camera / unseen markers")
+    print(f"{'cameras':<8}{'points %':>10}{'rays %':>8}{'unseen %':>10}{'rays used':>16}{'projection only':>18}"
+          f"{'rays ignored':>16}")
+    for cameras in (3, 4):
+        config = SimulatorConfig(rig="human", rate=120, noise_mm=0.5, skin_mm=2.0, seed=1, cameras=cameras,
+                                 bvh=str(bvh_path) if bvh is not None else None)
+        rec = simulate(config, frames, bvh)
+        assert rec.rays is not None
+        skeleton = truth_skeleton(make_rig("human"), rec.true_positions[0])
+        ray = np.isfinite(rec.rays).all(-1)
+        unseen = ~rec.visible & ~ray
+        cells = []
+        for config_, rays in ((FillerConfig(), rec.rays), (FillerConfig(ray_distances=False), rec.rays),
+                              (FillerConfig(), None)):
+            filler = GapFiller(rec.labels, rec.rate, config_, skeleton)
+            out = np.array([filler.update(rec.positions[f], None if rays is None else rays[f]).positions
+                            for f in range(frames)])
+            error = np.linalg.norm(out - rec.true_positions, axis=-1)
+            cells.append(f"{np.nanmean(error[ray]):.2f} / {np.nanmean(error[unseen]):.2f}")
+        print(f"{cameras:<8}{100 * rec.visible.mean():>10.1f}{100 * ray.mean():>8.1f}{100 * unseen.mean():>10.2f}"
+              f"{cells[0]:>16}{cells[1]:>18}{cells[2]:>16}", flush=True)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--runs", type=int, default=8, help="gaps per case and dataset (default 8)")
+    parser.add_argument("--runs", type=int, default=10, help="gaps per case and dataset (default 10, as in the thesis)")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--case", choices=CASES, action="append", help="only this case (repeatable; default all)")
+    parser.add_argument("--data", choices=("simulated", "lowerbody", "cmu"), action="append",
+                        help="only this dataset (repeatable; default all)")
     args = parser.parse_args()
-    datasets = [simulated(3000), real("lowerbody_clusters_knee_0401.c3d", LOWER_BODY, 8.0), real(
-        "cmu_85_02.c3d", CMU, None)]
-    for ds in datasets:
-        if ds is None:
-            print(f"\n(real data folder {DATA} absent: skipped)")
+    cases = tuple(args.case or CASES)
+    wanted = set(args.data or ("simulated", "lowerbody", "cmu"))
+    if "simulated" in wanted and "one-camera, one on each" in cases:
+        camera_table(3000)
+    loaders = {"simulated": lambda: simulated(3000),
+               "lowerbody": lambda: real("lowerbody_clusters_knee_0401.c3d", LOWER_BODY, 8.0),
+               "cmu": lambda: real("cmu_85_02.c3d", CMU, None)}
+    for name, load in loaders.items():
+        if name not in wanted:
             continue
-        table(ds, args.runs, args.seed)
+        ds = load()
+        if ds is None:
+            print(f"\n(real data folder {DATA} absent: {name} skipped)")
+            continue
+        table(ds, args.runs, args.seed, cases)
 
 
 if __name__ == "__main__":

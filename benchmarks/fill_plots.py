@@ -20,7 +20,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from fill_accuracy import CASES, GAP_S, LOWER_BODY, Dataset, interpolate, pick, real, run_filler  # noqa: E402
+import fill_accuracy as fa  # noqa: E402
 
 from mocapflow.mocap.filler import FillerConfig  # noqa: E402
 
@@ -30,19 +30,19 @@ SHORT = {"one missing": "one-missing", "two missing": "two-missing", "all missin
          "one on each of two segments": "two-segments", "one-camera, one on each": "one-camera"}
 
 
-def plot_case(ds: Dataset, case: str, rng: np.random.Generator, path: Path) -> float:
+def plot_case(ds: fa.Dataset, case: str, rng: np.random.Generator, path: Path) -> float:
     """Hide markers for ``case`` over one 3 s gap, fill, and draw the first hidden marker; the filler's mean error."""
-    gap = round(GAP_S * ds.rate)
+    gap = round(fa.GAP_S * ds.rate)
     margin = round(ds.rate)
-    names, _ = pick(ds, case, rng)
+    names, _ = fa.pick(ds, case, rng)
     hidden = [ds.labels.index(m) for m in names]
     start = int(rng.integers(margin, len(ds.observed) - gap - margin))
     stop = start + gap
     x = ds.observed.copy()
     x[start:stop, hidden] = np.nan
-    rays = case.startswith("one-camera")
-    filled, _ = run_filler(ds, x, start, stop, hidden, rays, FillerConfig(), ds.skeleton)
-    linear = interpolate(x, start, stop, hidden, "linear", ds.rate)
+    rays = fa.single_cameras(ds, len(hidden), rng) if case.startswith("one-camera") else None
+    filled, _ = fa.run_filler(ds, x, start, stop, hidden, rays, FillerConfig(), ds.skeleton)
+    linear = fa.interpolate(x, start, stop, hidden, "linear", ds.rate)
     m = hidden[0]
     t = np.arange(start - margin, stop + margin) / ds.rate
     tg = np.arange(start, stop) / ds.rate
@@ -69,8 +69,8 @@ def plot_case(ds: Dataset, case: str, rng: np.random.Generator, path: Path) -> f
     ax.set_xlabel("time (s)")
     ax.grid(alpha=0.3, which="both")
     ax.legend(loc="upper left", fontsize=8, ncol=2, framealpha=0.9)
-    hidden_text = ", ".join(names) + (" (single-camera rays)" if rays else "")
-    fig.suptitle(f"{case}: {names[0]} through a {GAP_S:g} s gap (grey); hidden {hidden_text}", fontsize=10)
+    hidden_text = ", ".join(names) + (" (single-camera rays)" if rays is not None else "")
+    fig.suptitle(f"{case}: {names[0]} through a {fa.GAP_S:g} s gap (grey); hidden {hidden_text}", fontsize=10)
     fig.tight_layout()
     fig.savefig(path, dpi=80)
     plt.close(fig)
@@ -81,13 +81,13 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--seed", type=int, default=3)
     args = parser.parse_args()
-    ds = real(FILE, LOWER_BODY, None)
+    ds = fa.real(FILE, fa.LOWER_BODY, None)
     if ds is None:
         print(f"{FILE} absent: nothing drawn")
         return
     OUT.mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(args.seed)
-    for case in CASES:
+    for case in fa.CASES:
         path = OUT / f"fill-{SHORT[case]}.png"
         error = plot_case(ds, case, rng, path)
         print(f"{case:<30} {error:7.2f} mm  {path.relative_to(OUT.parents[1])} ({path.stat().st_size // 1024} KB)")
