@@ -263,9 +263,10 @@ class _Body:
         self.links = [[(j, other, self.joint_offset(j, k), self.joint_offset(j, other)) for j, other in links]
                       for k, links in enumerate(self.neighbours)]
         self.in_segment = self.marker_seg >= 0
-        self.adjacency = np.zeros((s, s), dtype=int)
-        for k, links in enumerate(self.neighbours):
-            self.adjacency[k, [other for _, other in links]] = 1
+        self.near = np.zeros((n, s), dtype=bool)  # per marker: its segment and that segment's neighbours
+        for m, k in enumerate(self.marker_seg):
+            if k >= 0:
+                self.near[m, [k, *(other for _, other in self.neighbours[k])]] = True
         usable = [j for j in self.joints if j is not None]
         self.joint_usable = np.array([j is not None for j in self.joints], dtype=bool)
         self.joint_segments = np.array([[j.parent, j.child] for j in usable], dtype=int).reshape(-1, 2)
@@ -289,9 +290,7 @@ class _Body:
 
     def around(self, markers: np.ndarray) -> np.ndarray:
         """Indices of the segments holding any of ``markers`` (N,) bool, and of their neighbours."""
-        touched = np.zeros(len(self.members), dtype=bool)
-        touched[self.marker_seg[markers & self.in_segment]] = True
-        return np.flatnonzero(touched | (self.adjacency @ touched > 0))
+        return np.flatnonzero(self.near[markers].any(axis=0))
 
 
 def is_complete(skeleton: SkeletonModel) -> bool:
@@ -594,6 +593,8 @@ class GapFiller:
         """Fit the poses of ``segments`` (default all) in this frame and the last (``ages``) where they were skipped
         (segments with every marker seen, which no gap needed)."""
         assert self.body is not None
+        if self._pose_fresh[list(ages)][:, segments].all():
+            return
         for age in ages:
             stale = np.arange(len(self.body.members))[segments]
             stale = stale[~self._pose_fresh[age, stale]]
