@@ -631,7 +631,7 @@ class GapFiller:
         poses = None if seen.all() else self._fill_missing(z, seen, flags, rays)
         measured = flags >= _OBSERVED
         measured &= flags != _KALMAN
-        self.kf.update(np.where(measured[:, None], z, np.nan), self._variance[flags])
+        self.kf.update(z, self._variance[flags], measured)
         estimated = flags >= _ONE_MISSING
         z[estimated] = self.kf.position[estimated]
         self._unmeasured = np.where(measured & ~self._extrapolated, 0, self._unmeasured + 1)

@@ -54,12 +54,13 @@ class ConstantVelocityBank:
         velocity = self.vel if velocity_gain is None else self.vel * velocity_gain[:, None]
         return self.pos + self.dt * velocity
 
-    def update(self, z: np.ndarray, variance: np.ndarray) -> None:
-        """Measurement update with ``z`` (N, 3); rows holding NaN are skipped. ``variance`` (N,): per-axis noise (mm^2).
+    def update(self, z: np.ndarray, variance: np.ndarray, rows: np.ndarray | None = None) -> None:
+        """Measurement update with ``z`` (N, 3) for the markers selected by ``rows`` (N,) bool, by default those
+        whose row holds no NaN. ``variance`` (N,): per-axis noise (mm^2).
 
         A marker seen for the first time starts at its measurement with an unknown velocity.
         """
-        has = np.isfinite(z).all(axis=1)
+        has = np.isfinite(z).all(axis=1) if rows is None else rows.copy()
         fresh = has & ~self.started
         if fresh.any():
             self.pos[fresh] = z[fresh]
