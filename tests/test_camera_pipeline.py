@@ -69,3 +69,35 @@ def test_simulate_command_keeps_the_rays_beside_the_file(tmp_path: Path) -> None
     positions = read_markers(out).positions
     assert np.isnan(positions[np.isfinite(rays).all(-1)]).all()  # a ray's marker is not a point in the file
     assert np.isfinite(rays).all(-1).any()
+
+
+def test_fill_command_takes_the_rays(tmp_path: Path) -> None:
+    """`mocapflow fill --rays` puts the single-camera markers of a simulated file on their rays, closer to the truth
+    than filling without them; a rays file that does not fit the recording is refused in one line."""
+    source = tmp_path / "cams.c3d"
+    cli = [sys.executable, "-m", "mocapflow.cli"]
+
+    def run(*args: str | Path) -> subprocess.CompletedProcess[str]:
+        return subprocess.run([*cli, *map(str, args)], capture_output=True, text=True, timeout=120, check=False)
+
+    assert run("simulate", "-o", source, "--frames", "1200", "--set", "cameras=3", "--set", "rate=120").returncode == 0
+    truth = np.load(source.with_suffix(".truth.npz"))
+    ray = np.isfinite(truth["rays"]).all(-1)
+    errors = []
+    for extra in (["--rays", source.with_suffix(".truth.npz")], []):
+        done = run("fill", source, "-o", tmp_path / "filled.c3d", *extra)
+        assert done.returncode == 0, done.stderr
+        filled = read_markers(tmp_path / "filled.c3d")
+        assert filled.flags is not None
+        on_ray = filled.flags == FillCase.RAY
+        if extra:
+            assert not (on_ray & ~ray).any() and on_ray[ray].mean() > 0.95
+        else:
+            assert not on_ray.any()
+        errors.append(np.nanmean(np.linalg.norm(filled.positions[ray] - truth["true_positions"][ray], axis=-1)))
+    assert errors[0] < 0.5 * errors[1], errors
+    np.savez(tmp_path / "short.npz", rays=truth["rays"][:10])
+    for bad, reason in ((tmp_path / "short.npz", "rays are 10 x 52 x 6"), (source, "not an .npz file")):
+        done = run("fill", source, "-o", tmp_path / "x.c3d", "--rays", bad)
+        assert done.returncode == 2 and reason in done.stderr and len(done.stderr.strip().splitlines()) == 1, (
+            done.stderr)

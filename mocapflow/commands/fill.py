@@ -4,6 +4,7 @@ filler would (it never looks ahead), and record in the output's flags how each s
 from __future__ import annotations
 
 import argparse
+import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -20,9 +21,31 @@ def register(sub: argparse._SubParsersAction) -> None:
                                       "and joints are learned from the frames seen so far")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                    help="filler setting, e.g. --set joint_anchors=hidden (fields of FillerConfig)")
+    p.add_argument("--rays", metavar="FILE.npz",
+                   help="single-camera rays per frame and marker: the array 'rays' (frames x markers x 6: origin mm, "
+                        "direction; NaN where none) of an .npz file, such as the sidecar `mocapflow simulate` writes")
     p.add_argument("--joints", action="store_true",
                    help="also write the skeleton's joint centres, tracked through occlusions, as extra points")
     p.set_defaults(func=run)
+
+
+def read_rays(path: str, shape: tuple[int, int]) -> np.ndarray:
+    """The 'rays' array of an .npz file, checked against the recording's (frames, markers)."""
+    if not Path(path).is_file():
+        raise MocapflowError(f"{path}: no such file")
+    if not zipfile.is_zipfile(path):
+        raise MocapflowError(f"{path}: not an .npz file (a zip archive of named arrays)")
+    try:
+        with np.load(path, allow_pickle=False) as archive:
+            if "rays" not in archive.files:
+                raise MocapflowError(f"{path}: no 'rays' array (arrays: {', '.join(archive.files) or 'none'})")
+            rays = np.asarray(archive["rays"], dtype=float)
+    except (OSError, ValueError, zipfile.BadZipFile) as exc:
+        raise MocapflowError(f"{path}: unreadable rays ({exc})") from exc
+    if rays.shape != (*shape, 6):
+        raise MocapflowError(f"{path}: rays are {' x '.join(map(str, rays.shape))}, the recording needs "
+                             f"{shape[0]} x {shape[1]} x 6 (frames x markers x origin and direction)")
+    return rays
 
 
 def run(args: argparse.Namespace) -> int:
@@ -43,13 +66,15 @@ def run(args: argparse.Namespace) -> int:
     if skeleton is not None and not {m for s in skeleton.segments for m in s.markers} & set(data.labels):
         raise MocapflowError(f"{args.input}: none of the skeleton's markers is in the file")
 
+    rays = read_rays(args.rays, data.positions.shape[:2]) if args.rays else None
+
     filler = GapFiller(data.labels, data.rate, config, skeleton)
     positions = np.full(data.positions.shape, np.nan)
     flags = np.zeros(data.positions.shape[:2], dtype=np.uint8)
     joints = [j.name for j in skeleton.joints] if args.joints and skeleton is not None else []
     centres = {name: np.full((data.n_frames, 3), np.nan) for name in joints}
     for f in progress(range(data.n_frames), data.n_frames, "fill"):
-        result = filler.update(data.positions[f])
+        result = filler.update(data.positions[f], None if rays is None else rays[f])
         positions[f], flags[f] = result.positions, result.flags
         if joints and result.joint_centres is not None:  # by name: learned joint offsets change the body
             for name, centre in zip(filler.joint_names, result.joint_centres, strict=True):
