@@ -1,10 +1,12 @@
 """Labelling benchmark: per-frame cost of the streaming labeller and accuracy against truth.
 
 Runs the simulator's human rig and the real captures of the shared data folder (identities stripped, occlusions and
-ghosts added by ``unlabel``), at a moderate and a heavy level of damage. For each it prints the cost of
-``Labeller.update`` per frame (mean, median, 99th percentile, in microseconds of wall time), then the accuracy of the
-streaming labels (which leave a new track's first ``confirm_frames`` frames unlabelled) and of the offline
-``label_sequence`` (those frames filled in, fragments merged, short tracks dropped).
+ghosts added by ``unlabel``), at a moderate and a heavy level of damage, and the human rig seen through the
+simulator's camera model (4 and 8 cameras, whose body occlusions hide markers often and several at once) at the
+moderate level. For each it prints the cost of ``Labeller.update`` per frame (mean, median, 99th percentile, in
+microseconds of wall time), then the accuracy of the streaming labels (which leave a new track's first
+``confirm_frames`` frames unlabelled) and of the offline ``label_sequence`` (those frames filled in, fragments
+merged, short tracks dropped).
 
     python benchmarks/labelling.py [--frames N] [--data DIR]
 """
@@ -32,15 +34,21 @@ LEVELS = {
     "moderate": ({"dropout_rate": 0.2, "long_gaps": 2.0, "ghosts": 2.0}, (0.05, 1.0)),
     "heavy": ({"dropout_rate": 0.5, "long_gaps": 4.0, "ghosts": 5.0}, (0.2, 3.0)),
 }
+CAMERAS = (4, 8)  # camera counts of the camera-model cases
 
 
 def _scenarios(frames: int, data: Path) -> list[tuple[str, list[np.ndarray], list[np.ndarray], float, int]]:
     """(name, points per frame, identity per frame, rate, true marker count) for every case."""
     cases = []
-    for level, (damage, _) in LEVELS.items():
-        rec = simulate(SimulatorConfig(rig="human", rate=240, noise_mm=0.5, unlabelled=True, seed=7, **damage), frames)
+    simulated = [(level, damage, 0) for level, (damage, _) in LEVELS.items()]
+    simulated += [("moderate", LEVELS["moderate"][0], cameras) for cameras in CAMERAS]
+    for level, damage, cameras in simulated:
+        rec = simulate(SimulatorConfig(rig="human", rate=240, noise_mm=0.5, unlabelled=True, seed=7, cameras=cameras,
+                                       **damage), frames)
         assert rec.points is not None and rec.identity is not None
-        cases.append((f"simulated human 240 Hz, {level}", rec.points, rec.identity, rec.rate, len(rec.labels)))
+        seen_by = f"{cameras} cameras, " if cameras else ""
+        cases.append((f"simulated human 240 Hz, {seen_by}{level}", rec.points, rec.identity, rec.rate,
+                      len(rec.labels)))
     if not data.is_dir():
         print(f"(real captures skipped: {data} is absent)")
         return cases

@@ -16,7 +16,13 @@ point is matched back to its old track after seconds of occlusion. Once segments
 (:meth:`Labeller.set_segments`) a track's neighbours are its segment mates: the snapshots are then the segment's rigid
 marker layout. Three more cues help: a constant-velocity coast over short dropouts; the distances to the marker's
 rigid partners (two of them hold a point to a circle: a segment reduced to two visible markers still recognises its
-third, and one is enough to rule a point out); positions predicted outside (a gap filler).
+third; a point breaking the distances to all of them is ruled out, one breaking some must lie close to where the
+marker is expected); positions predicted outside (a gap filler).
+
+Body occlusions often hide several markers of one segment at once, which then come back a few frames apart. A
+returning point keeps the distances to its lost partners that come back beside it, so rigid partners seen and lost
+ones count together, and where none is seen the looser neighbours must at least allow the point; a point that fits
+more than one lost marker so (a mirror-symmetric segment) is left to a new track rather than risk a swap.
 
 A placement from a rigid neighbourhood re-identifies at once; a looser one (neighbours across a joint) only takes a
 point that has lived ``confirm_frames`` frames, so that a passing ghost cannot steal the track. Points that match no
@@ -38,7 +44,7 @@ from scipy.spatial.distance import cdist
 from mocapflow.mocap.cor import kabsch
 
 _STATS_HZ = 60.0  # distance statistics need no more: markers' mutual distances change slowly
-_VETO = 3.0  # a point breaking a rigid distance by this many tolerances cannot be that marker
+_VETO = 3.0  # a point breaking the distance to a rigid partner by this many tolerances cannot be that marker
 _CANDIDATES = 3  # snapshots fitted per lost marker
 _SD_FLOOR_MM = 1.0  # spread of a distance within a rigid body, from measurement noise: caps neighbour weights
 _UNGATED_MM = 1e6  # a gate no capture volume reaches: "nearest wins" in an assignment
@@ -146,20 +152,29 @@ def _assign(pred: np.ndarray, gate: np.ndarray, points: np.ndarray) -> tuple[np.
 
 
 def _signature(points: np.ndarray, partners: np.ndarray, mean: np.ndarray, sd: np.ndarray,
-               tolerance: float) -> tuple[np.ndarray, np.ndarray]:
-    """How far points ``(B, 3)`` break each marker's distances to its rigid partners, and how many partners count.
+               tolerance: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """How far points ``(B, 3)`` break each marker's distances to its rigid partners, how many partners count, and
+    how many of those distances are broken.
 
     ``partners`` are the partners' positions, ``(P, 3)`` for all points or ``(B, P, 3)`` one set per point, NaN where
     unseen; ``mean``, ``sd`` ``(A, P)`` the learnt distances of each of A markers to each partner, NaN where a partner
     is not rigid with it. Returns ``(A, B)`` worst distance errors in units of ``tolerance + 3 sd`` (0 without
-    partners) and ``(A, B)`` partner counts. Two partners hold a point to a circle, three to a point: this recognises
-    a marker whose rigid body has too few markers left to fit a pose (a two-marker remnant), and one partner is
-    enough to rule a point out.
+    partners), ``(A, B)`` partner counts and ``(A, B)`` counts of errors above 1. Two partners hold a point to a
+    circle, three to a point: this recognises a marker whose rigid body has too few markers left to fit a pose (a
+    two-marker remnant), and one partner is enough to rule a point out.
     """
     d = _norm(points[:, None] - partners) if partners.ndim == 3 else cdist(points, partners)
     error = np.abs(d[None] - mean[:, None]) / (tolerance + 3.0 * sd[:, None])
     valid = np.isfinite(error)
-    return np.where(valid, error, 0.0).max(axis=2, initial=0.0), valid.sum(axis=2)
+    return np.where(valid, error, 0.0).max(axis=2, initial=0.0), valid.sum(axis=2), (error > 1.0).sum(axis=2)
+
+
+def _screened(cost: np.ndarray, broken: np.ndarray, partners: np.ndarray, violated: np.ndarray) -> np.ndarray:
+    """Gated costs (``_gated_cost``) of points screened by their ``_signature``: a point cannot be the marker when it
+    breaks the distance to a rigid partner by ``_VETO`` tolerances or those to all its partners, and it must lie
+    within half the gate when it breaks some of them."""
+    cost = np.where(broken > 1.0, np.minimum(2.0 * cost + 1.0, 0.0), cost)
+    return np.where((broken > _VETO) | ((violated >= 1) & (violated == partners)), 0.0, cost)
 
 
 def _place(poses: np.ndarray, now: np.ndarray, trust: np.ndarray,
@@ -324,8 +339,8 @@ class Labeller:
         ti = pi = np.empty(0, np.intp)
         if len(has) and len(free):
             cost = _gated_cost(now_pred[has], lost_gate[has], z[free])
-            broken, partners = self._signature(lost[has], cur, z[free])
-            cost[(partners >= 1) & (broken > _VETO)] = 0.0
+            broken, partners, violated = self._signature(lost[has], cur, z[free])
+            cost = _screened(cost, broken, partners, violated)
             ti, pi = _match(cost)
         cur[lost[has[ti]]] = z[free[pi]]
         taken[free[pi]] = lost[has[ti]]
@@ -371,13 +386,7 @@ class Labeller:
         anchors = self._anchors[lost]
         now = np.where((anchors >= 0)[..., None], cur[anchors], np.nan)
         if len(free):
-            # a point can only be this marker if its distances to three seen neighbours (or all, if fewer) are ones
-            # the snapshots have shown
-            d = cdist(now.reshape(-1, 3), free).reshape(*now.shape[:2], len(free))
-            span = self._span[lost]
-            fits = (d >= span[..., :1] - cfg.reid_gate_mm) & (d <= span[..., 1:] + cfg.reid_gate_mm)
-            seen = np.isfinite(d[:, :, 0]).sum(axis=1)[:, None]
-            near = np.flatnonzero((fits.sum(axis=1) >= np.minimum(seen, 3)).any(axis=1))
+            near = np.flatnonzero(self._plausible(lost, cur, free).any(axis=1))
             place, misfit, spread = _place(self._poses[lost[near]], now[near], self._anchor_w[lost[near]],
                                            cfg.instant_fit_mm)
             doubt = np.fmax(misfit, spread)
@@ -402,15 +411,54 @@ class Labeller:
             pred[near < cfg.gate_mm / 2] = np.nan
         return pred, gate, instant
 
-    def _signature(self, tracks: np.ndarray, cur: np.ndarray, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """``_signature`` of points ``z`` against ``tracks`` and their rigid partners among this frame's matches."""
+    def _plausible(self, tracks: np.ndarray, cur: np.ndarray, z: np.ndarray) -> np.ndarray:
+        """``(T, B)``: where point ``z[b]`` can be the marker of ``tracks[t]``: its distances to three of the track's
+        neighbours seen now (all, if fewer; one at least) are ones the snapshots have shown, give or take
+        ``reid_gate_mm``."""
+        anchors = self._anchors[tracks]
+        now = np.where((anchors >= 0)[..., None], cur[anchors], np.nan)
+        d = cdist(now.reshape(-1, 3), z).reshape(*now.shape[:2], len(z))
+        span = self._span[tracks]
+        fits = (d >= span[..., :1] - self.config.reid_gate_mm) & (d <= span[..., 1:] + self.config.reid_gate_mm)
+        seen = np.isfinite(d[:, :, 0]).sum(axis=1)[:, None]
+        return (fits.sum(axis=1) >= np.minimum(seen, 3)) & (seen >= 1)
+
+    def _rigid(self, tracks: np.ndarray, others: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Learnt mean (NaN where the two are not one rigid body) and standard deviation of the distance between
+        each of ``tracks`` and each of ``others``."""
         cfg = self.config
-        seen = np.flatnonzero(np.isfinite(cur[:, 0]))
-        block = np.ix_(tracks, seen)
+        block = np.ix_(tracks, others)
         n = self._pair_n[block]
         sd = np.sqrt(self._pair_m2[block] / np.maximum(n - 1.0, 1.0))
         rigid = (n >= cfg.rigid_min_s * self.rate / self._stats_every) & (sd <= cfg.rigid_sd_mm)
-        return _signature(z, cur[seen], np.where(rigid, self._pair_mean[block], np.nan), sd, cfg.rigid_tolerance_mm)
+        return np.where(rigid, self._pair_mean[block], np.nan), sd
+
+    def _signature(self, tracks: np.ndarray, cur: np.ndarray,
+                   z: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``_signature`` of points ``z`` against ``tracks`` and their rigid partners among this frame's matches."""
+        seen = np.flatnonzero(np.isfinite(cur[:, 0]))
+        mean, sd = self._rigid(tracks, seen)
+        return _signature(z, cur[seen], mean, sd, self.config.rigid_tolerance_mm)
+
+    def _lost_partners(self, lost: np.ndarray, cur: np.ndarray, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``_signature`` of points ``z`` against ``lost`` tracks and their lost rigid partners, each placed on a
+        tentative point of this frame.
+
+        Markers of one body are often hidden together and come back a few frames apart, each with too few rigid
+        partners seen to be recognised alone. A lost partner counts for a point when some other tentative point lies
+        at their learnt distance from it and could be that partner: no rigid partner of the partner seen now rules
+        it out. Returns ``(L, B)`` worst distance errors (as ``_signature``) and counts of such partners.
+        """
+        tol = self.config.rigid_tolerance_mm
+        mean, sd = self._rigid(lost, lost)
+        np.fill_diagonal(mean, np.nan)
+        broken, partners, _ = self._signature(lost, cur, self._tpos)
+        possible = (partners == 0) | (broken < 1.0)
+        d = cdist(z, self._tpos)
+        error = np.abs(d[None, None] - mean[..., None, None]) / (tol + 3.0 * sd[..., None, None])
+        best = np.where(possible[None, :, None], error, np.inf).min(axis=3, initial=np.inf)
+        fits = best < 1.0
+        return np.where(fits, best, 0.0).max(axis=1, initial=0.0), fits.sum(axis=1)
 
     def _observe(self, cur: np.ndarray, time: float) -> None:
         """Update the kinematic state of confirmed tracks from this frame's matches."""
@@ -468,9 +516,12 @@ class Labeller:
 
         This is the thesis's merging of *Marker Sets*, done as the new set is born: a lost track fits when one of its
         hypotheses (``pred``, ``gate`` from ``_lost_predictions``; the last position where its neighbours place
-        nothing) is within the gate, or when the point keeps its distances to the track's rigid partners seen now.
-        Once ``expected_markers`` tracks exist, the lost tracks are the only possible owners and the nearest wins
-        without a gate; points left over stay tentative.
+        nothing) is within the gate, or when the point keeps its distances to two of the track's rigid partners seen
+        now. With fewer seen, its lost partners placed on other tentative points (``_lost_partners``) and its looser
+        neighbours (``_plausible``) complete the evidence: one partner seen and one more cue, or without any the
+        neighbours and a lost partner, as long as no other lost track fits the point that way. Once
+        ``expected_markers`` tracks exist, the lost tracks are the only possible owners and the nearest wins without a
+        gate; points left over stay tentative.
         """
         cfg = self.config
         pred = pred.copy()
@@ -482,9 +533,15 @@ class Labeller:
         li, ri = np.empty(0, np.intp), np.empty(0, np.intp)
         if len(lost):
             cost = _gated_cost(pred, np.full(gate.shape, _UNGATED_MM) if full else gate, z)
-            broken, partners = self._signature(lost, cur, z)
-            cost = np.where((partners >= 2) & (broken < 1.0), np.minimum(cost, broken - 1.0), cost)
-            cost[(partners >= 1) & (broken > _VETO)] = 0.0
+            broken, partners, violated = self._signature(lost, cur, z)
+            lost_broken, helpers = self._lost_partners(lost, cur, z)
+            near = self._plausible(lost, cur, z)
+            worst = np.where(partners >= 2, broken, np.fmax(broken, lost_broken))
+            # partners seen and lost, and the looser neighbours, for a point that fits no other lost track so
+            pooled = (worst < 1.0) & np.where(partners >= 1, partners + helpers + near >= 2, near & (helpers >= 1))
+            fits = ((partners >= 2) & (broken < 1.0)) | (pooled & (pooled.sum(axis=0) == 1))
+            cost = np.where(fits, np.minimum(cost, worst - 1.0), cost)
+            cost = _screened(cost, broken, partners, violated)
             li, ri = _match(cost)
         owners = np.full(len(z), -1, np.intp)
         owners[ri] = lost[li]
@@ -678,8 +735,8 @@ def _set_score(tracks: np.ndarray, seen: np.ndarray, i: int, j: int, spread: tup
     known[[i, j]] = False
     b = _evenly(fj, cfg.poses)
     partners = np.flatnonzero(known & (sd <= cfg.rigid_sd_mm))
-    broken, count = _signature(tracks[b, j], tracks[b][:, partners], mean[None, partners], sd[None, partners],
-                               cfg.rigid_tolerance_mm)
+    broken, count, _ = _signature(tracks[b, j], tracks[b][:, partners], mean[None, partners], sd[None, partners],
+                                  cfg.rigid_tolerance_mm)
     signature = np.where(count[0] >= 2, broken[0], np.inf)
     score = np.where(known, sd + 0.02 * mean, np.inf)
     score[~(sd <= cfg.neighbour_sd_mm) | (seen[fj].sum(axis=0) < 3)] = np.inf
