@@ -16,7 +16,8 @@ class ClustererConfig(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     window_s: float = Field(default=5.0, gt=0, description="sliding window of distance statistics (s)")
-    every_s: float = Field(default=0.5, gt=0, description="how often the partition is computed again (s)")
+    every_s: float = Field(default=0.5, gt=0, description="how often the partition is computed again (s); up to four "
+                           "times less often while it holds")
     segments: int | None = Field(default=None, ge=2, description="number of segments; none: chosen from the data")
     skeleton: str | None = Field(default=None, description="SKELETON.json whose segments are published at once")
 
