@@ -113,7 +113,8 @@ class FillerConfig(BaseModel):
     learn_stride: int = Field(4, ge=1, description="frames between two samples of marker distances and poses")
     learn_window_s: float = Field(20.0, gt=0, description="seconds of samples behind the grouping")
     learn_warmup_s: float = Field(2.0, gt=0, description="seconds of samples before the first grouping")
-    regroup_s: float = Field(2.0, gt=0, description="seconds between updates of the learned model")
+    regroup_s: float = Field(2.0, gt=0, description="seconds between updates of the learned model (the grouping "
+                             "is checked up to four times less often while it holds)")
     min_joint_rotation_deg: float = Field(
         5.0, gt=0, description="least RMS relative rotation of two segments before a joint between them is trusted")
     min_joint_s: float = Field(2.0, gt=0, description="seconds of usable frames before a learned joint is trusted")
