@@ -11,7 +11,8 @@ from mocapflow.runtime.node import Input, Node, Output, Publish
 
 class LabellerNode(Node):
     """Tracks points frame to frame; re-identifies reappearing markers from their segment mates or, when linked, from
-    the gap filler's predictions. Publishes the confirmed markers in a fixed order that only grows."""
+    the gap filler's predictions. Publishes the confirmed markers in a fixed order that only grows, with the
+    single-camera rays it could attribute to markers it did not see."""
 
     Config = LabellerConfig
     inputs = {
@@ -41,9 +42,12 @@ class LabellerNode(Node):
             self.labeller = Labeller(self.config, frame.rate)
         labeller = self.labeller
         before = len(labeller.labels)
-        result = labeller.update(frame.positions.astype(np.float64), frame.frame / frame.rate, self._predicted(frame))
+        rays = None if frame.rays is None else frame.rays.astype(np.float64)
+        result = labeller.update(frame.positions.astype(np.float64), frame.frame / frame.rate, self._predicted(frame),
+                                 rays)
         self.publish("markers", MarkerFrame(frame=frame.frame, capture_ns=frame.capture_ns, rate=frame.rate,
-                                            positions=result.positions, labels=list(labeller.labels)))
+                                            positions=result.positions, labels=list(labeller.labels),
+                                            rays=result.rays))
         if len(labeller.labels) != before:
             self._apply_segments()
 

@@ -21,8 +21,8 @@ class SimulatorNode(Node):
 
     Config = SimulatorNodeConfig
     outputs = {
-        "markers": Output(MarkerFrame, doc="raw frames: labelled rows (with single-camera rays when cameras are "
-                                           "modelled), or a shuffled point cloud when unlabelled"),
+        "markers": Output(MarkerFrame, doc="raw frames: labelled rows, or a shuffled point cloud when unlabelled; "
+                                           "with cameras, single-camera markers as rays"),
         "truth": Output(SimTruth, doc="identities, true positions and joint centres of each frame"),
     }
 

@@ -17,7 +17,7 @@ from mocapflow.mocap.labelling import (
     score_labelling,
     unlabel,
 )
-from mocapflow.mocap.simulator import SimulatorConfig, simulate
+from mocapflow.mocap.simulator import Simulator, SimulatorConfig, simulate
 
 RATE = 100.0
 
@@ -224,3 +224,34 @@ def test_streaming_through_the_camera_model(cameras: int, seed: int, accuracy: f
     assert score.swaps <= 1
     assert score.fragments <= fragments
     assert score.markers_found == len(rec.labels)
+
+
+def test_single_camera_rays_go_to_the_unseen_markers_they_belong_to() -> None:
+    """The camera model's unlabelled cloud lists each single-camera marker as a row with a ray and no position: the
+    labeller gives such a ray to the unseen track expected nearest its line, and only when that is unambiguous, so a
+    ray almost always goes to the track of its own marker."""
+    config = SimulatorConfig(rig="human", rate=240, noise_mm=0.5, dropout_rate=0.2, long_gaps=0.5, ghosts=1,
+                             unlabelled=True, seed=2, cameras=4)
+    sim = Simulator(config)
+    labeller = Labeller(LabellerConfig(), config.rate)
+    marker_of = np.full(0, -1)  # the true marker each track held when last seen
+    given = right = rays = 0
+    for i in range(1200):
+        frame = sim.frame(i)
+        assert frame.rays is not None
+        result = labeller.update(frame.points, i / config.rate, rays=frame.rays)
+        assert result.rays is not None and result.rays.shape == (len(labeller.labels), 6)
+        marker_of = np.concatenate([marker_of, np.full(len(labeller.labels) - len(marker_of), -1)])
+        ray_rows = np.flatnonzero(np.isfinite(frame.rays).all(axis=1))
+        rays += len(ray_rows)
+        for track in np.flatnonzero(np.isfinite(result.rays).all(axis=1)):
+            assert np.isnan(result.positions[track]).all()  # only a track not seen as a point takes a ray
+            row = ray_rows[np.flatnonzero((frame.rays[ray_rows] == result.rays[track]).all(axis=1))[0]]
+            given += 1
+            right += frame.identity[row] == marker_of[track]
+        seen = np.flatnonzero(np.isfinite(result.positions[:, 0]))
+        rows = np.isfinite(frame.points).all(axis=1)
+        marker_of[seen] = [frame.identity[rows][np.argmin(np.linalg.norm(frame.points[rows] - p, axis=1))]
+                           for p in result.positions[seen]]
+    assert given > 0.4 * rays
+    assert right >= 0.98 * given

@@ -561,13 +561,19 @@ def test_simulator_node_publishes_the_rays(unlabelled: bool) -> None:
     markers = [msg for port, msg in sent if port == "markers"]
     assert index == 40 and len(markers) == 40
     sim = Simulator(SimulatorConfig(cameras=3, rate=60, seed=9, unlabelled=unlabelled))
+    labelled_sim = Simulator(SimulatorConfig(cameras=3, rate=60, seed=9))
     for message in markers:
         back = decode(encode(message), MarkerFrame)
-        expected = sim.frame(message.frame).rays
-        if unlabelled:
-            assert back.rays is None and expected is None
-            continue
-        np.testing.assert_allclose(back.rays, expected, rtol=1e-6, atol=1e-3)  # float32 on the wire, NaN kept
-        np.testing.assert_array_equal(np.isnan(back.positions).any(1), ~sim.frame(message.frame).visible)
-    if not unlabelled:
-        assert sum(np.isfinite(m.rays).all(1).sum() for m in markers) > 20
+        frame = sim.frame(message.frame)
+        np.testing.assert_allclose(back.rays, frame.rays, rtol=1e-6, atol=1e-3)  # float32 on the wire, NaN kept
+        ray = np.isfinite(back.rays).all(1)
+        assert np.isnan(back.positions[ray]).all()  # a ray's row has no position
+        if unlabelled:  # extra rows after the points: the labelled stream's rays, one per single-camera marker
+            assert not np.isnan(back.positions[~ray]).any() and ray[len(ray) - ray.sum():].all()
+            labelled = labelled_sim.frame(message.frame)
+            np.testing.assert_array_equal(np.sort(frame.identity[ray]),
+                                          np.flatnonzero(np.isfinite(labelled.rays).all(1)))
+            np.testing.assert_array_equal(frame.rays[ray], labelled.rays[frame.identity[ray]])
+        else:
+            np.testing.assert_array_equal(np.isnan(back.positions).any(1), ~frame.visible)
+    assert sum(np.isfinite(m.rays).all(1).sum() for m in markers) > 20

@@ -95,7 +95,8 @@ class LabellerConfig(BaseModel):
 class LabelResult:
     """One frame's labelling.
 
-    ``history`` lists the tracks confirmed or re-identified through a tentative track in this frame, as
+    ``positions`` ``(T, 3)`` in track order, NaN where unseen; ``point_track`` the track of each input row, -1 for
+    none. ``history`` lists the tracks confirmed or re-identified through a tentative track in this frame, as
     ``(track, frame_indices, positions)`` for the earlier frames (counted from 0 in calls to ``update``) in which their
     points were still unlabelled, so offline users can fill them in.
     """
@@ -103,6 +104,7 @@ class LabelResult:
     positions: np.ndarray
     point_track: np.ndarray
     history: list[tuple[int, np.ndarray, np.ndarray]] = field(default_factory=list)
+    rays: np.ndarray | None = None  # (T, 6) the single-camera ray taken by each track not seen as a point, NaN rows
 
 
 def _norm(v: np.ndarray) -> np.ndarray:
@@ -301,11 +303,14 @@ class Labeller:
             self._span = np.concatenate([self._span, np.tile([np.inf, -np.inf], (len(self._span), extra, 1))], axis=1)
         self._next_select = -np.inf
 
-    def update(self, points: np.ndarray, time: float, predictions: np.ndarray | None = None) -> LabelResult:
+    def update(self, points: np.ndarray, time: float, predictions: np.ndarray | None = None,
+               rays: np.ndarray | None = None) -> LabelResult:
         """Label one frame of points ``(M, 3)`` (NaN rows ignored) captured at ``time`` seconds (increasing).
 
         ``predictions`` ``(T, 3)``, in track order with NaN where unknown, are positions of the current tracks
         predicted elsewhere (a gap filler); they replace the internal prediction when re-identifying lost tracks.
+        ``rays`` ``(M, 6)``, by row of ``points`` with NaN where none, are single-camera rays (origin, direction) of
+        markers the tracker could not place; each goes to the unseen track expected nearest its line (``_ray_owners``).
         """
         cfg = self.config
         if time <= self._time:
@@ -356,11 +361,53 @@ class Labeller:
             history = self._adopt(ready, owners)
             cur[owners[owners >= 0]] = z[ready_rows[owners >= 0]]
             taken[ready_rows[owners >= 0]] = owners[owners >= 0]
+        ray_out = None
+        if rays is not None:
+            rays = np.asarray(rays, dtype=float)
+            if rays.shape != (len(pts), 6):
+                raise ValueError(f"rays must have shape ({len(pts)}, 6), one per row of points, got {rays.shape}")
+            ray_out = self._ray_owners(rays, cur, time, predictions)
         self._learn(cur, time)
         self.frame += 1
         point_track = np.full(len(pts), -1, np.intp)
         point_track[rows] = taken
-        return LabelResult(positions=cur, point_track=point_track, history=history)
+        return LabelResult(positions=cur, point_track=point_track, history=history, rays=ray_out)
+
+    def _ray_owners(self, rays: np.ndarray, cur: np.ndarray, time: float,
+                    outside: np.ndarray | None) -> np.ndarray:
+        """The rays ``(M, 6)`` given to the tracks not seen this frame, ``(T, 6)`` by track (NaN rows where none).
+
+        A track expects its marker where it is predicted outside (a gap filler; gate ``reid_gate_mm``) or, within
+        ``max_coast_s`` of its last sighting, where its constant-velocity coast takes it (gate growing with the
+        unknown acceleration). A ray passing in front of the camera within that gate of the expected position may be
+        the marker's, and is given to it when neither has another candidate: a line of sight crosses the whole
+        volume, so where two markers could own a ray (or two rays a marker) none is given rather than a wrong one.
+        """
+        cfg = self.config
+        out = np.full((len(cur), 6), np.nan)
+        rows = np.flatnonzero(np.isfinite(rays).all(axis=1) & (_norm(rays[:, 3:]) > 0))
+        unseen = np.flatnonzero(np.isnan(cur[:, 0]))
+        if not len(rows) or not len(unseen):
+            return out
+        dt = time - self._last[unseen]
+        expected = np.where((dt <= cfg.max_coast_s)[:, None], self._pos[unseen] + self._vel[unseen] * dt[:, None],
+                            np.nan)
+        gate = cfg.gate_mm + 0.5 * cfg.max_accel_mm_s2 * dt**2
+        if outside is not None:
+            known = np.zeros(len(unseen), bool)
+            known[unseen < len(outside)] = np.isfinite(outside[unseen[unseen < len(outside)], 0])
+            expected[known] = outside[unseen[known]]
+            gate[known] = cfg.reid_gate_mm
+        origin = rays[rows, :3]
+        direction = rays[rows, 3:] / _norm(rays[rows, 3:])[:, None]
+        rel = expected[:, None] - origin[None]  # (U, R, 3)
+        along = np.einsum("uri,ri->ur", rel, direction)
+        miss = _norm(rel - along[..., None] * direction[None])
+        fits = (along > 0) & (miss < gate[:, None])  # NaN (nothing expected) fits nothing
+        unique = fits & (fits.sum(axis=0) == 1)[None] & (fits.sum(axis=1) == 1)[:, None]
+        ui, ri = np.nonzero(unique)
+        out[unseen[ui]] = rays[rows[ri]]
+        return out
 
     def _lost_predictions(self, lost: np.ndarray, cur: np.ndarray, time: float, outside: np.ndarray | None,
                           free: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -14,7 +14,8 @@ marker (leaving out the first few millimetres) to the camera centre passes outsi
 far side of its own limb, or behind another limb or the trunk, is hidden from that camera. A marker hidden by an
 occlusion schedule is seen by no camera, and ``camera_dropout`` makes each camera miss each marker at random. A
 marker seen by two cameras or more is observed as a point; one seen by a single camera arrives as a ray from that
-camera's centre through its noisy position, and is missing from the points; one seen by none is missing.
+camera's centre through its noisy position, and is missing from the points (an unlabelled cloud lists it as an extra
+row with a ray and no position, after the points); one seen by none is missing.
 
 Every frame is a pure function of (config, frame index): per-frame randomness is seeded by (seed, frame) and
 occlusion schedules by (seed, kind, block of frames), so frames can be produced in any order, live or offline, and a
@@ -120,8 +121,8 @@ class SimFrame:
     true_positions: np.ndarray  # (N, 3) noise-free positions, soft-tissue artefact included
     visible: np.ndarray  # (N,) bool, observed as a point
     joint_centres: np.ndarray  # (J, 3) world joint centres, J = S - 1
-    rays: np.ndarray | None  # (N, 6) single-camera rays (origin, unit direction), NaN rows where none; None
-    # without cameras or when unlabelled
+    rays: np.ndarray | None  # single-camera rays (origin, unit direction) per row of points, NaN rows where none
+    # (unlabelled: extra rows with no position after the points); None without cameras
 
 
 @dataclass
@@ -140,7 +141,7 @@ class SimRecording:
     marker_segment: list[str]  # segment of each marker
     points: list[np.ndarray] | None  # unlabelled point clouds per frame
     identity: list[np.ndarray] | None  # their true marker indices, -1 for ghosts
-    rays: np.ndarray | None  # (F, N, 6) single-camera rays, NaN where none; None without cameras or when unlabelled
+    rays: np.ndarray | None  # (F, N, 6) single-camera rays in marker order, NaN where none; None without cameras
 
 
 def forward_kinematics(rig: Rig, local: np.ndarray, root: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -374,11 +375,10 @@ class Simulator:
                 seen &= rng.random(seen.shape) >= cfg.camera_dropout
             seen_by = seen.sum(1)
             visible = seen_by >= 2
-            if not cfg.unlabelled:
-                origin = self.camera_centres[seen.argmax(1)]
-                direction = observed - origin
-                direction /= np.linalg.norm(direction, axis=1, keepdims=True)
-                rays = np.where((seen_by == 1)[:, None], np.concatenate([origin, direction], axis=1), np.nan)
+            origin = self.camera_centres[seen.argmax(1)]
+            direction = observed - origin
+            direction /= np.linalg.norm(direction, axis=1, keepdims=True)
+            rays = np.where((seen_by == 1)[:, None], np.concatenate([origin, direction], axis=1), np.nan)
         if cfg.unlabelled:
             count = rng.poisson(cfg.ghosts) if cfg.ghosts > 0 else 0
             direction = rng.standard_normal((count, 3))
@@ -389,6 +389,11 @@ class Simulator:
             order = rng.permutation(len(identity))
             points = np.concatenate([observed[visible], ghosts])[order]
             identity, labels = identity[order], None
+            if rays is not None:  # single-camera markers follow the points, as rows with a ray and no position
+                single = rng.permutation(np.flatnonzero(np.isfinite(rays[:, 0])))
+                rays = np.concatenate([np.full((len(points), 6), np.nan), rays[single]])
+                points = np.concatenate([points, np.full((len(single), 3), np.nan)])
+                identity = np.concatenate([identity, single])
         else:
             points = np.where(visible[:, None], observed, np.nan)
             identity, labels = np.arange(len(true)), self.labels
@@ -475,7 +480,7 @@ def simulate(config: SimulatorConfig, frames: int, bvh: Bvh | None = None) -> Si
     centres = np.empty((frames, j, 3))
     points: list[np.ndarray] | None = [] if config.unlabelled else None
     identity: list[np.ndarray] | None = [] if config.unlabelled else None
-    rays = np.empty((frames, n, 6)) if config.cameras and not config.unlabelled else None
+    rays = np.full((frames, n, 6), np.nan) if config.cameras else None
     for i in progress(range(frames), frames, "simulate"):
         f = sim.frame(i)
         true[i], visible[i], centres[i] = f.true_positions, f.visible, f.joint_centres
@@ -485,7 +490,7 @@ def simulate(config: SimulatorConfig, frames: int, bvh: Bvh | None = None) -> Si
             points.append(f.points)
             identity.append(f.identity)
         if rays is not None:
-            rays[i] = f.rays
+            rays[i, f.identity[marker]] = f.rays[marker]
     return SimRecording(
         rate=config.rate, labels=list(rig.marker_labels), positions=positions, true_positions=true, visible=visible,
         joint_names=sim.joint_names, joint_centres=centres,
