@@ -55,8 +55,14 @@ class VarianceJoints(Node):
         if not self.config.refine or message.labels is None:
             return
         if message.labels != self.labels:
-            self.labels, self.next_estimate = message.labels, 0
-            self.frames.clear()
+            old = self.labels or []
+            if message.labels[:len(old)] == old:  # new markers confirmed upstream: the frames so far still count
+                pad = np.full((len(message.labels) - len(old), 3), np.nan)
+                self.frames = deque(np.vstack([f, pad]) for f in self.frames)
+            else:
+                self.frames.clear()
+                self.next_estimate = 0
+            self.labels = message.labels
         self.frames.append(message.positions)
         window = round(self.config.window_s * message.rate)
         while len(self.frames) > window:

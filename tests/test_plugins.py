@@ -7,10 +7,12 @@ from pathlib import Path
 import numpy as np
 
 from mocapflow.io.skeleton import read_skeleton, write_skeleton
-from mocapflow.messages import MarkerFrame, Segments
+from mocapflow.messages import MarkerFrame, Segments, Skeleton
+from mocapflow.mocap.model import Segment
 from mocapflow.mocap.rigs import make_rig
 from mocapflow.mocap.simulator import SimulatorConfig, simulate, truth_skeleton
 from mocapflow.plugins.clusterer import ClustererConfig, SpectralClusterer
+from mocapflow.plugins.joints import ClosedFormJoints, JointsConfig
 
 
 def frames(n: int) -> tuple[list[MarkerFrame], list[str]]:
@@ -44,3 +46,29 @@ def test_clusterer_learns_segments_after_its_window_and_repeats_only_changes() -
              for k in range(len(rig.segments))}
     assert {frozenset(s.markers) for s in sent[0].segments} == truth
     assert np.all([len(s.markers) >= 3 for s in sent[0].segments])
+
+
+def test_joint_estimator_keeps_its_frames_when_new_markers_are_confirmed() -> None:
+    """The labeller's marker list only grows: a marker confirmed late joins the estimator's window, which is not
+    restarted, so the skeleton comes after half a window from the start, not from the last new marker."""
+    rig = make_rig("human")
+    rec = simulate(SimulatorConfig(rig="human", rate=120, seed=2), 360)
+    counts = np.bincount(rig.marker_segment)
+    late = int(np.flatnonzero(counts[rig.marker_segment] >= 4)[0])  # a marker whose segment keeps three without it
+    order = [m for m in range(len(rec.labels)) if m != late] + [late]
+    labels = [rec.labels[m] for m in order]
+    segments = Segments(frame=0, capture_ns=0, segments=[
+        Segment(name=name, markers=[m for m, k in zip(rig.marker_labels, rig.marker_segment, strict=True) if k == s])
+        for s, name in enumerate(rig.segments)])
+    sent: list[Skeleton] = []
+    node = ClosedFormJoints(JointsConfig(window_s=2.0, every_s=1.0), lambda port, msg: sent.append(msg))
+    node.process("segments", segments)
+    for i, positions in enumerate(rec.positions[:, order]):
+        known = len(labels) - 1 if i < 150 else len(labels)  # the last marker is confirmed at frame 150
+        node.process("markers", MarkerFrame(frame=i, capture_ns=i, rate=120, positions=positions[:known],
+                                            labels=labels[:known]))
+    # half of the 240-frame window after the first frame, then every 120 frames, the new marker no reason to wait
+    assert [message.frame for message in sent] == [119, 239, 359]
+    assert rec.labels[late] not in {m for seg in sent[0].skeleton.segments for m in seg.markers}
+    assert rec.labels[late] in {m for seg in sent[-1].skeleton.segments for m in seg.markers}
+    assert len(sent[-1].skeleton.joints) == len(rig.segments) - 1
