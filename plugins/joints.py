@@ -30,7 +30,6 @@ class VarianceJoints(Node):
 
     Config = JointsConfig
     joint_method: ClassVar[Literal["variance", "closed-form"]] = "variance"
-    min_markers: ClassVar[int] = 1  # smallest segment the method can place
     inputs = {
         "markers": Input(MarkerFrame, doc="labelled (or filled) markers"),
         "segments": Input(Segments, required=False, state=True, doc="segment model; without it no estimate is made"),
@@ -74,13 +73,9 @@ class VarianceJoints(Node):
         self.next_estimate = round(self.config.every_s * message.rate)
         index = {label: i for i, label in enumerate(self.labels)}
         groups = [[index[m] for m in s.markers if m in index] for s in self.segments.segments]
-        small = [s.name for s, g in zip(self.segments.segments, groups, strict=True) if 0 < len(g) < self.min_markers]
-        if small:  # one segment the method cannot place should not hold back the whole skeleton
-            self.log.warning("left out segments with fewer than %d markers: %s", self.min_markers, ", ".join(small))
         try:
-            skeleton = build_skeleton(np.stack(self.frames), self.labels, message.rate,
-                                      [g for g in groups if len(g) >= self.min_markers], self.joint_method,
-                                      show_progress=False)
+            skeleton = build_skeleton(np.stack(self.frames), self.labels, message.rate, [g for g in groups if g],
+                                      self.joint_method, show_progress=False)
         except CalibrationError as exc:
             self.log.warning("no skeleton yet: %s", exc)
             return
@@ -95,4 +90,3 @@ class ClosedFormJoints(VarianceJoints):
     complement), topology by minimum spanning tree; recomputed over a sliding window of recent frames."""
 
     joint_method = "closed-form"
-    min_markers = 3  # the closed form needs each segment's orientation

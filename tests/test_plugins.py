@@ -73,24 +73,3 @@ def test_joint_estimator_keeps_its_frames_when_new_markers_are_confirmed() -> No
     assert rec.labels[late] in {m for seg in sent[-1].skeleton.segments for m in seg.markers}
     assert len(sent[-1].skeleton.joints) == len(rig.segments) - 1
 
-
-def test_closed_form_joints_leave_out_a_segment_too_small_for_them() -> None:
-    """A two-marker segment (a fragment track, a marker pair split off) has no orientation for the closed form: it is
-    left out, and the rest of the skeleton is still estimated."""
-    rig = make_rig("human")
-    rec = simulate(SimulatorConfig(rig="human", rate=120, seed=2), 240)
-    groups = {name: [m for m, k in zip(rig.marker_labels, rig.marker_segment, strict=True) if k == s]
-              for s, name in enumerate(rig.segments)}
-    head = groups.pop("head")
-    groups |= {"head": head[:2], "hat": head[2:]}
-    segments = Segments(frame=0, capture_ns=0, segments=[Segment(name=n, markers=m) for n, m in groups.items()])
-    sent: list[Skeleton] = []
-    node = ClosedFormJoints(JointsConfig(window_s=2.0, every_s=1.0), lambda port, msg: sent.append(msg))
-    node.process("segments", segments)
-    for i, positions in enumerate(rec.positions):
-        node.process("markers", MarkerFrame(frame=i, capture_ns=i, rate=120, positions=positions, labels=rec.labels))
-    assert sent
-    skeleton = sent[-1].skeleton
-    assert sorted(sorted(s.markers) for s in skeleton.segments) == sorted(
-        sorted(m) for n, m in groups.items() if n not in ("head", "hat"))
-    assert len(skeleton.joints) == len(rig.segments) - 2
