@@ -72,4 +72,3 @@ def test_joint_estimator_keeps_its_frames_when_new_markers_are_confirmed() -> No
     assert rec.labels[late] not in {m for seg in sent[0].skeleton.segments for m in seg.markers}
     assert rec.labels[late] in {m for seg in sent[-1].skeleton.segments for m in seg.markers}
     assert len(sent[-1].skeleton.joints) == len(rig.segments) - 1
-

@@ -52,17 +52,15 @@ class PairStatistics:
 
     def distances(self, positions: np.ndarray) -> np.ndarray:
         """(B, P) pairwise distances of (B, N, 3) frames, NaN where a marker is missing."""
-        diff = positions[:, self.rows] - positions[:, self.cols]
+        diff = positions.take(self.rows, axis=1) - positions.take(self.cols, axis=1)
         return np.sqrt(np.einsum("bpi,bpi->bp", diff, diff))
 
     def add(self, distances: np.ndarray, sign: float = 1.0) -> None:
         """Add (``sign`` = 1) or remove (-1) the (B, P) distances of some frames."""
-        first = np.isnan(self.shift)
-        if first.any():
-            seen = np.isfinite(distances)
-            has = seen.any(0) & first
-            self.shift[has] = distances[np.argmax(seen[:, has], axis=0), np.flatnonzero(has)]
         seen = np.isfinite(distances)
+        first = np.isnan(self.shift) & seen.any(0)  # pairs seen for the first time
+        if first.any():
+            self.shift[first] = distances[np.argmax(seen[:, first], axis=0), np.flatnonzero(first)]
         dev = np.where(seen, distances - self.shift, 0.0)  # a pair never seen has no shift yet and no distance
         self.count += sign * seen.sum(0)
         self.total += sign * dev.sum(0)
@@ -145,7 +143,7 @@ def partition_spectral(spread: np.ndarray, k: int | None = None, *, neighbour: i
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # an empty cluster in one restart is simply a worse restart
         for _ in range(restarts):
-            centres, labels = kmeans2(y, k, minit="++", rng=rng)
+            centres, labels = kmeans2(y, k, minit="++", rng=rng, check_finite=False)  # unit rows: finite
             if len(np.unique(labels)) < k:
                 continue
             cost = float(((y - centres[labels]) ** 2).sum())

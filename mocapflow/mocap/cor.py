@@ -71,18 +71,31 @@ def kabsch(local: np.ndarray, world: np.ndarray, weight: np.ndarray) -> tuple[np
     eigenvector, plus the quaternion-to-matrix step) costs about twice as much. Returns R (B, 3, 3), t (B, 3) and
     ``ok`` (B,): False where the points do not fix a rotation (fewer than three, or collinear).
     """
-    w = weight / np.maximum(weight.sum(axis=1), 1e-300)[:, None]
-    cl = (w[:, None] @ local)[:, 0]
-    cw = (w[:, None] @ world)[:, 0]
-    h = (local - cl[:, None]).transpose(0, 2, 1) @ ((world - cw[:, None]) * w[..., None])
-    u, s, vt = np.linalg.svd(h)
-    r = vt.transpose(0, 2, 1) @ u.transpose(0, 2, 1)  # V U^T, a reflection where its determinant is negative
-    flip = np.linalg.det(r) < 0
-    if flip.any():  # V diag(1, 1, -1) U^T
-        r[flip] -= 2 * vt[flip, 2, :, None] * u[flip, None, :, 2]
-    t = cw - (r @ cl[..., None])[..., 0]
-    ok = ((weight > 0).sum(axis=1) >= 3) & (s[:, 1] > 1e-6 * s[:, 0])
-    return r, t, ok
+    return RigidFit(local, weight)(world)
+
+
+class RigidFit:
+    """``kabsch`` with its local points and weights fixed: what depends on them alone is worked out once, for a
+    caller fitting the same point sets to many frames."""
+
+    def __init__(self, local: np.ndarray, weight: np.ndarray) -> None:
+        w = weight / np.maximum(weight.sum(axis=1), 1e-300)[:, None]
+        self.rows = w[:, None]  # (B, 1, M): weighted means as products
+        self.columns = w[..., None]  # (B, M, 1)
+        self.centre = (self.rows @ local)[:, 0]
+        self.centred = (local - self.centre[:, None]).transpose(0, 2, 1)  # (B, 3, M)
+        self.enough = (weight > 0).sum(axis=1) >= 3
+
+    def __call__(self, world: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """R, t and ``ok`` of ``kabsch`` for the world points (B, M, 3)."""
+        cw = (self.rows @ world)[:, 0]
+        h = self.centred @ ((world - cw[:, None]) * self.columns)
+        u, s, vt = np.linalg.svd(h)
+        r = vt.transpose(0, 2, 1) @ u.transpose(0, 2, 1)  # V U^T, a reflection where its determinant is negative
+        flip = 2.0 * (np.linalg.det(r) < 0)  # there V diag(1, 1, -1) U^T, without indexing the batch
+        r -= flip[:, None, None] * (vt[:, 2, :, None] * u[:, None, :, 2])
+        t = cw - (r @ self.centre[..., None])[..., 0]
+        return r, t, self.enough & (s[:, 1] > 1e-6 * s[:, 0])
 
 
 @dataclass

@@ -45,15 +45,16 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 from enum import IntEnum
-from typing import Literal
+from typing import Literal, TypeVar
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
+from scipy.linalg.lapack import dgesdd
 from scipy.sparse.csgraph import minimum_spanning_tree
 from scipy.spatial.transform import Rotation
 
 from mocapflow.mocap.clustering import SegmentTracker, segment_names
-from mocapflow.mocap.cor import SequentialCoR, kabsch
+from mocapflow.mocap.cor import RigidFit, SequentialCoR
 from mocapflow.mocap.kalman import ConstantVelocityBank
 from mocapflow.mocap.model import Joint, Segment, SkeletonModel
 
@@ -71,7 +72,10 @@ class FillCase(IntEnum):
     RAY = 7  # seen by a single camera: on its ray
 
 
-_OBSERVED, _KALMAN, _ONE_MISSING = int(FillCase.OBSERVED), int(FillCase.KALMAN), int(FillCase.ONE_MISSING)
+_T = TypeVar("_T")
+_PATTERNS_KEPT = 64  # visibility patterns whose index work is kept (``_recall``)
+_MISSING, _OBSERVED, _KALMAN = int(FillCase.MISSING), int(FillCase.OBSERVED), int(FillCase.KALMAN)
+_ONE_MISSING = int(FillCase.ONE_MISSING)
 
 
 class FillerConfig(BaseModel):
@@ -146,11 +150,12 @@ class FillResult:
 
 
 def _fit_one(local: np.ndarray, world: np.ndarray, weight: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
-    """``kabsch`` for a single point set (M, 3) with less overhead; None where the points do not fix a rotation."""
+    """``kabsch`` for a single point set (M, 3) with less overhead (LAPACK's SVD called directly, without numpy's
+    wrapper); None where the points do not fix a rotation."""
     w = weight / weight.sum()
     cl, cw = w @ local, w @ world
-    u, s, vt = np.linalg.svd((local - cl).T @ ((world - cw) * w[:, None]))
-    if s[1] <= 1e-6 * s[0]:
+    u, s, vt, info = dgesdd((local - cl).T @ ((world - cw) * w[:, None]))
+    if info or s[1] <= 1e-6 * s[0]:
         return None
     r = vt.T @ u.T
     a, b, c, d, e, f, g, h, i = r.ravel().tolist()
@@ -176,9 +181,11 @@ def nearest_on_circle(
     v = guess - centre
     v -= np.einsum("ki,ki->k", v, u)[:, None] * u
     norm = np.linalg.norm(v, axis=-1)
-    fallback = np.cross(u, np.where(np.abs(u[:, :1]) < 0.9, [[1.0, 0, 0]], [[0, 1.0, 0]]))
-    v = np.where(norm[:, None] > 1e-9, v / np.maximum(norm, 1e-300)[:, None], fallback / np.linalg.norm(
-        fallback, axis=-1, keepdims=True))
+    v /= np.maximum(norm, 1e-300)[:, None]
+    on_axis = ~(norm > 1e-9)
+    if on_axis.any():
+        fallback = np.cross(u[on_axis], np.where(np.abs(u[on_axis, :1]) < 0.9, [[1.0, 0, 0]], [[0, 1.0, 0]]))
+        v[on_axis] = fallback / np.linalg.norm(fallback, axis=-1, keepdims=True)
     return centre + radius[:, None] * v
 
 
@@ -218,7 +225,11 @@ class _Joint:
 
 
 class _Body:
-    """A skeleton compiled against the filler's label order, padded for batched per-segment work."""
+    """A skeleton compiled against the filler's label order, padded for batched per-segment work.
+
+    The index work that depends only on which markers are visible (segments near the gaps, pose-fit weights,
+    per-segment selections) is kept per visibility pattern (``_recall``): a gap keeps its pattern for many frames.
+    """
 
     def __init__(self, skeleton: SkeletonModel, labels: list[str]) -> None:
         index = {label: i for i, label in enumerate(labels)}
@@ -239,11 +250,13 @@ class _Body:
         self.local = np.zeros((s, width, 3))
         self.slot = np.zeros((s, width), dtype=bool)
         self.marker_seg = np.full(n, -1)
+        self.marker_local = np.zeros((n, 3))  # per marker: its offset in its segment
         for k, (members, offsets) in enumerate(zip(self.members, self.offsets, strict=True)):
             self.idx[k, : len(members)] = members
             self.local[k, : len(members)] = offsets
             self.slot[k, : len(members)] = True
             self.marker_seg[members] = k
+            self.marker_local[members] = offsets
         seg_index = {name: k for k, name in enumerate(self.names)}
         self.joint_names: list[str] = []
         self.joints: list[_Joint | None] = []  # None: a joint of the skeleton this body cannot use
@@ -272,6 +285,9 @@ class _Body:
         self.joint_usable = np.array([j is not None for j in self.joints], dtype=bool)
         self.joint_segments = np.array([[j.parent, j.child] for j in usable], dtype=int).reshape(-1, 2)
         self.joint_offsets = np.array([[j.parent_offset, j.child_offset] for j in usable]).reshape(-1, 2, 3)
+        self._around: dict[bytes, np.ndarray] = {}  # by visibility pattern
+        self._fits: dict[bytes, _Fit] = {}
+        self._layouts: dict[bytes, _Layout] = {}
 
     def joint_offset(self, joint: int, segment: int) -> np.ndarray:
         """The centre of ``joint`` in ``segment``'s local frame."""
@@ -279,19 +295,72 @@ class _Body:
         assert jt is not None
         return jt.parent_offset if jt.parent == segment else jt.child_offset
 
-    def poses(self, positions: np.ndarray, use: np.ndarray, segments: np.ndarray | slice = slice(None)
-              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """The poses of ``segments`` (default all) fitted to the markers of ``positions`` (N, 3) selected by ``use``
-        (N,) bool; ``ok`` is False where they do not fix it."""
-        idx = self.idx[segments]
-        padded = np.zeros((len(positions) + 1, 3))
-        padded[:-1][use] = positions[use]
-        w = np.append(use, False)[idx].astype(float)
-        return kabsch(self.local[segments], padded[idx], w)
+    def fit_for(self, use: np.ndarray, segments: np.ndarray) -> _Fit:
+        """The ``_Fit`` of ``segments`` to the markers selected by ``use`` (N,) bool."""
+        return _recall(self._fits, use.tobytes() + segments.tobytes(), lambda: _Fit(self, use, segments))
+
+    def layout(self, visible: np.ndarray, targets: np.ndarray, near: np.ndarray) -> _Layout:
+        """The ``_Layout`` of a visibility pattern."""
+        return _recall(self._layouts, visible.tobytes() + targets.tobytes() + near.tobytes(),
+                       lambda: _Layout(self, visible, targets, near))
 
     def around(self, markers: np.ndarray) -> np.ndarray:
         """Indices of the segments holding any of ``markers`` (N,) bool, and of their neighbours."""
-        return np.flatnonzero(self.near[markers].any(axis=0))
+        return _recall(self._around, markers.tobytes(), lambda: np.flatnonzero(self.near[markers].any(axis=0)))
+
+
+def _recall(cache: dict[bytes, _T], key: bytes, make: Callable[[], _T]) -> _T:
+    """``cache[key]``, made by ``make`` when missing. The keys are visibility patterns (the bytes of boolean masks);
+    patterns that do not repeat (scattered dropouts) are dropped by emptying the cache when it is full."""
+    value = cache.get(key)
+    if value is None:
+        if len(cache) >= _PATTERNS_KEPT:
+            cache.clear()
+        value = cache[key] = make()
+    return value
+
+
+class _Fit:
+    """The pose fit of some segments to the markers of one visibility pattern: what depends on the pattern alone is
+    worked out once (``cor.RigidFit``). ``complete``: the segments with all their markers in the pattern."""
+
+    def __init__(self, body: _Body, use: np.ndarray, segments: np.ndarray) -> None:
+        idx = body.idx[segments]
+        used = np.append(use, False)[idx]
+        self.rows = np.minimum(idx, len(use) - 1)  # (B, M) marker rows, padding on any real row (unused)
+        self.used = used[..., None]
+        self.rigid = RigidFit(body.local[segments], used.astype(float))
+        self.complete = (used | ~body.slot[segments]).all(axis=1)
+
+    def __call__(self, positions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """R (B, 3, 3), t (B, 3) and ``ok`` (B,) of the segments fitted to ``positions`` (N, 3); ``ok`` is False where
+        the pattern's markers do not fix the pose."""
+        return self.rigid(np.where(self.used, positions[self.rows], 0.0))
+
+
+class _Layout:
+    """The index work of ``GapFiller._constrain`` for one visibility pattern (``visible`` markers, ``targets`` to
+    estimate, segments ``near`` them).
+
+    ``seg_vis``: visible markers per segment; ``target_rows``, ``target_seg``, ``target_local``: each target's row,
+    segment and offset in it; ``segments``: the segments holding a target; ``fit``: the pose fit of the ``near``
+    segments; ``parts``: per segment holding a target, the rows, offsets and anchor names of its visible markers,
+    the rows of its targets and which of its markers they are.
+    """
+
+    def __init__(self, body: _Body, visible: np.ndarray, targets: np.ndarray, near: np.ndarray) -> None:
+        self.seg_vis = np.bincount(body.marker_seg[visible & body.in_segment], minlength=len(body.members))
+        self.target_rows = np.flatnonzero(targets & body.in_segment)
+        self.target_seg = body.marker_seg[self.target_rows]
+        self.target_local = body.marker_local[self.target_rows]
+        self.segments = np.unique(self.target_seg)
+        self.fit = body.fit_for(visible, near)
+        self.parts: dict[int, tuple[np.ndarray, np.ndarray, list[tuple[str, int]], np.ndarray, np.ndarray]] = {}
+        for k in self.segments.tolist():
+            members = body.members[k]
+            vis, hit = visible[members], targets[members]
+            self.parts[k] = (members[vis], body.offsets[k][vis], [("marker", x) for x in members[vis].tolist()],
+                             members[hit], hit)
 
 
 def is_complete(skeleton: SkeletonModel) -> bool:
@@ -581,22 +650,20 @@ class GapFiller:
         self._pose_fresh = np.zeros((2, s), dtype=bool)  # fitted from the last two filled frames when next needed
 
     @staticmethod
-    def _fitted_poses_for(body: _Body, filled: np.ndarray, segments: np.ndarray | slice = slice(None)
+    def _fitted_poses_for(body: _Body, filled: np.ndarray, segments: np.ndarray
                           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """The poses of ``segments`` (default all) fitted to a filled frame; a segment counts as posed only with all
-        its markers."""
-        finite = np.isfinite(filled).all(axis=1)
-        r, t, ok = body.poses(filled, finite, segments)
-        complete = (np.append(finite, False)[body.idx[segments]] | ~body.slot[segments]).all(axis=1)
-        return r, t, ok & complete
+        """The poses of ``segments`` fitted to a filled frame; a segment counts as posed only with all its markers."""
+        fit = body.fit_for(np.isfinite(filled).all(axis=1), segments)
+        r, t, ok = fit(filled)
+        return r, t, ok & fit.complete
 
-    def _ensure_poses(self, segments: np.ndarray | slice = slice(None), ages: tuple[int, ...] = (0, 1)) -> None:
-        """Fit the poses of ``segments`` (default all) in this frame and the last (``ages``) where they were skipped
-        (segments with every marker seen, which no gap needed)."""
+    def _ensure_poses(self, segments: np.ndarray | slice = slice(None), ages: int = 2) -> None:
+        """Fit the poses of ``segments`` (default all) in the last ``ages`` frames (this one, then the one before)
+        where they were skipped (segments with every marker seen, which no gap needed)."""
         assert self.body is not None
-        if self._pose_fresh[list(ages)][:, segments].all():
+        if self._pose_fresh[:ages, segments].all():
             return
-        for age in ages:
+        for age in range(ages):
             stale = np.arange(len(self.body.members))[segments]
             stale = stale[~self._pose_fresh[age, stale]]
             if len(stale):
@@ -656,7 +723,7 @@ class GapFiller:
 
     def _current_poses(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """This frame's segment poses, fitted now where skipped."""
-        self._ensure_poses(ages=(0,))
+        self._ensure_poses(ages=1)
         return self._pose_r[0].copy(), self._pose_t[0].copy(), self._pose_ok[0].copy()
 
     def _centres_later(self, z: np.ndarray, flags: np.ndarray) -> Callable[[], np.ndarray]:
@@ -721,11 +788,11 @@ class GapFiller:
                 done &= ~self._extrapolated | (self._unmeasured < self._max_coast)
             z[done] = est[done]
             flags[done] = codes[done]
-        lone = (flags == FillCase.MISSING) & np.isfinite(prior).all(axis=1)
+        lone = (flags == _MISSING) & np.isfinite(prior).all(axis=1)
         if self._max_coast is not None:
             lone &= self._unmeasured < self._max_coast
         z[lone] = prior[lone]
-        flags[lone] = FillCase.KALMAN
+        flags[lone] = _KALMAN
         return poses
 
     def _fit_rays(self, z: np.ndarray, seen: np.ndarray, rays: np.ndarray, rows: np.ndarray) -> None:
@@ -773,26 +840,23 @@ class GapFiller:
         n = len(self.labels)
         est = np.full((n, 3), np.nan)
         codes = np.zeros(n, dtype=np.uint8)
-        seg_vis = np.bincount(body.marker_seg[visible & body.in_segment], minlength=len(body.members))
+        layout = body.layout(visible, targets, near)
+        seg_vis, segments = layout.seg_vis, layout.segments
         r_all, t_all = np.zeros((len(body.members), 3, 3)), np.zeros((len(body.members), 3))
         posed = np.zeros(len(body.members), dtype=bool)
-        r_all[near], t_all[near], posed[near] = body.poses(filled, visible, near)  # three visible markers fix a pose
+        r_all[near], t_all[near], posed[near] = layout.fit(filled)  # three visible markers fix a pose
         seen_posed = posed.copy()  # placed with at least one of their own markers visible
-        segments = np.flatnonzero(np.bincount(body.marker_seg[targets & body.in_segment], minlength=len(seg_vis)))
-        direct = segments[posed[segments]]
-        if len(direct):
-            world = body.local[direct] @ r_all[direct].transpose(0, 2, 1) + t_all[direct, None]
-            rows = body.idx[direct]
-            use = body.slot[direct] & np.append(targets, False)[rows]
-            est[rows[use]] = world[use]
-            codes[rows[use]] = FillCase.ONE_MISSING
+        direct = posed[layout.target_seg]  # per target: its segment is fitted
+        if direct.any():
+            rows, seg = layout.target_rows[direct], layout.target_seg[direct]
+            est[rows] = (r_all[seg] @ layout.target_local[direct, :, None])[..., 0] + t_all[seg]
+            codes[rows] = _ONE_MISSING
         pending = sorted(segments[~posed[segments]].tolist(), key=lambda k: -seg_vis[k])
         force = False  # set once no pending segment can be anchored: the rest keep their last rotation rate
         while pending:
             progress = False
             for k in list(pending):
-                members = body.members[k]
-                vis = visible[members]
+                seen_rows, seen_offsets, seen_names, miss, hit = layout.parts[k]
                 nv = int(seg_vis[k])
                 links = [link for link in body.links[k] if posed[link[1]]]
                 reference = None  # the first posed neighbour, preferring one placed with its own markers seen
@@ -805,10 +869,10 @@ class GapFiller:
                 if m == 0 and not force:
                     continue  # a hidden neighbour may be placed first and anchor this segment
                 p, a, w = np.empty((m, 3)), np.empty((m, 3)), np.ones(m)
-                p[:nv], a[:nv] = filled[members[vis]], body.offsets[k][vis]
+                p[:nv], a[:nv] = filled[seen_rows], seen_offsets
                 for i, (_, other, own, theirs) in enumerate(links, start=nv):
                     p[i], a[i], w[i] = r_all[other] @ theirs + t_all[other], own, cfg.joint_weight
-                anchors = tuple([("marker", int(x)) for x in members[vis]] + [("joint", j) for j, *_ in links])
+                anchors = tuple(seen_names + [("joint", j) for j, *_ in links])
                 via_seen = any(seen_posed[other] for _, other, _, _ in links)
                 pending.remove(k)
                 progress = True
@@ -816,9 +880,7 @@ class GapFiller:
                 if placed is None:
                     continue
                 r, t, points_on_circle = placed
-                miss = members[targets[members]]
-                est[miss] = (points_on_circle if points_on_circle is not None
-                             else body.offsets[k] @ r.T + t)[targets[members]]
+                est[miss] = (points_on_circle if points_on_circle is not None else body.offsets[k] @ r.T + t)[hit]
                 if seg_vis[k] >= 2:
                     codes[miss] = FillCase.ONE_MISSING
                 elif seg_vis[k] == 1:

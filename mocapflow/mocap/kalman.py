@@ -32,6 +32,7 @@ class ConstantVelocityBank:
         self.vel = np.full((n, 3), np.nan)
         self.p00, self.p01, self.p11 = np.zeros(n), np.zeros(n), np.zeros(n)  # covariance [[p00, p01], [p01, p11]]
         self.started = np.zeros(n, dtype=bool)
+        self.all_started = n == 0  # every filter has started: no first sight left to check for
 
     @property
     def position(self) -> np.ndarray:
@@ -60,14 +61,16 @@ class ConstantVelocityBank:
 
         A marker seen for the first time starts at its measurement with an unknown velocity.
         """
-        has = np.isfinite(z).all(axis=1) if rows is None else rows.copy()
-        fresh = has & ~self.started
-        if fresh.any():
-            self.pos[fresh] = z[fresh]
-            self.vel[fresh] = 0.0
-            self.p00[fresh], self.p01[fresh], self.p11[fresh] = variance[fresh], 0.0, self.initial_speed_var
-            self.started |= fresh
-            has &= ~fresh
+        has = np.isfinite(z).all(axis=1) if rows is None else rows
+        if not self.all_started:
+            fresh = has & ~self.started
+            if fresh.any():
+                self.pos[fresh] = z[fresh]
+                self.vel[fresh] = 0.0
+                self.p00[fresh], self.p01[fresh], self.p11[fresh] = variance[fresh], 0.0, self.initial_speed_var
+                self.started |= fresh
+                self.all_started = bool(self.started.all())
+                has = has & ~fresh
         p00, p01 = self.p00, self.p01
         s = p00 + variance  # H P H^T + R
         k0 = np.where(has, p00 / s, 0.0)  # gain K = P H^T / s
