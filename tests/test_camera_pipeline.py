@@ -10,13 +10,27 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from mocapflow.io.markers import read_markers
+from mocapflow.io.markers import MarkerData, read_markers
 from mocapflow.io.skeleton import write_skeleton
 from mocapflow.mocap.filler import FillCase, FillerConfig, GapFiller
 from mocapflow.mocap.rigs import make_rig
 from mocapflow.mocap.simulator import SimulatorConfig, simulate, truth_skeleton
 
 FRAMES = 360
+
+
+def run_graph(tmp_path: Path, endpoint: str, nodes: dict[str, dict]) -> MarkerData:
+    """Run a graph of ``nodes`` plus a recorder of ``filler/markers`` to the end, over its own router; the recording."""
+    name = f"rays{endpoint.rsplit(':', 1)[1]}"
+    recorder = {"plugin": "recorder", "inputs": {"markers": "filler/markers"},
+                "config": {"path": str(tmp_path / "live.c3d")}}
+    graph = {"name": name, "prefix": f"mocapflow/{name}", "zenoh": {"listen": [endpoint]},
+             "nodes": {**nodes, "recorder": recorder}}
+    (tmp_path / "graph.yaml").write_text(yaml.safe_dump(graph, sort_keys=False))
+    run = subprocess.run([sys.executable, "-m", "mocapflow.cli", "run", str(tmp_path / "graph.yaml"), "--duration",
+                          "60"], capture_output=True, text=True, timeout=120, check=False)
+    assert run.returncode == 0 and "all nodes finished" in run.stdout + run.stderr, run.stdout + run.stderr
+    return read_markers(tmp_path / "live.c3d")
 
 
 def test_rays_from_the_simulated_cameras_reach_the_filler(tmp_path: Path, free_endpoint: str) -> None:
@@ -27,22 +41,11 @@ def test_rays_from_the_simulated_cameras_reach_the_filler(tmp_path: Path, free_e
     assert ray.mean() > 0.05
     skeleton = truth_skeleton(make_rig("human"), rec.true_positions[0])
     write_skeleton(tmp_path / "skeleton.json", skeleton)
-    name = f"rays{free_endpoint.rsplit(':', 1)[1]}"
-    graph = {
-        "name": name, "prefix": f"mocapflow/{name}", "zenoh": {"listen": [free_endpoint]},
-        "nodes": {
-            "tracker": {"plugin": "simulator", "config": {**tracker, "frames": FRAMES}},
-            "filler": {"plugin": "occlusion-filler", "inputs": {"markers": "tracker/markers"},
-                       "config": {"skeleton": str(tmp_path / "skeleton.json")}},
-            "recorder": {"plugin": "recorder", "inputs": {"markers": "filler/markers"},
-                         "config": {"path": str(tmp_path / "live.c3d")}},
-        },
-    }
-    (tmp_path / "graph.yaml").write_text(yaml.safe_dump(graph, sort_keys=False))
-    run = subprocess.run([sys.executable, "-m", "mocapflow.cli", "run", str(tmp_path / "graph.yaml"), "--duration",
-                          "60"], capture_output=True, text=True, timeout=120, check=False)
-    assert run.returncode == 0 and "all nodes finished" in run.stdout + run.stderr, run.stdout + run.stderr
-    live = read_markers(tmp_path / "live.c3d")
+    live = run_graph(tmp_path, free_endpoint, {
+        "tracker": {"plugin": "simulator", "config": {**tracker, "frames": FRAMES}},
+        "filler": {"plugin": "occlusion-filler", "inputs": {"markers": "tracker/markers"},
+                   "config": {"skeleton": str(tmp_path / "skeleton.json")}},
+    })
     assert live.positions.shape == rec.positions.shape and live.flags is not None
 
     # the same filling offline, from the frames as they travel (float32 on the wire)
@@ -110,23 +113,12 @@ def test_rays_of_an_unlabelled_cloud_reach_the_filler_through_the_labeller(tmp_p
     frames = 1200
     tracker = {"rate": 120, "seed": 3, "noise_mm": 0.5, "cameras": 4, "unlabelled": True, "ghosts": 0.5}
     rec = simulate(SimulatorConfig(**tracker), frames)
-    name = f"urays{free_endpoint.rsplit(':', 1)[1]}"
-    graph = {
-        "name": name, "prefix": f"mocapflow/{name}", "zenoh": {"listen": [free_endpoint]},
-        "nodes": {
-            "tracker": {"plugin": "simulator", "config": {**tracker, "frames": frames}},
-            "labeller": {"plugin": "labeller", "inputs": {"markers": "tracker/markers",
-                                                          "predictions": "filler/predictions"}},
-            "filler": {"plugin": "occlusion-filler", "inputs": {"markers": "labeller/markers"}},
-            "recorder": {"plugin": "recorder", "inputs": {"markers": "filler/markers"},
-                         "config": {"path": str(tmp_path / "live.c3d")}},
-        },
-    }
-    (tmp_path / "graph.yaml").write_text(yaml.safe_dump(graph, sort_keys=False))
-    run = subprocess.run([sys.executable, "-m", "mocapflow.cli", "run", str(tmp_path / "graph.yaml"), "--duration",
-                          "60"], capture_output=True, text=True, timeout=120, check=False)
-    assert run.returncode == 0 and "all nodes finished" in run.stdout + run.stderr, run.stdout + run.stderr
-    live = read_markers(tmp_path / "live.c3d")
+    live = run_graph(tmp_path, free_endpoint, {
+        "tracker": {"plugin": "simulator", "config": {**tracker, "frames": frames}},
+        "labeller": {"plugin": "labeller", "inputs": {"markers": "tracker/markers",
+                                                      "predictions": "filler/predictions"}},
+        "filler": {"plugin": "occlusion-filler", "inputs": {"markers": "labeller/markers"}},
+    })
     assert live.flags is not None and len(live.positions) == frames
     on_ray = np.argwhere(live.flags == FillCase.RAY)
     assert len(on_ray) > 100
