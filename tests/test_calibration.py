@@ -235,13 +235,34 @@ def test_too_few_frames_is_an_error() -> None:
         calibrate(rec.positions[:20], rec.labels, rec.rate, show_progress=False)
 
 
-def test_a_segment_with_one_marker_is_an_error_naming_it() -> None:
+def test_a_segment_of_one_marker_is_left_out_naming_it(caplog: pytest.LogCaptureFixture) -> None:
     rec = _recording("rods")
-    of = rec.marker_segment
-    groups = [[i for i, s in enumerate(of) if s == "rod1"], [i for i, s in enumerate(of) if s == "rod2"][:1],
-              [i for i, s in enumerate(of) if s == "rod3"]]
-    with pytest.raises(CalibrationError, match=rec.labels[groups[1][0]]):
-        build_skeleton(rec.positions, rec.labels, rec.rate, groups, show_progress=False)
+    groups = [[i for i, s in enumerate(rec.marker_segment) if s == seg] for seg in ("rod1", "rod2", "rod3")]
+    lone = groups[2].pop()  # rod3 keeps its other markers; the one taken off is a segment of its own
+    with caplog.at_level("WARNING"):
+        skeleton = build_skeleton(rec.positions, rec.labels, rec.rate, [*groups, [lone]], show_progress=False)
+    assert [r.getMessage() for r in caplog.records if rec.labels[lone] in r.getMessage()]
+    assert len(skeleton.segments) == 3 and rec.labels[lone] not in {m for s in skeleton.segments for m in s.markers}
+    assert {frozenset((j.parent, j.child)) for j in skeleton.joints} == {
+        frozenset((skeleton.segments[0].name, skeleton.segments[1].name)),
+        frozenset((skeleton.segments[1].name, skeleton.segments[2].name))}
+
+
+def test_a_segment_never_seen_whole_is_still_measured() -> None:
+    """Each marker of the left thigh is hidden in turn, so that no frame shows the whole thigh: its shape comes from
+    the frames that show each part, and the skeleton equals the one from complete data."""
+    rec = _recording("human")
+    thigh = [i for i, s in enumerate(rec.marker_segment) if s == "left_thigh"]
+    gappy = rec.positions.copy()
+    for k, frames in enumerate(np.array_split(np.arange(len(gappy)), len(thigh))):
+        gappy[frames, thigh[k]] = np.nan
+    assert not np.isfinite(gappy[:, thigh]).all((1, 2)).any()
+    complete = _skeleton("human", "closed-form")
+    skeleton = calibrate(gappy, rec.labels, rec.rate, joint_method="closed-form", show_progress=False)
+    assert sorted(sorted(s.markers) for s in skeleton.segments) == sorted(sorted(s.markers) for s in complete.segments)
+    lengths, truth = bone_lengths(skeleton), bone_lengths(complete)
+    assert lengths.keys() == truth.keys()
+    assert all(abs(lengths[k] - truth[k]) < 2.0 for k in truth)
 
 
 def test_closed_form_needs_three_markers_per_segment() -> None:

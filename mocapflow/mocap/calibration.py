@@ -117,14 +117,14 @@ def build_skeleton(positions: np.ndarray, labels: Sequence[str], rate: float, gr
         raise ValueError(f"unknown joint method {joint_method!r}; choose auto, variance or closed-form")
     positions, _ = _clean(positions, labels)
     frames = positions.shape[0]
-    groups = [list(g) for g in groups]
-    names = segment_names(groups, labels)
-    if len(groups) < 2:
-        raise CalibrationError("all markers form one rigid segment: there is no joint to find")
-    for seg, group in zip(names, groups, strict=True):
+    for group in groups:
         if len(group) < 2:
-            raise CalibrationError(f"segment {seg!r} has {len(group)} usable marker ({labels[group[0]]}): a segment "
-                                   "needs at least 2; ask for fewer segments or leave that marker out")
+            log.warning("left out %s: the only marker of its segment (a segment needs at least 2)",
+                        ", ".join(labels[m] for m in group))
+    groups = [list(g) for g in groups if len(g) >= 2]
+    if len(groups) < 2:
+        raise CalibrationError("fewer than two segments of two markers or more: there is no joint to find")
+    names = segment_names(groups, labels)
     reference = int(np.argmax(np.isfinite(positions).all(-1).sum(1)))
     poses = [_marker_poses(positions[:, g], reference) for g in groups]
     if joint_method == "auto":

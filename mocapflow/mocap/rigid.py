@@ -60,34 +60,70 @@ def fit_shape(markers: np.ndarray, extras: np.ndarray | None = None, reference: 
     """Averaged marker (and joint) offsets of one segment from (F, n, 3) markers and (F, k, 3) joint centres.
 
     The pose is fitted on the markers when there are at least three, else on markers and joint centres together
-    (Schoenauer treats both alike, which lets a two-marker segment turn about its marker line). Only frames where
-    every point is present are used; ``reference`` is the frame whose orientation defines the axes (default: the
-    first complete one). The shape is refitted ``iterations`` times against the averaged one (generalised Procrustes).
-    Raises ValueError when no frame has every point, or none of those fixes the orientation.
+    (Schoenauer treats both alike, which lets a two-marker segment turn about its marker line). Each frame's pose
+    comes from whatever points it shows, so a segment never seen whole is still measured. ``reference`` is the frame
+    whose orientation defines the axes (when another frame shows more points: the first frame showing the most);
+    when no frame shows every point, the first shape comes from the mean distances between the points
+    (``_shape_from_distances``). The shape is refitted ``iterations`` times against the averaged one (generalised
+    Procrustes). Raises ValueError when no frame fixes the orientation, or a point is never seen in a frame that
+    does.
     """
     markers = np.asarray(markers, dtype=np.float64)
     frames, n, _ = markers.shape
     extras = np.zeros((frames, 0, 3)) if extras is None else np.asarray(extras, dtype=np.float64)
     points = np.concatenate([markers, extras], axis=1)
     fit_count = n if n >= 3 else points.shape[1]
-    complete = np.isfinite(points).all((1, 2))
-    if not complete.any():
-        raise ValueError("no frame shows every marker and joint of the segment")
-    ref = int(np.argmax(complete)) if reference is None or not complete[reference] else reference
-    shape = points[ref] - points[ref, :n].mean(0)
-    used = complete
+    seen = np.isfinite(points).all(-1)
+    shown = seen[:, :fit_count].sum(1) * (seen.shape[1] + 1) + seen.sum(1)  # the fitted points first
+    ref = reference if reference is not None and shown[reference] == shown.max() else int(np.argmax(shown))
+    shape = points[ref] if seen[ref].all() else _shape_from_distances(points, seen, ref, fit_count)
+    shape = shape - shape[:n].mean(0)
     for _ in range(iterations):
         pose = fit_pose(shape[:fit_count], points[:, :fit_count])
-        used = complete & pose.determined & inlier_frames(np.where(complete, pose.residual, np.nan))
+        used = pose.determined & inlier_frames(pose.residual)
         if not used.any():
             raise ValueError("no frame fixes the segment's orientation (its points are in a line)")
         local = np.einsum("fba,fnb->fna", pose.matrices()[used], points[used] - pose.translations[used, None])
         shape = np.stack([robust_mean(local[:, j]) for j in range(points.shape[1])])
+        if not np.isfinite(shape).all():
+            raise ValueError("a point of the segment is never seen in a frame that fixes its orientation")
         shape -= shape[:n].mean(0)
     pose = fit_pose(shape[:fit_count], points[:, :fit_count])
     pose.rotations[~pose.determined] = np.nan
     pose.translations[~pose.determined] = np.nan
     return SegmentShape(shape[:n], shape[n:], pose, int(used.sum()))
+
+
+def _shape_from_distances(points: np.ndarray, seen: np.ndarray, ref: int, fit_count: int) -> np.ndarray:
+    """A segment's shape, in the orientation of frame ``ref``, from the mean distance of every two of its points
+    (classical multidimensional scaling), for a segment that no frame shows whole. Distances cannot tell a shape from
+    its mirror image, and a frame showing three points fits either: the one kept is the one whose poses turn less
+    from frame to frame (the mirror image jumps whenever the set of visible points changes)."""
+    both = seen[:, :, None] & seen[:, None, :]
+    diff = np.linalg.norm(points[:, :, None] - points[:, None, :], axis=-1)
+    count = both.sum(0)
+    if (count == 0).any():
+        raise ValueError("no frame shows every marker and joint of the segment, and some two of them are never "
+                         "seen together")
+    sq = (np.where(both, diff, 0.0).sum(0) / count) ** 2
+    k = len(sq)
+    centre = np.eye(k) - 1.0 / k
+    values, vectors = np.linalg.eigh(-0.5 * centre @ sq @ centre)
+    shape = vectors[:, ::-1][:, :3] * np.sqrt(np.maximum(values[::-1][:3], 0.0))
+    fits = [fit_pose(s[:fit_count], points[:, :fit_count]) for s in (shape, shape * [1.0, 1.0, -1.0])]
+    best = int(_turning(fits[1]) < _turning(fits[0]))
+    pose = fits[best]
+    if not pose.determined[ref]:
+        raise ValueError("no frame fixes the segment's orientation (its points are in a line)")
+    return np.einsum("ab,nb->na", pose.matrices()[ref], shape * ([1.0, 1.0, -1.0] if best else 1.0))
+
+
+def _turning(pose: PoseFit) -> float:
+    """Mean rotation (rad) between consecutive frames whose orientation is fixed."""
+    q = pose.rotations[pose.determined]
+    if len(q) < 2:
+        return 0.0
+    return float(np.mean(2 * np.arccos(np.clip(np.abs((q[1:] * q[:-1]).sum(1)), 0.0, 1.0))))
 
 
 def bone_lengths(skeleton: SkeletonModel) -> dict[tuple[str, str], float]:
