@@ -19,8 +19,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("-o", "--output", required=True, help="skeleton file to write (.json)")
     p.add_argument("--segments", type=int, default=None, metavar="K",
                    help="number of segments (default: found from the data)")
-    p.add_argument("--method", choices=["spectral", "distance-threshold"], default="spectral",
-                   help="marker clustering (default spectral)")
+    p.add_argument("--method", choices=["rigidity", "spectral", "distance-threshold"], default="rigidity",
+                   help="marker clustering: markers rigid within the recording's own noise, joint markers given "
+                        "to the segment that needs them (default); spectral (Schoenauer); or a fixed threshold")
     p.add_argument("--joints", choices=["auto", "closed-form", "variance"], default="auto",
                    help="joint estimator: closed-form centre of rotation (Aristidou; more accurate on real skin "
                         "markers), distance variance (Schoenauer; works with segments of two markers), or auto "

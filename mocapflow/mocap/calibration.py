@@ -70,7 +70,7 @@ def sample_frames(frames: int, rate: float, every_s: float = 0.5, jitter_s: floa
 
 
 def calibrate(positions: np.ndarray, labels: Sequence[str], rate: float, segments: int | None = None,
-              method: Literal["spectral", "distance-threshold"] = "spectral",
+              method: Literal["rigidity", "spectral", "distance-threshold"] = "rigidity",
               joint_method: JointMethod = "auto", *, hinge_placement: Literal["neighbours", "estimator"] =
               "neighbours", name: str = "skeleton", show_progress: bool = True, **cluster_options: object,
               ) -> SkeletonModel:
@@ -127,19 +127,21 @@ def build_skeleton(positions: np.ndarray, labels: Sequence[str], rate: float, gr
     names = segment_names(groups, labels)
     reference = int(np.argmax(np.isfinite(positions).all(-1).sum(1)))
     poses = [_marker_poses(positions[:, g], reference) for g in groups]
-    if joint_method == "auto":
-        # the closed form needs every segment's orientation; segments of two markers leave only the variance cost
-        flat = [seg for seg, pose in zip(names, poses, strict=True) if pose is None]
-        joint_method = "variance" if flat else "closed-form"
-        if flat:
-            log.info("segments %s have fewer than 3 markers: joints by the distance-variance cost", ", ".join(flat))
-    if joint_method == "closed-form" and any(pose is None for pose in poses):
-        flat = [seg for seg, pose in zip(names, poses, strict=True) if pose is None]
+    flat = [seg for seg, pose in zip(names, poses, strict=True) if pose is None]
+    if joint_method == "closed-form" and flat:
         raise CalibrationError(f"segments {', '.join(flat)} have fewer than 3 markers: the closed-form centre of "
                                "rotation needs each segment's orientation; use the variance joint method "
                                "(--joints variance)")
-
-    costs = _pair_costs(positions, groups, poses, sample_frames(frames, rate), joint_method, show_progress)
+    if joint_method == "auto" and flat:
+        # the closed form needs every segment's orientation: segments of two markers (markers on the joints took
+        # the others) are joined where their closest markers keep their distance best, centres by distance variance
+        log.info("segments %s have fewer than 3 markers: the tree joins the segments whose closest markers keep "
+                 "their distance best; joints by the distance-variance cost", ", ".join(flat))
+        joint_method = "variance"
+        costs = closest_spreads(distance_spread(positions), groups)
+    else:
+        joint_method = "closed-form" if joint_method == "auto" else joint_method
+        costs = _pair_costs(positions, groups, poses, sample_frames(frames, rate), joint_method, show_progress)
     try:
         root, edges = spanning_tree(costs)
     except ValueError as exc:
@@ -196,6 +198,17 @@ def build_skeleton(positions: np.ndarray, labels: Sequence[str], rate: float, gr
     segments_out = [Segment(name=names[s], markers=[labels[m] for m in g],
                             marker_offsets=[_vec(o) for o in shapes[s].marker_offsets]) for s, g in enumerate(groups)]
     return SkeletonModel(name=name, segments=segments_out, joints=joints, root=names[root])
+
+
+def closest_spreads(spread: np.ndarray, groups: Sequence[Sequence[int]]) -> np.ndarray:
+    """(S, S) spread of the most rigid pair of markers across every two segments: small across a joint, whose
+    nearby markers keep their distances, large across segments that move freely of each other."""
+    d = np.where(np.isfinite(spread), spread, np.inf)
+    costs = np.full((len(groups), len(groups)), np.inf)
+    for a, ga in enumerate(groups):
+        for b in range(a + 1, len(groups)):
+            costs[a, b] = costs[b, a] = d[np.ix_(ga, groups[b])].min()
+    return costs
 
 
 def _vec(v: np.ndarray) -> tuple[float, float, float]:

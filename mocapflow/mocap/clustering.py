@@ -189,7 +189,96 @@ def cluster_distance_threshold(positions: np.ndarray, k: int | None = None, *, t
     return partition_threshold(distance_spread(positions), k, threshold_mm=threshold_mm, linkage=linkage)
 
 
+def noise_floor(spread: np.ndarray) -> float:
+    """A recording's rigidity noise (mm): the upper quartile, over markers, of the spread to their most rigid partner.
+
+    Nearly every marker shares a segment with another, so this is how much the distance of a rigid pair varies in
+    this recording (skin and soft tissue, the tracker's noise), read where it is typical rather than best.
+    """
+    d = np.where(np.isfinite(spread), spread, np.inf)
+    np.fill_diagonal(d, np.inf)
+    nearest = d.min(1)
+    nearest = nearest[np.isfinite(nearest)]
+    return float(np.percentile(nearest, 75)) if len(nearest) else 1.0
+
+
+def partition_rigidity(spread: np.ndarray, k: int | None = None, *, factor: float = 3.0, bridge: float = 2.0,
+                       loose: float = 3.0, floor_mm: float = 0.1) -> list[list[int]]:
+    """Segments as the markers that keep their distances within the recording's own noise.
+
+    1. Markers are grouped so that every two of a group are rigid: complete linkage cut at ``factor`` times the
+       noise floor (``noise_floor``, at least ``floor_mm``).
+    2. A marker left alone may be on a segment whose other markers sit on its joints (a thigh marker whose knee
+       marker went to the shank). When its most rigid partner is rigid with it but not with its own group-mates
+       (their spreads to the lone marker are over ``bridge`` times larger), and the group stays rigid without it,
+       that partner is a joint marker: the lone marker takes it, provided its group keeps two markers, or its
+       group's other marker can take its own most rigid partner in turn (a knee marker to the thigh, the ankle
+       marker to the shank).
+    3. Otherwise it joins the group it is most rigid with when that group's spreads to it stay under ``loose``
+       times the threshold (a soft segment: shoulder markers on the trunk); a marker rigid with nothing stays
+       alone.
+
+    With ``k`` given, complete linkage cut at ``k`` groups.
+    """
+    n = spread.shape[0]
+    if n <= 2 or k is not None:
+        return partition_threshold(spread, k, threshold_mm=np.inf, linkage="complete") if n > 1 else [[0]] * n
+    d = _unseen_as_far(spread)
+    threshold = factor * max(noise_floor(spread), floor_mm)
+    groups = partition_threshold(spread, threshold_mm=threshold, linkage="complete")
+
+    def group_of(m: int) -> list[int]:
+        return next(g for g in groups if m in g)
+
+    def partner(m: int, test: bool) -> int | None:
+        """m's most rigid marker outside its group; with ``test``, only when its group-mates are not rigid with m."""
+        own = group_of(m)
+        j = min((x for x in range(n) if x not in own), key=lambda x: d[m, x])
+        mates = [x for x in group_of(j) if x != j]
+        return j if not test or (mates and d[m, mates].min() > bridge * d[m, j]) else None
+
+    def takes(m: int, cascade: bool) -> list[int] | None:
+        """The joint markers that m, and in turn the one it leaves alone, take (None: no such move)."""
+        j = partner(m, test=not cascade)
+        if j is None:
+            return None
+        donor = group_of(j)
+        rest = [x for x in donor if x != j]
+        if len(rest) > 1 and d[np.ix_(rest, rest)].max() > threshold:
+            return None  # taking j would leave its group no longer rigid: j is not a joint marker of it
+        if len(donor) >= 3:
+            return [j]
+        if len(donor) == 2 and not cascade:
+            left = donor[0] if donor[1] == j else donor[1]
+            more = takes(left, cascade=True)
+            return [j, *more] if more else None
+        return None
+
+    changed = True
+    while changed:
+        changed = False
+        for alone in [g for g in groups if len(g) == 1]:
+            chain = takes(alone[0], cascade=False)
+            if chain:
+                taker = alone
+                for j in chain:
+                    donor = group_of(j)
+                    donor.remove(j)
+                    taker.append(j)
+                    taker = donor
+                changed = True
+                break
+            spreads = [(d[alone[0], g].max(), i) for i, g in enumerate(groups) if len(g) >= 2]
+            if spreads and min(spreads)[0] <= loose * threshold:
+                groups[min(spreads)[1]].append(alone.pop())
+                groups.remove(alone)
+                changed = True
+                break
+    return sorted((sorted(g) for g in groups), key=lambda g: g[0])
+
+
 PARTITIONERS: dict[str, Callable[..., list[list[int]]]] = {
+    "rigidity": partition_rigidity,
     "spectral": partition_spectral,
     "distance-threshold": partition_threshold,
 }

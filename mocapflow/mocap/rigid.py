@@ -65,8 +65,9 @@ def fit_shape(markers: np.ndarray, extras: np.ndarray | None = None, reference: 
     whose orientation defines the axes (when another frame shows more points: the first frame showing the most);
     when no frame shows every point, the first shape comes from the mean distances between the points
     (``_shape_from_distances``). The shape is refitted ``iterations`` times against the averaged one (generalised
-    Procrustes). Raises ValueError when no frame fixes the orientation, or a point is never seen in a frame that
-    does.
+    Procrustes). Points in a line (two markers and a joint on the segment's long axis) leave its turn about the
+    line free: it is held from frame to frame, which moves none of the points. Raises ValueError when no frame
+    shows enough points to place the segment, or a point is never seen in a frame that does.
     """
     markers = np.asarray(markers, dtype=np.float64)
     frames, n, _ = markers.shape
@@ -78,19 +79,25 @@ def fit_shape(markers: np.ndarray, extras: np.ndarray | None = None, reference: 
     ref = reference if reference is not None and shown[reference] == shown.max() else int(np.argmax(shown))
     shape = points[ref] if seen[ref].all() else _shape_from_distances(points, seen, ref, fit_count)
     shape = shape - shape[:n].mean(0)
+    line = False  # points in a line: their turn about it is held from frame to frame, which moves none of them
     for _ in range(iterations):
-        pose = fit_pose(shape[:fit_count], points[:, :fit_count])
-        used = pose.determined & inlier_frames(pose.residual)
+        pose = fit_pose(shape[:fit_count], points[:, :fit_count], hold=line)
+        if not line and not pose.determined.any():
+            line = True
+            pose = fit_pose(shape[:fit_count], points[:, :fit_count], hold=True)
+        posed = np.isfinite(pose.rotations).all(1) if line else pose.determined
+        used = posed & inlier_frames(pose.residual)
         if not used.any():
-            raise ValueError("no frame fixes the segment's orientation (its points are in a line)")
+            raise ValueError("no frame shows enough of the segment's points to place it")
         local = np.einsum("fba,fnb->fna", pose.matrices()[used], points[used] - pose.translations[used, None])
         shape = np.stack([robust_mean(local[:, j]) for j in range(points.shape[1])])
         if not np.isfinite(shape).all():
             raise ValueError("a point of the segment is never seen in a frame that fixes its orientation")
         shape -= shape[:n].mean(0)
-    pose = fit_pose(shape[:fit_count], points[:, :fit_count])
-    pose.rotations[~pose.determined] = np.nan
-    pose.translations[~pose.determined] = np.nan
+    pose = fit_pose(shape[:fit_count], points[:, :fit_count], hold=line)
+    if not line:
+        pose.rotations[~pose.determined] = np.nan
+        pose.translations[~pose.determined] = np.nan
     return SegmentShape(shape[:n], shape[n:], pose, int(used.sum()))
 
 
