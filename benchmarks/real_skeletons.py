@@ -113,7 +113,7 @@ def main() -> None:
         seconds = time.perf_counter() - start
         c = check(skeleton, data.positions, data.labels)
         print(f"| {Path(path).name} | {len(skeleton.segments)} | {len(skeleton.joints)} | {', '.join(c.mixed) or '-'}"
-              f" | {', '.join(c.not_chains) or '-'} | {', '.join(c.short_legs) or '-'} | {c.fit_mm:.1f} | "
+              f" | {', '.join(c.not_chains) or '-'} | {', '.join(c.short_legs) or '-'} | {c.fit_mm:.2f} | "
               f"{seconds:.1f} |")
         if args.verbose:
             for s in skeleton.segments:

@@ -132,15 +132,18 @@ def build_skeleton(positions: np.ndarray, labels: Sequence[str], rate: float, gr
         raise CalibrationError(f"segments {', '.join(flat)} have fewer than 3 markers: the closed-form centre of "
                                "rotation needs each segment's orientation; use the variance joint method "
                                "(--joints variance)")
-    if joint_method == "auto" and flat:
+    sequential = joint_method == "auto" and bool(flat) and any(pose is not None for pose in poses)
+    if sequential:
         # the closed form needs every segment's orientation: segments of two markers (markers on the joints took
-        # the others) are joined where their closest markers keep their distance best, centres by distance variance
+        # the others) are joined where their closest markers keep their distance best, and their joints are
+        # found down the tree from the segments whose markers fix their orientation
         log.info("segments %s have fewer than 3 markers: the tree joins the segments whose closest markers keep "
-                 "their distance best; joints by the distance-variance cost", ", ".join(flat))
-        joint_method = "variance"
+                 "their distance best; joints found down the tree", ", ".join(flat))
         costs = closest_spreads(distance_spread(positions), groups)
     else:
-        joint_method = "closed-form" if joint_method == "auto" else joint_method
+        if joint_method == "auto" and flat:
+            log.info("no segment has 3 markers: joints by the distance-variance cost")
+        joint_method = ("variance" if flat else "closed-form") if joint_method == "auto" else joint_method
         costs = _pair_costs(positions, groups, poses, sample_frames(frames, rate), joint_method, show_progress)
     try:
         root, edges = spanning_tree(costs)
@@ -148,13 +151,18 @@ def build_skeleton(positions: np.ndarray, labels: Sequence[str], rate: float, gr
         raise CalibrationError(f"no tree of joints joins the segments: {exc}") from None
 
     chosen = np.union1d(sample_frames(frames, rate, every_s=0.05, at_least=200, at_most=600, seed=1), [reference])
-    tracks = {}
-    for parent, child in progress(edges, len(edges), "joints", enabled=show_progress):
-        start = _start_track(positions, groups, poses, parent, child, chosen)
-        if joint_method == "variance":
-            markers = positions[chosen][:, groups[parent] + groups[child]]
-            start = fit_joint_variance(markers, start, max_iterations=30).centres
-        tracks[parent, child] = start
+    if sequential:
+        root, edges = _root_oriented(root, edges, poses)
+        tracks = _sequential_tracks(positions[chosen], groups, [p and p.subset(chosen) for p in poses], edges,
+                                    int(np.searchsorted(chosen, reference)), show_progress)
+    else:
+        tracks = {}
+        for parent, child in progress(edges, len(edges), "joints", enabled=show_progress):
+            start = _start_track(positions, groups, poses, parent, child, chosen)
+            if joint_method == "variance":
+                markers = positions[chosen][:, groups[parent] + groups[child]]
+                start = fit_joint_variance(markers, start, max_iterations=30).centres
+            tracks[parent, child] = start
 
     shapes, offsets = [], {}
     for s, group in enumerate(groups):
@@ -175,14 +183,16 @@ def build_skeleton(positions: np.ndarray, labels: Sequence[str], rate: float, gr
                 f"joint '{names[parent]}-{names[child]}': {names[parent]} and {names[child]} turned only "
                 f"{spread:.1f} deg RMS relative to each other (need {MIN_ROTATION_DEG:g}); record more varied motion")
         estimates[parent, child] = est
-    located = [e for e in edges if not estimates[e].is_hinge]  # joints whose data fix a point
+    # a hinge needs both segments' own orientations: a segment of two markers is posed through its joints
+    oriented = {e for e in edges if poses[e[0]] is not None and poses[e[1]] is not None}
+    located = [e for e in oriented if not estimates[e].is_hinge]  # joints whose data fix a point
     joints = []
     for parent, child in edges:
         est = estimates[parent, child]
         around = [e for e in located if e != (parent, child)]
         p_near, c_near = [e for e in around if parent in e], [e for e in around if child in e]
-        hinge = est.is_hinge or bool(p_near and c_near and _level_fits(
-            est, [_offset(estimates[e], e, parent) for e in p_near], [_offset(estimates[e], e, child) for e in c_near]))
+        hinge = (parent, child) in oriented and (est.is_hinge or bool(p_near and c_near and _level_fits(
+            est, [_offset(estimates[e], e, parent) for e in p_near], [_offset(estimates[e], e, child) for e in c_near])))
         p_off, c_off = offsets[parent, (parent, child)], offsets[child, (parent, child)]
         if hinge and hinge_placement == "neighbours":
             p_off, c_off = place_on_axis(p_off, c_off, est.axis, est.child_axis, [offsets[parent, e] for e in p_near],
@@ -209,6 +219,94 @@ def closest_spreads(spread: np.ndarray, groups: Sequence[Sequence[int]]) -> np.n
         for b in range(a + 1, len(groups)):
             costs[a, b] = costs[b, a] = d[np.ix_(ga, groups[b])].min()
     return costs
+
+
+def _root_oriented(root: int, edges: list[tuple[int, int]], poses: Sequence[PoseFit | None]
+                   ) -> tuple[int, list[tuple[int, int]]]:
+    """The tree rooted at a segment whose markers fix its orientation (the given root if they do, else the one
+    with the most joints), edges parents first."""
+    if poses[root] is None:
+        degree = np.bincount(np.ravel(edges), minlength=len(poses))
+        root = max((s for s, p in enumerate(poses) if p is not None), key=lambda s: (degree[s], -s))
+    near: dict[int, list[int]] = {}
+    for a, b in edges:
+        near.setdefault(a, []).append(b)
+        near.setdefault(b, []).append(a)
+    order, out = [root], []
+    for s in order:
+        for t in near.get(s, []):
+            if t not in order:
+                order.append(t)
+                out.append((s, t))
+    return root, out
+
+
+def sphere_centre(points: np.ndarray, prior: np.ndarray, damping: float = 1e-3) -> np.ndarray:
+    """The point that keeps a constant distance to each of the (F, K, 3) trajectories, each on a sphere of its own:
+    the algebraic least-squares centre (``2 p . c + d_k = |p|^2``, the per-sphere constants eliminated by centring
+    each trajectory), held near ``prior`` only along directions the data leave free (a hinge's axis): ``damping``
+    is relative to the data's own weight."""
+    rows, rhs = [], []
+    for k in range(points.shape[1]):
+        p = points[np.isfinite(points[:, k]).all(-1), k]
+        if len(p) < 2:
+            continue
+        sq = (p * p).sum(1)
+        rows.append(2 * (p - p.mean(0)))
+        rhs.append(sq - sq.mean())
+    if not rows:
+        return np.asarray(prior, dtype=np.float64)
+    a, b = np.concatenate(rows), np.concatenate(rhs)
+    normal = a.T @ a
+    weight = damping * np.trace(normal) / 3 + 1e-9
+    return np.linalg.solve(normal + weight * np.eye(3), a.T @ b + weight * np.asarray(prior, dtype=np.float64))
+
+
+def _in_frame(pose: PoseFit, points: np.ndarray) -> np.ndarray:
+    """(F, K, 3) world points in a segment's frame, NaN where its pose is unknown."""
+    return np.einsum("fba,fkb->fka", pose.matrices(), points - pose.translations[:, None])
+
+
+def _sphere_track(pose: PoseFit, own: np.ndarray, other: np.ndarray) -> np.ndarray:
+    """Joint centre per frame from a posed segment (its markers ``own``) and the markers ``other`` of a segment
+    whose orientation is unknown: the centre of the spheres ``other`` runs on in the posed segment's frame, held
+    along a free axis near the point between the two segments' closest markers."""
+    other_local, own_local = _in_frame(pose, other), _in_frame(pose, own)
+    mean_other, mean_own = np.nanmean(other_local, 0), np.nanmean(own_local, 0)
+    gap = np.linalg.norm(mean_other[:, None] - mean_own[None], axis=-1)
+    i, j = np.unravel_index(np.nanargmin(gap), gap.shape)
+    centre = sphere_centre(other_local, (mean_other[i] + mean_own[j]) / 2)
+    return np.einsum("fab,b->fa", pose.matrices(), centre) + pose.translations
+
+
+def _sequential_tracks(positions: np.ndarray, groups: Sequence[Sequence[int]], poses: Sequence[PoseFit | None],
+                       edges: Sequence[tuple[int, int]], reference: int, show_progress: bool
+                       ) -> dict[tuple[int, int], np.ndarray]:
+    """Joint centres (F, 3) down the tree from an oriented root (Aristidou's sequential centres of rotation,
+    extended to segments of two markers). Between two posed segments: the closed-form centre of rotation. Between a
+    posed segment and one whose markers do not fix its orientation: the centre of the spheres the latter's markers
+    run on in the posed segment's frame; that joint and its two markers then pose it for its own children."""
+    posed = list(poses)
+    tracks = {}
+    for parent, child in progress(edges, len(edges), "joints", enabled=show_progress):
+        pp, pc = posed[parent], posed[child]
+        mp, mc = positions[:, list(groups[parent])], positions[:, list(groups[child])]
+        if pp is not None and pc is not None:
+            est = _closed_form(pp, pc)
+            track = joint_track(pp.matrices(), pp.translations, pc.matrices(), pc.translations, est.parent_offset,
+                                est.child_offset)
+        elif pp is not None or pc is not None:
+            track = _sphere_track(pp, mp, mc) if pp is not None else _sphere_track(pc, mc, mp)
+        else:  # neither posed (a chain of two-marker segments under one in a line): Schoenauer's variance cost
+            both = np.concatenate([mp, mc], axis=1)
+            track = fit_joint_variance(both, marker_centroid(both), max_iterations=30).centres
+        tracks[parent, child] = track
+        if pc is None:
+            try:
+                posed[child] = fit_shape(mc, track[:, None], reference=reference).pose
+            except ValueError:
+                posed[child] = None
+    return tracks
 
 
 def _vec(v: np.ndarray) -> tuple[float, float, float]:

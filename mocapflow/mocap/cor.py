@@ -111,6 +111,11 @@ class PoseFit:
         """(F, 3, 3) rotation matrices, NaN where the pose is unknown."""
         return quaternion_matrices(self.rotations)
 
+    def subset(self, frames: np.ndarray) -> PoseFit:
+        """The poses of some frames only."""
+        return PoseFit(self.rotations[frames], self.translations[frames], self.residual[frames],
+                       self.determined[frames])
+
 
 def quaternion_matrices(quaternions: np.ndarray) -> np.ndarray:
     """(..., 3, 3) matrices of scalar-last quaternions, NaN rows giving NaN matrices (scipy rejects NaN)."""
