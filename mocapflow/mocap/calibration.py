@@ -115,6 +115,7 @@ def build_skeleton(positions: np.ndarray, labels: Sequence[str], rate: float, gr
     """Topology, joints and rigid parameters for a given partition of the markers (indices per segment)."""
     if joint_method not in ("auto", "variance", "closed-form"):
         raise ValueError(f"unknown joint method {joint_method!r}; choose auto, variance or closed-form")
+    requested = joint_method
     positions, _ = _clean(positions, labels)
     frames = positions.shape[0]
     for group in groups:
@@ -150,6 +151,7 @@ def build_skeleton(positions: np.ndarray, labels: Sequence[str], rate: float, gr
     except ValueError as exc:
         raise CalibrationError(f"no tree of joints joins the segments: {exc}") from None
 
+    fixed: set[tuple[int, int]] = set()  # joints too still to locate, placed between the closest markers
     chosen = np.union1d(sample_frames(frames, rate, every_s=0.05, at_least=200, at_most=600, seed=1), [reference])
     if sequential:
         root, edges = _root_oriented(root, edges, poses)
@@ -164,27 +166,33 @@ def build_skeleton(positions: np.ndarray, labels: Sequence[str], rate: float, gr
                 start = fit_joint_variance(markers, start, max_iterations=30).centres
             tracks[parent, child] = start
 
-    shapes, offsets = [], {}
-    for s, group in enumerate(groups):
-        attached = [e for e in edges if s in e]
-        extras = np.stack([tracks[e] for e in attached], 1) if attached else None
-        try:
-            shape = fit_shape(positions[chosen][:, group], extras, reference=int(np.searchsorted(chosen, reference)))
-        except ValueError as exc:
-            raise CalibrationError(f"segment {names[s]!r}: {exc}") from None
-        shapes.append(shape)
-        offsets.update({(s, e): shape.extra_offsets[j] for j, e in enumerate(attached)})
-
-    estimates = {}
-    for parent, child in edges:
-        spread, est = _relative_motion(shapes[parent].pose, shapes[child].pose)
-        if spread < MIN_ROTATION_DEG:
-            raise CalibrationError(
-                f"joint '{names[parent]}-{names[child]}': {names[parent]} and {names[child]} turned only "
-                f"{spread:.1f} deg RMS relative to each other (need {MIN_ROTATION_DEG:g}); record more varied motion")
-        estimates[parent, child] = est
+    ref = int(np.searchsorted(chosen, reference))
+    for attempt in range(2):
+        shapes, offsets = [], {}
+        for s, group in enumerate(groups):
+            attached = [e for e in edges if s in e]
+            extras = np.stack([tracks[e] for e in attached], 1) if attached else None
+            try:
+                shape = fit_shape(positions[chosen][:, group], extras, reference=ref)
+            except ValueError as exc:
+                log.warning("left out %s (segment %s): %s", ", ".join(labels[m] for m in group), names[s], exc)
+                return build_skeleton(positions, labels, rate, [g for g in groups if g is not group], requested,
+                                      hinge_placement=hinge_placement, name=name, show_progress=show_progress)
+            shapes.append(shape)
+            offsets.update({(s, e): shape.extra_offsets[j] for j, e in enumerate(attached)})
+        motion = {e: _relative_motion(shapes[e[0]].pose, shapes[e[1]].pose) for e in edges}
+        still = [e for e in edges if motion[e][0] < MIN_ROTATION_DEG and e not in fixed]
+        if not still or attempt:
+            break
+        for parent, child in still:  # no centre of rotation to find: the joint goes between the closest markers
+            log.warning("joint %s-%s: the segments turned only %.1f deg RMS relative to each other (a joint is "
+                        "located from %g); placed between their closest markers: record more varied motion to "
+                        "locate it", names[parent], names[child], motion[parent, child][0], MIN_ROTATION_DEG)
+            tracks[parent, child] = _closest_track(positions[chosen], groups[parent], groups[child])
+        fixed |= set(still)
+    estimates = {e: est for e, (_, est) in motion.items()}
     # a hinge needs both segments' own orientations: a segment of two markers is posed through its joints
-    oriented = {e for e in edges if poses[e[0]] is not None and poses[e[1]] is not None}
+    oriented = {e for e in edges if poses[e[0]] is not None and poses[e[1]] is not None and e not in fixed}
     located = [e for e in oriented if not estimates[e].is_hinge]  # joints whose data fix a point
     joints = []
     for parent, child in edges:
@@ -219,6 +227,14 @@ def closest_spreads(spread: np.ndarray, groups: Sequence[Sequence[int]]) -> np.n
         for b in range(a + 1, len(groups)):
             costs[a, b] = costs[b, a] = d[np.ix_(ga, groups[b])].min()
     return costs
+
+
+def _closest_track(positions: np.ndarray, a: Sequence[int], b: Sequence[int]) -> np.ndarray:
+    """(F, 3) midpoint of the two markers, one of each segment, that are closest on average."""
+    ma, mb = positions[:, list(a)], positions[:, list(b)]
+    gap = np.nanmean(np.linalg.norm(ma[:, :, None] - mb[:, None], axis=-1), axis=0)
+    i, j = np.unravel_index(np.nanargmin(gap), gap.shape)
+    return (ma[:, i] + mb[:, j]) / 2
 
 
 def _root_oriented(root: int, edges: list[tuple[int, int]], poses: Sequence[PoseFit | None]
