@@ -335,6 +335,40 @@ def test_calibrate_and_solve_commands(tmp_path: Path) -> None:
     assert main(["solve", str(source), "--skeleton", str(tmp_path / "missing.json"), "-o", str(json_out)]) == 2
 
 
+def test_calibrate_several_trials_and_a_marker_choice(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    """Two trials of one subject (the second with its markers in another order) give the skeleton of both at once;
+    --markers/--exclude choose markers by label; an output that is an input is refused."""
+    from mocapflow.cli import main
+    from mocapflow.io.markers import MarkerData, write_markers
+
+    rec = _recording("rods")
+    first, second = tmp_path / "a.c3d", tmp_path / "b.trc"
+    write_markers(first, MarkerData(positions=rec.positions[:700], labels=rec.labels, rate=rec.rate))
+    order = list(reversed(range(len(rec.labels))))
+    write_markers(second, MarkerData(positions=rec.positions[700:1400, order], labels=[rec.labels[i] for i in order],
+                                     rate=rec.rate))
+    both = tmp_path / "both.json"
+    assert main(["calibrate", str(first), str(second), "-o", str(both)]) == 0
+    assert "1400 frames of 2 trials" in capsys.readouterr().out
+    skeleton = SkeletonModel.model_validate_json(both.read_text())
+    assert sorted(sorted(s.markers) for s in skeleton.segments) == sorted(
+        sorted(label for label, seg in zip(rec.labels, rec.marker_segment, strict=True) if seg == s)
+        for s in ("rod1", "rod2", "rod3"))
+    two_rods = tmp_path / "two.json"
+    assert main(["calibrate", str(first), "--exclude", "rod3*", "-o", str(two_rods)]) == 0
+    assert {m for s in SkeletonModel.model_validate_json(two_rods.read_text()).segments for m in s.markers} == {
+        label for label in rec.labels if not label.startswith("rod3")}
+    only = tmp_path / "only.json"
+    assert main(["calibrate", str(first), "--markers", "rod1*", "--markers", "rod2*", "-o", str(only)]) == 0
+    assert len(SkeletonModel.model_validate_json(only.read_text()).segments) == 2
+    assert main(["calibrate", str(first), "--exclude", "nosuch*", "-o", str(only)]) == 2
+    assert "no marker label matches 'nosuch*'" in capsys.readouterr().err
+    assert main(["calibrate", str(first), "-o", str(first)]) == 2
+    assert "overwrite an input" in capsys.readouterr().err
+    assert first.read_bytes()[:2] != b"{"  # the recording is untouched
+    assert main(["solve", str(first), "--skeleton", str(both), "-o", str(first)]) == 2
+
+
 def test_rigid_shape_rejects_outlier_frames_and_samples() -> None:
     rng = np.random.default_rng(8)
     local = rng.normal(size=(4, 3)) * 60

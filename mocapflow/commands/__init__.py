@@ -2,13 +2,51 @@
 
 from __future__ import annotations
 
-from typing import Any, TypeVar
+import argparse
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, TypeVar
 
 from pydantic import BaseModel, ValidationError
 
 from mocapflow.errors import MocapflowError
 
+if TYPE_CHECKING:
+    from mocapflow.io.markers import MarkerData
+
 M = TypeVar("M", bound=BaseModel)
+
+
+def marker_choice(parser: argparse.ArgumentParser, include: bool = True) -> None:
+    """The ``--markers GLOB`` / ``--exclude GLOB`` options of a command that reads a marker file."""
+    if include:
+        parser.add_argument("--markers", dest="include", action="append", default=[], metavar="GLOB",
+                            help="use only the markers whose labels match this shell-style pattern ('L*', '*HEE'); "
+                                 "repeatable")
+    parser.add_argument("--exclude", action="append", default=[], metavar="GLOB",
+                        help="leave out the markers whose labels match this pattern (virtual points an exporter "
+                             "writes as markers, such as '*HJC' or 'CentreOfMass'); repeatable")
+
+
+def read_chosen(path: str, args: argparse.Namespace) -> MarkerData:
+    """A marker file, restricted to the markers chosen with ``marker_choice``'s options."""
+    from mocapflow.io.markers import read_markers, select_markers
+
+    data = read_markers(path)
+    include, exclude = getattr(args, "include", []), args.exclude
+    if not (include or exclude):
+        return data
+    chosen = select_markers(data, include, exclude)
+    print(f"{path}: using {chosen.n_markers} of {data.n_markers} markers")
+    return chosen
+
+
+def distinct_output(output: str | Path, *inputs: str | Path) -> Path:
+    """The output path, refused when it is one of the inputs (a command never overwrites what it reads)."""
+    out = Path(output)
+    for source in inputs:
+        if source and out.resolve() == Path(source).resolve():
+            raise MocapflowError(f"{out}: the output would overwrite an input; choose another path")
+    return out
 
 
 def settings(model: type[M], items: list[str], **named: Any) -> M:

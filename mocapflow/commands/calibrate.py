@@ -7,6 +7,7 @@ import time
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from mocapflow.commands import distinct_output, marker_choice, read_chosen
 from mocapflow.errors import MocapflowError
 
 if TYPE_CHECKING:
@@ -15,7 +16,9 @@ if TYPE_CHECKING:
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("calibrate", help="learn a skeleton from labelled marker trajectories (.c3d or .trc)")
-    p.add_argument("input", help="labelled marker file (.c3d or .trc) of varied motion")
+    p.add_argument("inputs", nargs="+", metavar="input",
+                   help="labelled marker files (.c3d or .trc) of varied motion, one subject with one marker set: "
+                        "every trial given is used (a range-of-motion trial locates the joints best)")
     p.add_argument("-o", "--output", required=True, help="skeleton file to write (.json)")
     p.add_argument("--segments", type=int, default=None, metavar="K",
                    help="number of segments (default: found from the data)")
@@ -26,7 +29,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="joint estimator: closed-form centre of rotation (Aristidou; more accurate on real skin "
                         "markers), distance variance (Schoenauer; works with segments of two markers), or auto "
                         "(default): closed form unless a segment has only two markers")
-    p.add_argument("--name", default=None, help="skeleton name (default: the input file's stem)")
+    p.add_argument("--name", default=None, help="skeleton name (default: the first input file's stem)")
+    marker_choice(p)
     p.set_defaults(func=run)
 
 
@@ -46,21 +50,22 @@ def summary(skeleton: SkeletonModel) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    from mocapflow.io.markers import read_markers
+    from mocapflow.io.markers import join_trials
     from mocapflow.io.skeleton import write_skeleton
     from mocapflow.mocap.calibration import calibrate
 
     if args.segments is not None and args.segments < 2:
         raise MocapflowError("--segments must be at least 2")
-    data = read_markers(args.input)
+    out = distinct_output(args.output, *args.inputs)
+    data = join_trials([read_chosen(path, args) for path in args.inputs])
     start = time.perf_counter()
     skeleton = calibrate(data.positions, data.labels, data.rate, segments=args.segments, method=args.method,
-                         joint_method=args.joints, name=args.name or Path(args.input).stem)
+                         joint_method=args.joints, name=args.name or Path(args.inputs[0]).stem)
     elapsed = time.perf_counter() - start
-    out = Path(args.output)
     out.parent.mkdir(parents=True, exist_ok=True)
     write_skeleton(out, skeleton)
     print(summary(skeleton))
+    trials = f" of {len(args.inputs)} trials" if len(args.inputs) > 1 else ""
     print(f"wrote {out}: {len(skeleton.segments)} segments, {len(skeleton.joints)} joints from "
-          f"{data.n_frames} frames in {elapsed:.1f} s")
+          f"{data.n_frames} frames{trials} in {elapsed:.1f} s")
     return 0

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mocapflow.commands import settings
+from mocapflow.commands import distinct_output, marker_choice, read_chosen, settings
 from mocapflow.errors import MocapflowError
 
 
@@ -26,6 +26,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "direction; NaN where none) of an .npz file, such as the sidecar `mocapflow simulate` writes")
     p.add_argument("--joints", action="store_true",
                    help="also write the skeleton's joint centres, tracked through occlusions, as extra points")
+    marker_choice(p)
     p.set_defaults(func=run)
 
 
@@ -50,19 +51,19 @@ def read_rays(path: str, shape: tuple[int, int]) -> np.ndarray:
 
 def run(args: argparse.Namespace) -> int:
 
-    from mocapflow.io.markers import MarkerData, read_markers, write_markers
+    from mocapflow.io.markers import MarkerData, write_markers
     from mocapflow.io.skeleton import read_skeleton
     from mocapflow.mocap.filler import FillCase, FillerConfig, GapFiller
     from mocapflow.progress import progress
 
-    out = Path(args.output)
+    out = distinct_output(args.output, args.input)
     if out.suffix.lower() not in (".c3d", ".trc"):
         raise MocapflowError(f"{out}: output must be .c3d or .trc")
     config = settings(FillerConfig, args.overrides)
     skeleton = read_skeleton(args.skeleton) if args.skeleton else None
     if args.joints and skeleton is None:
         raise MocapflowError("--joints needs --skeleton: learned joints come and go while they are learned")
-    data = read_markers(args.input)
+    data = read_chosen(args.input, args)
     if skeleton is not None and not {m for s in skeleton.segments for m in s.markers} & set(data.labels):
         raise MocapflowError(f"{args.input}: none of the skeleton's markers is in the file")
 

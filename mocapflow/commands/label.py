@@ -3,12 +3,11 @@
 from __future__ import annotations
 
 import argparse
-from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
 
-from mocapflow.commands import settings
+from mocapflow.commands import distinct_output, marker_choice, read_chosen, settings
 from mocapflow.errors import MocapflowError
 
 if TYPE_CHECKING:
@@ -27,6 +26,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--markers", type=int, metavar="N", help="number of physical markers, when known")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                    help="any other labeller setting, e.g. --set max_coast_s=0.2 (see mocapflow.mocap.labelling)")
+    marker_choice(p, include=False)
     p.set_defaults(func=run)
 
 
@@ -39,19 +39,19 @@ def _config(args: argparse.Namespace) -> LabellerConfig:
 
 
 def run(args: argparse.Namespace) -> int:
-    from mocapflow.io.markers import MarkerData, read_markers, write_markers
+    from mocapflow.io.markers import MarkerData, write_markers
     from mocapflow.mocap.labelling import label_sequence
     from mocapflow.progress import progress
 
     config = _config(args)
-    data = read_markers(args.input)
+    data = read_chosen(args.input, args)
     points = data.positions
     if not np.isfinite(points).all(axis=2).any():
         raise MocapflowError(f"{args.input}: no points to label")
     tracks, labels = label_sequence(progress(points, len(points), "label"), data.rate, config)
     if not labels:
         raise MocapflowError(f"{args.input}: no point lived long enough to be a marker (see --confirm)")
-    out = Path(args.output)
+    out = distinct_output(args.output, args.input)
     out.parent.mkdir(parents=True, exist_ok=True)
     write_markers(out, MarkerData(positions=tracks, labels=labels, rate=data.rate, first_frame=data.first_frame))
     given = int(np.isfinite(points).all(axis=2).sum())

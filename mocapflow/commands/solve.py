@@ -4,10 +4,10 @@ as marker points (.c3d/.trc), per-frame JSON, or a BVH animation (.bvh) for anim
 from __future__ import annotations
 
 import argparse
-from pathlib import Path
 
 import numpy as np
 
+from mocapflow.commands import distinct_output, marker_choice, read_chosen
 from mocapflow.errors import MocapflowError
 
 
@@ -20,6 +20,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "centres and segment poses) or .bvh (the skeleton's animation)")
     p.add_argument("--bvh-order", default="ZXY", choices=["ZXY", "XYZ", "ZYX", "YXZ", "XZY", "YZX"],
                    help="Euler order of the BVH rotation channels (default ZXY)")
+    marker_choice(p)
     p.set_defaults(func=run)
 
 
@@ -35,15 +36,15 @@ def run(args: argparse.Namespace) -> int:
     import orjson
 
     from mocapflow.io.bvh import skeleton_bvh, write_bvh
-    from mocapflow.io.markers import MarkerData, read_markers, write_markers
+    from mocapflow.io.markers import MarkerData, write_markers
     from mocapflow.io.skeleton import read_skeleton
     from mocapflow.mocap.solve import solve
 
-    out = Path(args.output)
+    out = distinct_output(args.output, args.input, args.skeleton)
     if out.suffix.lower() not in (".c3d", ".trc", ".json", ".bvh"):
         raise MocapflowError(f"{out}: output must be .c3d, .trc, .json or .bvh")
     skeleton = read_skeleton(args.skeleton)
-    data = read_markers(args.input)
+    data = read_chosen(args.input, args)
     missing = sorted({m for s in skeleton.segments for m in s.markers} - set(data.labels))
     if len(missing) == sum(len(s.markers) for s in skeleton.segments):
         raise MocapflowError(f"{args.input}: none of the skeleton's markers is in the file")

@@ -20,6 +20,7 @@ exporters (CMU, processed Vicon trials) write 0 for every valid sample, and thos
 
 from __future__ import annotations
 
+import logging
 import math
 import os
 import warnings
@@ -47,6 +48,8 @@ BLOCK: Final = 512
 MAX_PARAMETER_BLOCKS: Final = 255
 PROCESSORS: Final = {84: "<", 85: "<", 86: ">"}
 """Processor type byte of the parameter section (Intel, DEC, MIPS) -> byte order of its integers."""
+log = logging.getLogger(__name__)
+
 MODEL_OUTPUTS: Final = ("ANGLES", "FORCES", "MOMENTS", "POWERS", "SCALARS", "REACTIONS")
 """POINT parameters listing points that hold model outputs (degrees, newtons...) rather than positions."""
 GROUP: Final = "MOCAPFLOW"
@@ -210,6 +213,9 @@ def read_c3d(path: str | Path, *, strip_prefix: bool = True) -> MarkerData:
     n_extra = min(max(int(extra_used[0]), 0), n_points) if extra_used else 0
     outputs = {str(label).strip() for name in MODEL_OUTPUTS for label in _values(point, name)}
     markers = [i for i in range(n_points - n_extra) if raw_labels[i].strip() not in outputs]
+    if len(markers) < n_points - n_extra:
+        log.info("%s: %d model outputs of POINT (%s) are not markers: skipped", path.name,
+                 n_points - n_extra - len(markers), ", ".join(n for n in MODEL_OUTPUTS if _values(point, n)))
 
     positions = np.ascontiguousarray(points[:3].transpose(2, 1, 0))
     positions *= scale

@@ -9,6 +9,7 @@ from __future__ import annotations
 from collections import Counter
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from fnmatch import fnmatchcase
 from pathlib import Path
 from typing import Final
 
@@ -150,6 +151,39 @@ def read_markers(path: str | Path, *, strip_prefix: bool = True) -> MarkerData:
     if suffix == ".trc":
         return read_trc(path, strip_prefix=strip_prefix)
     raise MocapFileError(f"{path}: neither a C3D nor a TRC marker file")
+
+
+def select_markers(data: MarkerData, include: Sequence[str] = (), exclude: Sequence[str] = ()) -> MarkerData:
+    """The markers whose labels match one of the shell-style ``include`` patterns (all when none is given) and
+    none of the ``exclude`` ones. A pattern that matches no label, or a choice that leaves no marker, is an error
+    naming it (a mistyped pattern must not pass unnoticed)."""
+    for pattern in [*include, *exclude]:
+        if not any(fnmatchcase(label, pattern) for label in data.labels):
+            raise MocapFileError(f"no marker label matches {pattern!r} (labels: {', '.join(data.labels[:12])}"
+                                 f"{'...' if len(data.labels) > 12 else ''})")
+    keep = [i for i, label in enumerate(data.labels)
+            if (not include or any(fnmatchcase(label, p) for p in include))
+            and not any(fnmatchcase(label, p) for p in exclude)]
+    if not keep:
+        raise MocapFileError("the marker choice leaves no marker")
+    return MarkerData(positions=data.positions[:, keep], labels=[data.labels[i] for i in keep], rate=data.rate,
+                      first_frame=data.first_frame, flags=None if data.flags is None else data.flags[:, keep],
+                      extra=data.extra)
+
+
+def join_trials(trials: Sequence[MarkerData]) -> MarkerData:
+    """Several trials of one subject as one recording: frames one after the other, markers matched by label (a
+    marker absent from a trial is missing there), at the first trial's rate."""
+    if len(trials) == 1:
+        return trials[0]
+    labels = list(dict.fromkeys(label for trial in trials for label in trial.labels))
+    column = {label: i for i, label in enumerate(labels)}
+    blocks = []
+    for trial in trials:
+        block = np.full((trial.n_frames, len(labels), 3), np.nan)
+        block[:, [column[label] for label in trial.labels]] = trial.positions
+        blocks.append(block)
+    return MarkerData(positions=np.concatenate(blocks), labels=labels, rate=trials[0].rate)
 
 
 def write_markers(path: str | Path, data: MarkerData) -> None:

@@ -200,7 +200,8 @@ def build_skeleton(positions: np.ndarray, labels: Sequence[str], rate: float, gr
         around = [e for e in located if e != (parent, child)]
         p_near, c_near = [e for e in around if parent in e], [e for e in around if child in e]
         hinge = (parent, child) in oriented and (est.is_hinge or bool(p_near and c_near and _level_fits(
-            est, [_offset(estimates[e], e, parent) for e in p_near], [_offset(estimates[e], e, child) for e in c_near])))
+            est, [_offset(estimates[e], e, parent) for e in p_near],
+            [_offset(estimates[e], e, child) for e in c_near])))
         p_off, c_off = offsets[parent, (parent, child)], offsets[child, (parent, child)]
         if hinge and hinge_placement == "neighbours":
             p_off, c_off = place_on_axis(p_off, c_off, est.axis, est.child_axis, [offsets[parent, e] for e in p_near],
