@@ -69,10 +69,15 @@ def test_spectral_clustering_with_a_given_number_and_the_eigengap() -> None:
     assert len(merged) == k - 1 and sorted(m for group in merged for m in group) == list(range(len(rec.labels)))
 
 
-def test_segment_names_use_the_common_label_prefix() -> None:
-    labels = ["LTH1", "LTH2", "LASI", "RASI", "RTH1", "RTH2", "X"]
-    assert segment_names([[0, 1], [2, 3], [4, 5]], labels) == ["LTH", "segment1", "RTH"]
-    assert segment_names([[0, 1], [4, 5, 6]], labels) == ["LTH", "segment1"]
+def test_segment_names_use_the_common_label_prefix_else_the_body_part_the_labels_name() -> None:
+    labels = ["LTH1", "LTH2", "LASI", "RASI", "RTH1", "RTH2", "X", "Y"]
+    assert segment_names([[0, 1], [2, 3], [4, 5]], labels) == ["LTH", "pelvis", "RTH"]
+    assert segment_names([[0, 1], [4, 5, 6]], labels) == ["LTH", "right_thigh"]
+    assert segment_names([[0, 1], [6, 7]], labels) == ["LTH", "segment1"]  # labels that say nothing
+    cmu = ["Sub:LTHI", "Sub:LKNE", "Sub:LSHN", "Sub:LANK", "Sub:LHEE", "Sub:LTOE", "Sub:C7", "Sub:T10", "Sub:RFWT",
+           "Sub:LBWT", "Sub:LFHD", "Sub:RBHD", "Sub:LELB", "Sub:RUPA", "Sub:RTHI", "Sub:RKNE"]
+    assert segment_names([[0, 1], [2, 3], [4, 5], [6, 7], [8, 9], [10, 11], [12], [14, 15]], cmu) == [
+        "left_thigh", "left_shank", "left_foot", "trunk", "pelvis", "head", "segment6", "right_thigh"]
 
 
 def test_real_lower_body_segments_match_the_expert_segmentation(data_dir: Path) -> None:

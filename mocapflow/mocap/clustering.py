@@ -17,8 +17,9 @@ frame, and a new ``SegmentModel`` only when the partition changes.
 from __future__ import annotations
 
 import os
+import re
 import warnings
-from collections import deque
+from collections import Counter, deque
 from collections.abc import Callable, Sequence
 from typing import Literal
 
@@ -285,15 +286,55 @@ PARTITIONERS: dict[str, Callable[..., list[list[int]]]] = {
 """Clustering methods by name, each taking a spread matrix and ``k``."""
 
 
+_BODY_WORDS: tuple[tuple[str, str], ...] = (  # (pattern on a label without its side letter, body part)
+    (r"SH[N0-9]|TIB|TB\d|TI[A-Z]|SHIN", "shank"), (r"TH|FEM", "thigh"),
+    (r"HEE|TOE|MT\d|P\dMT|CAL|MF[SL]|CUN|FOOT", "foot"), (r"UPA|UA\d|ARM|HUM", "upper_arm"),
+    (r"FRM|FA|FOREARM|WR|RAD|ULN", "forearm"), (r"FIN|HN\d|HAND|MCP", "hand"),
+    (r"KNE|KN|ANK|ELB|[LM]EPI|PAT|[LM]?MAL|[LM]AK|[LM]EL", ""),  # on a joint: says nothing of the segment
+    (r"ASI|PSI|[FB]?WT|SACR?$|PELV|P\d$", "pelvis"), (r"[FB]?HD|HEAD|HED", "head"),
+    (r"C7|T\d|CLAV|STR?N|STER|BA[CK]|SHO|SHL|SH$|ACR|MAN|XIPH", "trunk"),
+)
+_SIDES = {"L": "left", "R": "right"}
+
+
+def _body_word(label: str) -> tuple[str | None, str | None]:
+    """(side, body part) a marker label names, e.g. ``LTHI`` -> (left, thigh), ``C7`` -> (None, trunk); a part of
+    None when the label says nothing, "" for a marker on a joint."""
+    name = label.rpartition(":")[2].upper()
+    for rest, side in ((name[1:], _SIDES.get(name[:1])), (name, None)):
+        if rest and (side or rest is name):
+            for pattern, word in _BODY_WORDS:
+                if re.match(pattern, rest):
+                    return side, word
+    return None, None
+
+
 def segment_names(groups: Sequence[Sequence[int]], labels: Sequence[str]) -> list[str]:
     """A readable, unique name per segment: its markers' common label prefix (``LTH1..LTH4`` -> ``LTH``) when that
-    is at least two characters and unique, else ``segment<i>``."""
+    is at least two characters, else the body part its labels name (``LTHI, LKNE`` -> ``left_thigh``, ``C7, CLAV``
+    -> ``trunk``, by majority, markers on joints not voting), else ``segment<i>``; a repeated name is numbered."""
     names = []
     for i, group in enumerate(groups):
-        prefix = os.path.commonprefix([labels[m] for m in group]).rstrip("_-: ") if len(group) > 1 else ""
-        names.append(prefix if len(prefix) >= 2 else f"segment{i}")
-    counts = {name: names.count(name) for name in names}
-    return [name if counts[name] == 1 else f"segment{i}" for i, name in enumerate(names)]
+        short = [labels[m].rpartition(":")[2] for m in group]
+        prefix = os.path.commonprefix(short).rstrip("_-: ") if len(group) > 1 else ""
+        if len(prefix) >= 2:
+            names.append(prefix)
+            continue
+        votes = [_body_word(labels[m]) for m in group]
+        words = Counter(word for _, word in votes if word)
+        word = words.most_common(1)[0][0] if words else ""
+        sides = {side for side, w in votes if w == word}
+        if word in ("pelvis", "head", "trunk") or not word:
+            names.append(word or f"segment{i}")
+        else:
+            names.append(f"{sides.pop()}_{word}" if len(sides) == 1 and None not in sides else f"segment{i}")
+    counts = Counter(names)
+    seen: Counter[str] = Counter()
+    unique = []
+    for name in names:
+        seen[name] += 1
+        unique.append(name if counts[name] == 1 else f"{name}_{seen[name]}")
+    return unique
 
 
 def segment_model(groups: Sequence[Sequence[int]], labels: Sequence[str]) -> SegmentModel:
