@@ -369,6 +369,34 @@ def test_calibrate_several_trials_and_a_marker_choice(tmp_path: Path, capsys: py
     assert main(["solve", str(first), "--skeleton", str(both), "-o", str(first)]) == 2
 
 
+def test_solve_warns_of_a_bad_fit_naming_the_segments(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    """Two markers of one rod swapped in a trial: solve says the fit is poor and which segment fits worst; the
+    calibrate report gives each segment's rigidity and each joint's range of motion."""
+    from mocapflow.cli import main
+    from mocapflow.io.markers import MarkerData, write_markers
+
+    rec = _recording("rods")
+    source, skeleton_path = tmp_path / "rods.c3d", tmp_path / "rods.json"
+    write_markers(source, MarkerData(positions=rec.positions[:800], labels=rec.labels, rate=rec.rate))
+    assert main(["calibrate", str(source), "-o", str(skeleton_path)]) == 0
+    report = capsys.readouterr().out
+    assert "rigid mm" in report and "motion deg" in report
+    skeleton = SkeletonModel.model_validate_json(skeleton_path.read_text())
+    assert all(s.rigidity_mm is not None and s.rigidity_mm < 2.0 for s in skeleton.segments)
+    assert all(j.rotation_deg is not None and j.rotation_deg > 10.0 for j in skeleton.joints)
+    assert main(["solve", str(source), "--skeleton", str(skeleton_path), "-o", str(tmp_path / "ok.json")]) == 0
+    assert "warning" not in capsys.readouterr().out
+    rod3 = [i for i, s in enumerate(rec.marker_segment) if s == "rod3"]
+    swapped = rec.positions[:800].copy()
+    swapped[:, [rod3[0], rod3[-1]]] = swapped[:, [rod3[-1], rod3[0]]]
+    other = tmp_path / "swapped.c3d"
+    write_markers(other, MarkerData(positions=swapped, labels=rec.labels, rate=rec.rate))
+    assert main(["solve", str(other), "--skeleton", str(skeleton_path), "-o", str(tmp_path / "bad.json")]) == 0
+    out = capsys.readouterr().out
+    name = next(s.name for s in skeleton.segments if rec.labels[rod3[0]] in s.markers)
+    assert "warning: mean marker fit" in out and f"worst fitted: {name} (" in out
+
+
 def test_rigid_shape_rejects_outlier_frames_and_samples() -> None:
     rng = np.random.default_rng(8)
     local = rng.normal(size=(4, 3)) * 60

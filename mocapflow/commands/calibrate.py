@@ -35,15 +35,18 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def summary(skeleton: SkeletonModel) -> str:
-    """The segments, joints and root of a skeleton as aligned text tables."""
-    lines = [f"{'segment':<16} {'markers':>7}  labels"]
+    """The segments (with how rigid their markers were), joints (with the motion that located them) and root of a
+    skeleton as aligned text tables."""
+    lines = [f"{'segment':<16} {'markers':>7} {'rigid mm':>8}  labels"]
     for s in skeleton.segments:
-        lines.append(f"{s.name:<16} {len(s.markers):>7}  {' '.join(s.markers)}")
+        rigid = f"{s.rigidity_mm:>8.2f}" if s.rigidity_mm is not None else f"{'-':>8}"
+        lines.append(f"{s.name:<16} {len(s.markers):>7} {rigid}  {' '.join(s.markers)}")
     lines.append("")
-    lines.append(f"{'joint':<28} {'parent':<16} {'child':<16} {'kind':<5} {'cost':>9} {'dist mm':>8} {'sd mm':>6}")
+    lines.append(f"{'joint':<32} {'kind':<5} {'motion deg':>10} {'dist mm':>8} {'sd mm':>6}")
     for j in skeleton.joints:
-        lines.append(f"{j.name:<28} {j.parent:<16} {j.child:<16} {j.kind:<5} {j.cost:>9.3f} {j.distance_mean:>8.1f} "
-                     f"{j.distance_sd:>6.2f}")
+        motion = f"{j.rotation_deg:>10.1f}" if j.rotation_deg is not None else f"{'-':>10}"
+        note = "  not located: too little motion" if j.rotation_deg is not None and j.rotation_deg < 2.0 else ""
+        lines.append(f"{j.name:<32} {j.kind:<5} {motion} {j.distance_mean:>8.1f} {j.distance_sd:>6.2f}{note}")
     lines.append("")
     lines.append(f"root: {skeleton.root}")
     return "\n".join(lines)

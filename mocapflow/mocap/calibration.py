@@ -213,9 +213,12 @@ def build_skeleton(positions: np.ndarray, labels: Sequence[str], rate: float, gr
             name=f"{names[parent]}-{names[child]}", parent=names[parent], child=names[child],
             kind="hinge" if hinge else "ball", parent_offset=_vec(p_off), child_offset=_vec(c_off),
             axis=_vec(est.axis) if hinge else None, cost=float(costs[parent, child]), distance_mean=mean,
-            distance_sd=sd))
+            distance_sd=sd, rotation_deg=float(motion[parent, child][0])))
+    spread = distance_spread(positions)
     segments_out = [Segment(name=names[s], markers=[labels[m] for m in g],
-                            marker_offsets=[_vec(o) for o in shapes[s].marker_offsets]) for s, g in enumerate(groups)]
+                            marker_offsets=[_vec(o) for o in shapes[s].marker_offsets],
+                            rigidity_mm=float(np.nanmean(spread[np.ix_(g, g)][np.triu_indices(len(g), 1)])))
+                    for s, g in enumerate(groups)]
     return SkeletonModel(name=name, segments=segments_out, joints=joints, root=names[root])
 
 

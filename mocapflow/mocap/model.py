@@ -25,6 +25,9 @@ class Segment(BaseModel):
     marker_offsets: list[Vec3] | None = Field(
         default=None, description="marker positions in the segment's local frame (mm), same order as markers"
     )
+    rigidity_mm: float | None = Field(
+        default=None, description="how rigid the markers were: standard deviation of their mutual distances over "
+                                  "the calibration data, mean over pairs (mm)")
 
 
 class Joint(BaseModel):
@@ -43,6 +46,10 @@ class Joint(BaseModel):
     distance_mean: float | None = Field(default=None, description="mean marker-to-joint distance (mm)")
     distance_sd: float | None = Field(
         default=None, description="mean standard deviation of marker-to-joint distance (mm)")
+    rotation_deg: float | None = Field(
+        default=None, description="range of motion seen: RMS rotation of the child relative to the parent about "
+                                  "its mean (deg); under 2 the joint could not be located and sits between the "
+                                  "segments' closest markers")
 
 
 class SegmentModel(BaseModel):
