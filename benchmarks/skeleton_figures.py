@@ -1,5 +1,5 @@
-"""Pictures of inferred skeletons drawn over their markers: docs/img/skeleton-simulated-human.png and
-docs/img/skeleton-lowerbody.png.
+"""Pictures of inferred skeletons drawn over their markers: docs/img/skeleton-simulated-human.png,
+docs/img/skeleton-lowerbody.png and docs/img/skeleton-real-full-body.png.
 
 Run: python benchmarks/skeleton_figures.py. Each picture shows one frame from the front and from the side: markers
 coloured by the segment they were clustered into, the calibrated skeleton solved on that frame (joint centres, bones
@@ -139,6 +139,57 @@ def lower_body() -> None:
          positions, data.labels, f, references, "clinical centres: marker midpoints, Harrington hips")
 
 
+FULL_BODY = ("cmu_85_02.c3d", "cmu_85_12_breakdance.c3d", "cmu_02_05.c3d", "cmu_dribble_shoot_basketball.c3d",
+             "hamner_run200.trc", "sprinter_JA1Gait35.c3d")
+
+
+def real_full_body() -> None:
+    """Every real full-body file calibrated with no option, one panel each from the front, in its most upright
+    frame: markers coloured by segment, bones, joint centres."""
+    files = [DATA / name for name in FULL_BODY if (DATA / name).is_file()]
+    if not files:
+        print(f"{DATA} holds no full-body file: no picture")
+        return
+    fig, axes = plt.subplots(2, 3, figsize=(13, 10), dpi=90)
+    for ax, path in zip(axes.ravel(), files, strict=False):
+        data = read_markers(path)
+        skeleton = calibrate(data.positions, data.labels, data.rate, show_progress=False)
+        extent = np.nanmax(data.positions, 1) - np.nanmin(data.positions, 1)  # (F, 3)
+        up = int(np.argmax(np.nanmedian(extent, 0)))  # z in the C3D files, y in the TRC
+        f = int(np.nanargmax(np.where(np.isfinite(data.positions).all((1, 2)), extent[:, up], np.nan)))
+        pose = solve(skeleton, data.positions[f:f + 1], data.labels)
+        frame = data.positions[f]
+        short = [label.rpartition(":")[2] for label in data.labels]
+        side = [k for k, n in enumerate(short) if n[:1] == "L"], [k for k, n in enumerate(short) if n[:1] == "R"]
+        left = np.nanmean(frame[side[0]], 0) - np.nanmean(frame[side[1]], 0)
+        left[up] = 0.0
+        left /= np.linalg.norm(left)
+        index = {m: k for k, m in enumerate(data.labels)}
+        palette = plt.get_cmap("tab20").colors
+        for s, segment in enumerate(skeleton.segments):
+            pts = np.array([frame[index[m]] for m in segment.markers])
+            ax.scatter(pts @ left, pts[:, up], s=22, color=palette[s % 20], edgecolor="none", zorder=2)
+        for s, start, end in bones(skeleton, pose, 0):
+            ax.plot([start @ left, end @ left], [start[up], end[up]], color=palette[s % 20], lw=3.5,
+                    solid_capstyle="round", zorder=3, alpha=0.85)
+        centres = pose.joint_centres[0]
+        ax.scatter(centres @ left, centres[:, up], s=30, color="white", edgecolor="black", linewidth=1.1, zorder=5)
+        ax.set_title(f"{path.name}\n{len(skeleton.segments)} segments, {len(skeleton.joints)} joints", fontsize=11)
+        ax.set_aspect("equal", adjustable="datalim")
+        ax.tick_params(labelsize=8)
+        ax.grid(alpha=0.25)
+    for ax in axes.ravel()[len(files):]:
+        ax.axis("off")
+    fig.suptitle("Real full-body recordings, calibrated with no option (front views; colour: segment; circles: "
+                 "joint centres)", fontsize=12)
+    fig.tight_layout()
+    out = OUT / "skeleton-real-full-body.png"
+    fig.savefig(out)
+    plt.close(fig)
+    print(f"wrote {out} ({out.stat().st_size // 1024} KB)")
+
+
 if __name__ == "__main__":
     simulated_human()
     lower_body()
+    real_full_body()

@@ -27,8 +27,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "to the segment that needs them (default); spectral (Schoenauer); or a fixed threshold")
     p.add_argument("--joints", choices=["auto", "closed-form", "variance"], default="auto",
                    help="joint estimator: closed-form centre of rotation (Aristidou; more accurate on real skin "
-                        "markers), distance variance (Schoenauer; works with segments of two markers), or auto "
-                        "(default): closed form unless a segment has only two markers")
+                        "markers), distance variance (Schoenauer), or auto (default): the closed form, found "
+                        "down the tree (sphere centres into them) when some segments have only two markers")
     p.add_argument("--name", default=None, help="skeleton name (default: the first input file's stem)")
     marker_choice(p)
     p.set_defaults(func=run)

@@ -2,22 +2,27 @@
 
 The batch pipeline of Schoenauer (2007, chapter 3) with Aristidou's (2008) closed-form centres of rotation:
 
-1. segments: markers clustered by the spread of their mutual distances (``clustering``);
+1. segments: markers grouped by the spread of their mutual distances (``clustering``; by default, rigidity at the
+   recording's own noise level);
 2. joint costs for every pair of segments, on frames sampled every half second with a small jitter (Kirk et al.):
    the distance-variance cost of 3.5 (``joint_method="variance"``) or the residual of the closed-form centre of
-   rotation of Aristidou 4.4 (``"closed-form"``);
+   rotation of Aristidou 4.4 (``"closed-form"``); when some segments have only two markers (markers on the joints
+   took the others), the spread of the most rigid pair of markers across the two segments (``closest_spreads``);
 3. topology: the minimum spanning tree of those costs, rooted at the most connected segment (3.7.7);
-4. joint centres of the tree's joints, frame by frame;
+4. joint centres of the tree's joints, frame by frame; with segments of two markers, sequentially from an oriented
+   root down (closed form between posed segments, sphere centres into a two-marker segment, which its joint then
+   poses);
 5. rigid parameters: marker and joint offsets averaged over many frames with outlier rejection (3.8.1);
 6. hinges: joints the data locate only up to an axis (an exact hinge, or a knee whose other rotations are too
    small for its skin artefact), reported with their axis and placed on it level with the neighbouring joints.
 
 The default joint estimator is the closed form: it is as accurate as the variance cost on simulated rigs, two to
 three times faster, and much closer to the clinical knee centres on real skin markers (see
-docs/skeleton-generation.md); the variance cost is the one for segments of two markers.
+docs/skeleton-generation.md).
 
-Errors a user can act on raise ``CalibrationError`` naming what is missing: too few frames, a segment with fewer
-than two usable markers, a joint that moved too little to be located.
+A bad part never costs the whole skeleton: a marker seen too rarely, a segment of one marker, a segment no frame
+places or a joint too still to locate is logged on one warning line naming it, and the rest is kept. Errors a user
+can act on raise ``CalibrationError``: too few frames, fewer than two segments, a joint method that cannot apply.
 """
 
 from __future__ import annotations
