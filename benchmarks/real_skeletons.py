@@ -58,7 +58,8 @@ class Checks:
     mixed: list[str]  # segments holding markers of two limbs, or of a leg and the trunk
     not_chains: list[str]  # limbs whose segments are not one chain hanging from the body by one joint
     short_legs: list[str]  # legs with fewer than three segments (thigh, shank, foot)
-    fit_mm: float  # mean marker fit of the solve
+    fit_mm: float  # mean marker fit of the solve: mean distance between fitted and observed markers
+    segment_rms_mm: float  # the solve's per-segment RMS residual, averaged over frames and segments
 
     @property
     def ok(self) -> bool:
@@ -92,7 +93,7 @@ def check(skeleton: SkeletonModel, positions: np.ndarray, labels: Sequence[str])
         if "leg" in limb and len(members) < 3:
             short_legs.append(f"{limb}: {len(members)}")
     pose = solve(skeleton, positions, labels)
-    return Checks(mixed, not_chains, short_legs, float(np.nanmean(pose.residual)))
+    return Checks(mixed, not_chains, short_legs, pose.marker_fit, float(np.nanmean(pose.residual)))
 
 
 def main() -> None:
@@ -100,8 +101,9 @@ def main() -> None:
     parser.add_argument("files", nargs="*", default=[str(DATA / f) for f in FILES])
     parser.add_argument("-v", "--verbose", action="store_true", help="print each skeleton's segments and joints")
     args = parser.parse_args()
-    print("| file | segments | joints | mixed segments | limbs not one chain | legs under 3 segments | fit mm | s |")
-    print("|---|---|---|---|---|---|---|---|")
+    print("| file | segments | joints | mixed segments | limbs not one chain | legs under 3 segments | fit mm "
+          "| segment RMS mm | s |")
+    print("|---|---|---|---|---|---|---|---|---|")
     for path in args.files:
         data = read_markers(path)
         start = time.perf_counter()
@@ -114,7 +116,7 @@ def main() -> None:
         c = check(skeleton, data.positions, data.labels)
         print(f"| {Path(path).name} | {len(skeleton.segments)} | {len(skeleton.joints)} | {', '.join(c.mixed) or '-'}"
               f" | {', '.join(c.not_chains) or '-'} | {', '.join(c.short_legs) or '-'} | {c.fit_mm:.2f} | "
-              f"{seconds:.1f} |")
+              f"{c.segment_rms_mm:.2f} | {seconds:.1f} |")
         if args.verbose:
             for s in skeleton.segments:
                 print(f"    {s.name:12s} {' '.join(m.split(':')[-1] for m in s.markers)}")

@@ -80,10 +80,10 @@ def run(args: argparse.Namespace) -> int:
                                       first_frame=data.first_frame, flags=data.flags, extra=extra))
     posed = np.isfinite(pose.rotations).all(-1)
     print(f"wrote {out}: {len(pose.joint_names)} joints over {data.n_frames} frames; segments posed in "
-          f"{100 * posed.mean():.1f} % of frames, mean marker fit {np.nanmean(pose.residual):.2f} mm")
+          f"{100 * posed.mean():.1f} % of frames, mean marker fit {pose.marker_fit:.2f} mm")
     if missing:
         print(f"markers of the skeleton absent from the file: {', '.join(missing)}")
-    print(fit_warning(pose.segment_names, pose.residual) or "", end="")
+    print(fit_warning(pose.segment_names, pose.residual, pose.marker_fit) or "", end="")
     return 0
 
 
@@ -91,12 +91,13 @@ FIT_WARN_MM = 10.0
 """Mean marker fit above which solve warns: the skeleton does not describe this recording well."""
 
 
-def fit_warning(segments: list[str], residual: np.ndarray) -> str | None:
-    """A warning naming the segments responsible when the mean marker fit (F, S residuals) is over FIT_WARN_MM."""
-    if not np.isfinite(residual).any() or np.nanmean(residual) <= FIT_WARN_MM:
+def fit_warning(segments: list[str], residual: np.ndarray, fit: float) -> str | None:
+    """A warning naming the segments responsible (by their (F, S) RMS residuals) when the mean marker fit is over
+    FIT_WARN_MM."""
+    if not fit > FIT_WARN_MM:
         return None
     seen = np.isfinite(residual)
     per = np.where(seen.any(0), np.where(seen, residual, 0.0).sum(0) / np.maximum(seen.sum(0), 1), np.nan)
     worst = [f"{segments[s]} ({per[s]:.1f} mm)" for s in np.argsort(-np.nan_to_num(per)) if per[s] > FIT_WARN_MM]
-    return (f"warning: mean marker fit {np.nanmean(residual):.1f} mm is over {FIT_WARN_MM:g} mm; worst fitted: "
+    return (f"warning: mean marker fit {fit:.1f} mm is over {FIT_WARN_MM:g} mm; worst fitted: "
             f"{', '.join(worst)}: calibrate from a trial with this subject's markers, or check their labels\n")

@@ -196,8 +196,9 @@ def build_skeleton(positions: np.ndarray, labels: Sequence[str], rate: float, gr
             tracks[parent, child] = _closest_track(positions[chosen], groups[parent], groups[child])
         fixed |= set(still)
     estimates = {e: est for e, (_, est) in motion.items()}
-    # a hinge needs both segments' own orientations: a segment of two markers is posed through its joints
-    oriented = {e for e in edges if poses[e[0]] is not None and poses[e[1]] is not None and e not in fixed}
+    # a hinge needs both segments' orientations (a segment of two markers is posed through its joints, unless they
+    # all lie on a line)
+    oriented = {e for e in edges if not (shapes[e[0]].in_line or shapes[e[1]].in_line) and e not in fixed}
     located = [e for e in oriented if not estimates[e].is_hinge]  # joints whose data fix a point
     joints = []
     for parent, child in edges:

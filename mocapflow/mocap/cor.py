@@ -23,7 +23,7 @@ from collections.abc import Iterator
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial.transform import Rotation
+from scipy.spatial.transform import Rotation, Slerp
 
 HINGE_RATIO = 0.01
 """Smallest/largest eigenvalue ratio of the Schur block below which a joint is a hinge: its relative rotations spread
@@ -172,25 +172,26 @@ def fit_pose(local: np.ndarray, observed: np.ndarray, pivot_local: np.ndarray | 
 
 def _hold(quats: np.ndarray, determined: np.ndarray, local: np.ndarray, observed: np.ndarray,
           origin_loc: np.ndarray, origin_obs: np.ndarray) -> None:
-    """In place: undetermined frames take the smallest turn of a neighbouring frame's rotation that points their
-    longest visible vector (from the origin) at the data; a forward pass, then a backward one for leading frames."""
+    """In place: undetermined frames take the smallest turn that points their longest visible vector (from the
+    origin) at the data, from the rotation interpolated (slerp) between the nearest determined frames before and
+    after (or the nearest one, at an end)."""
     todo = np.flatnonzero(np.isfinite(quats).all(1) & ~determined)
-    trusted = determined.copy()
-
-    def align(f: int, prior: np.ndarray) -> None:
+    known = np.flatnonzero(determined)
+    if not len(known):
+        return
+    after = np.searchsorted(known, todo)
+    for f, k in zip(todo, after, strict=True):
+        if 0 < k < len(known):
+            a, b = known[k - 1], known[k]
+            pair = Rotation.from_quat(quats[[a, b]])
+            prior = Slerp([a, b], pair)([f])[0]
+        else:
+            prior = Rotation.from_quat(quats[known[min(k, len(known) - 1)]])
         seen = np.isfinite(observed[f]).all(1)
         u, w = local[seen] - origin_loc[f], observed[f, seen] - origin_obs[f]
-        k = int(np.argmax(np.linalg.norm(u, axis=1)))
-        turn, _ = Rotation.align_vectors(w[k][None], Rotation.from_quat(prior).apply(u[k])[None])
-        quats[f] = (turn * Rotation.from_quat(prior)).as_quat()
-        trusted[f] = True
-
-    for f in todo:
-        if f > 0 and trusted[f - 1]:
-            align(f, quats[f - 1])
-    for f in todo[::-1]:
-        if not trusted[f] and f + 1 < len(trusted) and trusted[f + 1]:
-            align(f, quats[f + 1])
+        longest = int(np.argmax(np.linalg.norm(u, axis=1)))
+        turn, _ = Rotation.align_vectors(w[longest][None], prior.apply(u[longest])[None])
+        quats[f] = (turn * prior).as_quat()
 
 
 def _as_matrices(rotation: np.ndarray | Rotation) -> np.ndarray:

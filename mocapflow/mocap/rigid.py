@@ -30,6 +30,7 @@ class SegmentShape:
     pose: PoseFit  # per frame, against marker_offsets (and extra_offsets when the markers alone do not suffice);
     # NaN where the visible points do not fix all three angles
     frames_used: int
+    in_line: bool = False  # the points lie on a line: the turn about it is held from frame to frame, not measured
 
 
 def robust_mean(cloud: np.ndarray) -> np.ndarray:
@@ -98,7 +99,7 @@ def fit_shape(markers: np.ndarray, extras: np.ndarray | None = None, reference: 
     if not line:
         pose.rotations[~pose.determined] = np.nan
         pose.translations[~pose.determined] = np.nan
-    return SegmentShape(shape[:n], shape[n:], pose, int(used.sum()))
+    return SegmentShape(shape[:n], shape[n:], pose, int(used.sum()), line)
 
 
 def _shape_from_distances(points: np.ndarray, seen: np.ndarray, ref: int, fit_count: int) -> np.ndarray:
