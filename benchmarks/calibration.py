@@ -24,7 +24,7 @@ from mocapflow.mocap.simulator import SimulatorConfig, simulate  # noqa: E402
 from mocapflow.mocap.solve import solve  # noqa: E402
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
-METHODS = ("closed-form", "variance")
+METHODS = ("auto", "closed-form", "variance")
 
 
 def timed(fn: Callable, *args: object, **kwargs: object) -> tuple[object, float]:
@@ -58,7 +58,8 @@ def main() -> None:
         rec = simulate(SimulatorConfig(rig=rig, rate=120, noise_mm=0.5, seed=0), args.frames)
         labels = rec.labels[:count] if count else rec.labels
         row(name, rec.positions[:, : len(labels)], labels, rec.rate)
-    for file in ("lowerbody_clusters_knee_0401.c3d", "cmu_85_02.c3d", "cmu_85_12_breakdance.c3d"):
+    for file in ("lowerbody_clusters_knee_0401.c3d", "cmu_85_02.c3d", "cmu_85_12_breakdance.c3d", "hamner_run200.trc",
+                 "sprinter_JA1Gait35.c3d"):
         if (DATA / file).is_file():
             data = read_markers(DATA / file)
             row(file, data.positions, data.labels, data.rate)
