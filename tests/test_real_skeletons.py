@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 
@@ -19,7 +20,8 @@ from real_skeletons import FILES, check, region  # noqa: E402
 
 from mocapflow.io.markers import read_markers  # noqa: E402
 from mocapflow.mocap.calibration import calibrate  # noqa: E402
-from mocapflow.mocap.simulator import SimRecording, SimulatorConfig, simulate  # noqa: E402
+from mocapflow.mocap.rigs import make_rig  # noqa: E402
+from mocapflow.mocap.simulator import SimRecording, SimulatorConfig, forward_kinematics, simulate  # noqa: E402
 from mocapflow.mocap.solve import solve  # noqa: E402
 
 
@@ -115,3 +117,49 @@ def test_simulated_markers_on_joints_two_per_segment_and_occluded() -> None:
     assert max(typical.values()) < 5.0, typical  # hinges placed on their axis, not between the markers
     assert np.nanmean(np.concatenate(list(errors.values()))) < 10.0
     assert pose.marker_fit < 5.0  # 1 mm noise; frames with a whole two-marker segment hidden cost the rest
+
+
+def _squats(frames: int = 1200, rate: float = 120.0, seed: int = 5) -> tuple[np.ndarray, list[str], list[str]]:
+    """The simulated human squatting: both legs bend together (hips, knees and ankles in step, with a few degrees of
+    unequal abduction, as people squat), the trunk leans with them, the arms are held still against the trunk;
+    1 mm noise. Returns positions, labels and each marker's segment."""
+    rig = make_rig("human")
+    t = np.arange(frames) / rate
+    depth = np.radians(50.0) * (1 - np.cos(2 * np.pi * t / 3.0)) / 2  # 0 to 50 degrees every 3 s
+    rotvec = np.zeros((frames, len(rig.segments), 3))
+    for side, sign, wobble in (("left", 1.0, 0.7), ("right", -1.0, 0.9)):
+        s = {name: rig.segments.index(f"{side}_{name}") for name in ("thigh", "shank", "foot")}
+        rotvec[:, s["thigh"], 1] = -depth
+        rotvec[:, s["thigh"], 0] = sign * np.radians(2.0) * np.sin(wobble * 2 * np.pi * t)
+        rotvec[:, s["shank"], 1] = 2 * depth
+        rotvec[:, s["foot"], 1] = -depth
+    rotvec[:, rig.segments.index("torso"), 1] = 0.6 * depth
+    root = np.stack([-120 * np.sin(depth), np.zeros(frames), 950 - 430 * (1 - np.cos(depth)) * 2], 1)
+    rot, pos = forward_kinematics(rig, Rotation.from_rotvec(rotvec.reshape(-1, 3)).as_matrix().reshape(
+        frames, -1, 3, 3), root)
+    markers = np.einsum("fnij,nj->fni", rot[:, rig.marker_segment], rig.marker_offsets) + pos[:, rig.marker_segment]
+    markers += np.random.default_rng(seed).normal(0.0, 1.0, markers.shape)
+    return markers, list(rig.marker_labels), [rig.segments[s] for s in rig.marker_segment]
+
+
+def test_symmetric_squats_keep_left_and_right_legs_apart() -> None:
+    """Both legs moving together keep their mutual distances almost as a rigid body would: only the few degrees by
+    which people squat unevenly, far above the noise, tell them apart. Arms held still stay with the trunk, which is
+    what the data say."""
+    positions, labels, segment_of = _squats()
+    skeleton = calibrate(positions, labels, 120.0, show_progress=False)
+    side = {m: "left" if s.startswith("left") else "right" if s.startswith("right") else "" for m, s in
+            zip(labels, segment_of, strict=True)}
+    leg = {m: any(part in s for part in ("thigh", "shank", "foot")) for m, s in zip(labels, segment_of, strict=True)}
+    for s in skeleton.segments:
+        sides = {side[m] for m in s.markers if leg[m]}
+        assert len(sides) <= 1, s.markers  # no segment holds both legs
+        assert all(leg[m] for m in s.markers) or not any(leg[m] for m in s.markers), s.markers  # nor leg and trunk
+    for word in ("left", "right"):
+        legs = {segment_of[labels.index(m)] for s in skeleton.segments for m in s.markers
+                if leg[m] and side[m] == word and all(leg[x] for x in s.markers)}
+        truth = {f"{word}_thigh", f"{word}_shank", f"{word}_foot"}
+        assert legs == truth
+        found = {frozenset(segment_of[labels.index(m)] for m in s.markers) for s in skeleton.segments}
+        assert {frozenset({t}) for t in truth} <= found  # thigh, shank and foot exactly
+    assert solve(skeleton, positions, labels).marker_fit < 3.0
