@@ -229,6 +229,16 @@ def test_real_lower_body_gives_the_expert_segments_and_tree(data_dir: Path) -> N
             assert np.nanmean(np.linalg.norm(pose.joint_centres[:, j] - (a + b) / 2, axis=1)) < 32.0
 
 
+def test_an_unlabelled_recording_is_an_error_saying_to_label_it_first() -> None:
+    rec = simulate(SimulatorConfig(rig="human", rate=120, seed=2, unlabelled=True), 600)
+    width = max(len(p) for p in rec.points)
+    points = np.full((len(rec.points), width, 3), np.nan)
+    for f, p in enumerate(rec.points):
+        points[f, : len(p)] = p
+    with pytest.raises(CalibrationError, match="looks unlabelled.*mocapflow label"):
+        calibrate(points, [f"point{i}" for i in range(width)], rec.rate, show_progress=False)
+
+
 def test_too_few_frames_is_an_error() -> None:
     rec = _recording("rods")
     with pytest.raises(CalibrationError, match="frames"):

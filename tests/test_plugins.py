@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from mocapflow.io.skeleton import read_skeleton, write_skeleton
 from mocapflow.messages import MarkerFrame, Segments, Skeleton
@@ -72,3 +73,11 @@ def test_joint_estimator_keeps_its_frames_when_new_markers_are_confirmed() -> No
     assert rec.labels[late] not in {m for seg in sent[0].skeleton.segments for m in seg.markers}
     assert rec.labels[late] in {m for seg in sent[-1].skeleton.segments for m in seg.markers}
     assert len(sent[-1].skeleton.joints) == len(rig.segments) - 1
+
+
+def test_an_unknown_plugin_is_one_line(capsys: pytest.CaptureFixture) -> None:
+    from mocapflow.cli import main
+
+    assert main(["plugins", "nosuch"]) == 2
+    err = capsys.readouterr().err
+    assert "unknown plugin 'nosuch'" in err and "Traceback" not in err and len(err.strip().splitlines()) == 1

@@ -35,7 +35,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from mocapflow.errors import CalibrationError
-from mocapflow.mocap.clustering import PARTITIONERS, distance_spread, segment_names
+from mocapflow.mocap.clustering import PARTITIONERS, distance_spread, noise_floor, segment_names
 from mocapflow.mocap.cor import CoREstimate, PoseFit, SequentialCoR, joint_track
 from mocapflow.mocap.joints import (
     ALPHA,
@@ -55,6 +55,9 @@ MIN_FRAMES = 50
 """Fewest frames a calibration accepts."""
 MIN_VISIBLE = 0.1
 """A marker seen in a smaller fraction of the frames is left out of the model."""
+UNLABELLED_MM = 30.0
+"""A recording whose markers' spread to their most rigid partner is typically larger than this (far beyond any skin
+artefact) holds no rigid segment: its labels do not follow the markers."""
 MIN_ROTATION_DEG = 2.0
 """Least RMS rotation between two joined segments for their joint to be located."""
 CANDIDATES = 3
@@ -88,6 +91,10 @@ def calibrate(positions: np.ndarray, labels: Sequence[str], rate: float, segment
     spread = distance_spread(positions[:, usable])
     if method not in PARTITIONERS:
         raise ValueError(f"unknown clustering method {method!r}; choose one of {', '.join(PARTITIONERS)}")
+    if noise_floor(spread) > UNLABELLED_MM:
+        raise CalibrationError(f"the markers keep their distances to no other marker (typical spread "
+                               f"{noise_floor(spread):.0f} mm): the file looks unlabelled, its points changing "
+                               "identity from frame to frame; label it first (mocapflow label)")
     groups = PARTITIONERS[method](spread, segments, **cluster_options)
     groups = [[int(usable[i]) for i in group] for group in groups]
     return build_skeleton(positions, labels, rate, groups, joint_method, hinge_placement=hinge_placement, name=name,

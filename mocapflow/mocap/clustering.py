@@ -78,10 +78,12 @@ class PairStatistics:
         return out
 
 
-def distance_spread(positions: np.ndarray, min_frames: int = MIN_PAIR_FRAMES, chunk: int = 512) -> np.ndarray:
-    """(N, N) standard deviation over time of every pairwise marker distance of (F, N, 3) trajectories (mm)."""
+def distance_spread(positions: np.ndarray, min_frames: int = MIN_PAIR_FRAMES, values: int = 4_000_000) -> np.ndarray:
+    """(N, N) standard deviation over time of every pairwise marker distance of (F, N, 3) trajectories (mm), in
+    chunks of frames holding about ``values`` distances each, so memory stays bounded however many markers."""
     positions = np.asarray(positions, dtype=np.float64)
     stats = PairStatistics(positions.shape[1])
+    chunk = max(1, values // max(len(stats.rows), 1))
     for start in range(0, positions.shape[0], chunk):
         stats.add(stats.distances(positions[start:start + chunk]))
     return stats.spread(min_frames)

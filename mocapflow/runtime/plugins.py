@@ -7,13 +7,14 @@ import importlib
 from functools import cache
 from importlib.metadata import entry_points
 
+from mocapflow.errors import MocapflowError
 from mocapflow.runtime.node import Node
 
 ENTRY_POINT_GROUP = "mocapflow.plugins"
 
 
-class PluginNotFound(LookupError):
-    pass
+class PluginNotFound(MocapflowError, LookupError):
+    """No installed plugin has that name, or its class cannot be loaded."""
 
 
 @cache
