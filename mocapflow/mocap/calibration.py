@@ -55,6 +55,8 @@ MIN_FRAMES = 50
 """Fewest frames a calibration accepts."""
 MIN_VISIBLE = 0.1
 """A marker seen in a smaller fraction of the frames is left out of the model."""
+MIN_TOGETHER = 10
+"""Fewest frames in which two segments must both be posed for a centre of rotation between them."""
 UNLABELLED_MM = 30.0
 """A recording whose markers' spread to their most rigid partner is typically larger than this (far beyond any skin
 artefact) holds no rigid segment: its labels do not follow the markers."""
@@ -300,14 +302,22 @@ def _in_frame(pose: PoseFit, points: np.ndarray) -> np.ndarray:
     return np.einsum("fba,fkb->fka", pose.matrices(), points - pose.translations[:, None])
 
 
-def _sphere_track(pose: PoseFit, own: np.ndarray, other: np.ndarray) -> np.ndarray:
+def _sphere_track(pose: PoseFit, own: np.ndarray, other: np.ndarray) -> np.ndarray | None:
     """Joint centre per frame from a posed segment (its markers ``own``) and the markers ``other`` of a segment
     whose orientation is unknown: the centre of the spheres ``other`` runs on in the posed segment's frame, held
-    along a free axis near the point between the two segments' closest markers."""
+    along a free axis near the point between the two segments' closest markers. None when no frame shows both."""
     other_local, own_local = _in_frame(pose, other), _in_frame(pose, own)
-    mean_other, mean_own = np.nanmean(other_local, 0), np.nanmean(own_local, 0)
+    seen_other, seen_own = np.isfinite(other_local).all(-1), np.isfinite(own_local).all(-1)
+    if seen_other.sum() < MIN_TOGETHER or not seen_own.any():
+        return None
+    mean_other = np.where(seen_other, 1, 0)[..., None] * np.nan_to_num(other_local)
+    mean_other = mean_other.sum(0) / np.maximum(seen_other.sum(0), 1)[:, None]
+    mean_own = (np.where(seen_own, 1, 0)[..., None] * np.nan_to_num(own_local)).sum(0)
+    mean_own = mean_own / np.maximum(seen_own.sum(0), 1)[:, None]
     gap = np.linalg.norm(mean_other[:, None] - mean_own[None], axis=-1)
-    i, j = np.unravel_index(np.nanargmin(gap), gap.shape)
+    gap[~seen_other.any(0)] = np.inf
+    gap[:, ~seen_own.any(0)] = np.inf
+    i, j = np.unravel_index(np.argmin(gap), gap.shape)
     centre = sphere_centre(other_local, (mean_other[i] + mean_own[j]) / 2)
     return np.einsum("fab,b->fa", pose.matrices(), centre) + pose.translations
 
@@ -324,13 +334,21 @@ def _sequential_tracks(positions: np.ndarray, groups: Sequence[Sequence[int]], p
     for parent, child in progress(edges, len(edges), "joints", enabled=show_progress):
         pp, pc = posed[parent], posed[child]
         mp, mc = positions[:, list(groups[parent])], positions[:, list(groups[child])]
-        if pp is not None and pc is not None:
+        together = pp is not None and pc is not None and int(
+            (np.isfinite(pp.rotations).all(1) & np.isfinite(pc.rotations).all(1)).sum()) >= MIN_TOGETHER
+        if together:
             est = _closed_form(pp, pc)
             track = joint_track(pp.matrices(), pp.translations, pc.matrices(), pc.translations, est.parent_offset,
                                 est.child_offset)
-        elif pp is not None or pc is not None:
-            track = _sphere_track(pp, mp, mc) if pp is not None else _sphere_track(pc, mc, mp)
-        else:  # neither posed (a chain of two-marker segments under one in a line): Schoenauer's variance cost
+        elif pp is not None or pc is not None:  # the better posed of the two carries the other's spheres
+            if pc is None or (pp is not None and np.isfinite(pp.rotations).all(1).sum() >=
+                              np.isfinite(pc.rotations).all(1).sum()):
+                track = _sphere_track(pp, mp, mc)
+            else:
+                track = _sphere_track(pc, mc, mp)
+        else:  # neither posed (a chain of two-marker segments under one in a line)
+            track = None
+        if track is None:  # nothing poses either side: Schoenauer's variance cost
             both = np.concatenate([mp, mc], axis=1)
             track = fit_joint_variance(both, marker_centroid(both), max_iterations=30).centres
         tracks[parent, child] = track
@@ -383,7 +401,8 @@ def _pair_costs(positions: np.ndarray, groups: Sequence[Sequence[int]], poses: S
     all_pairs = [(a, b) for a in range(n) for b in range(a + 1, n)]
     for a, b in progress(all_pairs, len(all_pairs), "joint costs", enabled=show_progress):
         if joint_method == "closed-form":
-            cost = _closed_form(poses[a], poses[b]).residual
+            both = np.isfinite(poses[a].rotations).all(1) & np.isfinite(poses[b].rotations).all(1)
+            cost = _closed_form(poses[a], poses[b]).residual if both.sum() >= MIN_TOGETHER else np.inf
         else:
             starts[a, b] = _start_track(positions, groups, poses, a, b, frames)
             both = poses[a] is not None and poses[b] is not None
