@@ -39,7 +39,7 @@ def test_distance_spread_matches_the_direct_standard_deviation_with_gaps() -> No
     positions[rng.random((700, 5)) < 0.2] = np.nan
     d = np.linalg.norm(positions[:, :, None] - positions[:, None], axis=-1)
     expected = np.nanstd(d, axis=0)
-    got = distance_spread(positions, chunk=128)  # several chunks: the running sums must add up
+    got = distance_spread(positions, values=128 * 6)  # chunks of a few frames: the running sums must add up
     assert np.allclose(got, expected, atol=1e-9)
 
 

@@ -32,6 +32,7 @@ from collections.abc import Sequence
 from typing import Literal
 
 import numpy as np
+from scipy.sparse.csgraph import connected_components
 from scipy.spatial.transform import Rotation
 
 from mocapflow.errors import CalibrationError
@@ -55,6 +56,9 @@ MIN_FRAMES = 50
 """Fewest frames a calibration accepts."""
 MIN_VISIBLE = 0.1
 """A marker seen in a smaller fraction of the frames is left out of the model."""
+PAIR_S = 0.5
+"""Least time two markers must be seen together for their distance spread to say whether they are rigid: over a
+shorter stretch any two markers look rigid."""
 MIN_TOGETHER = 10
 """Fewest frames in which two segments must both be posed for a centre of rotation between them."""
 UNLABELLED_MM = 30.0
@@ -67,6 +71,11 @@ CANDIDATES = 3
 at the start); other pairs keep their cost at the start, an upper bound, which is far above any real joint's."""
 
 JointMethod = Literal["auto", "variance", "closed-form"]
+
+
+def pair_frames(rate: float) -> int:
+    """Frames two markers must share for their distance spread to count (``PAIR_S`` seconds, at least 10)."""
+    return max(10, round(PAIR_S * rate))
 
 
 def sample_frames(frames: int, rate: float, every_s: float = 0.5, jitter_s: float = 1 / 30, at_least: int = 40,
@@ -90,7 +99,7 @@ def calibrate(positions: np.ndarray, labels: Sequence[str], rate: float, segment
     ``cluster_options`` go to it (``neighbour``, ``threshold_mm``...); ``joint_method`` picks the joint estimator.
     """
     positions, usable = _clean(positions, labels)
-    spread = distance_spread(positions[:, usable])
+    spread = distance_spread(positions[:, usable], pair_frames(rate))
     if method not in PARTITIONERS:
         raise ValueError(f"unknown clustering method {method!r}; choose one of {', '.join(PARTITIONERS)}")
     if noise_floor(spread) > UNLABELLED_MM:
@@ -154,16 +163,22 @@ def build_skeleton(positions: np.ndarray, labels: Sequence[str], rate: float, gr
         # found down the tree from the segments whose markers fix their orientation
         log.info("segments %s have fewer than 3 markers: the tree joins the segments whose closest markers keep "
                  "their distance best; joints found down the tree", ", ".join(flat))
-        costs = closest_spreads(distance_spread(positions), groups)
+        costs = closest_spreads(distance_spread(positions, pair_frames(rate)), groups)
     else:
         if joint_method == "auto" and flat:
             log.info("no segment has 3 markers: joints by the distance-variance cost")
         joint_method = ("variance" if flat else "closed-form") if joint_method == "auto" else joint_method
         costs = _pair_costs(positions, groups, poses, sample_frames(frames, rate), joint_method, show_progress)
-    try:
-        root, edges = spanning_tree(costs)
-    except ValueError as exc:
-        raise CalibrationError(f"no tree of joints joins the segments: {exc}") from None
+    parts, part = connected_components(np.isfinite(costs) & ~np.eye(len(groups), dtype=bool), directed=False)
+    if parts > 1:  # segments never seen with the others: keep the body that holds the most markers
+        body = max(range(parts), key=lambda c: sum(len(g) for g, p in zip(groups, part, strict=True) if p == c))
+        for g, p in zip(groups, part, strict=True):
+            if p != body:
+                log.warning("left out %s: never seen long enough together with the rest of the body to join it",
+                            ", ".join(labels[m] for m in g))
+        return build_skeleton(positions, labels, rate, [g for g, p in zip(groups, part, strict=True) if p == body],
+                              requested, hinge_placement=hinge_placement, name=name, show_progress=show_progress)
+    root, edges = spanning_tree(costs)
 
     fixed: set[tuple[int, int]] = set()  # joints too still to locate, placed between the closest markers
     chosen = np.union1d(sample_frames(frames, rate, every_s=0.05, at_least=200, at_most=600, seed=1), [reference])
@@ -229,7 +244,7 @@ def build_skeleton(positions: np.ndarray, labels: Sequence[str], rate: float, gr
             kind="hinge" if hinge else "ball", parent_offset=_vec(p_off), child_offset=_vec(c_off),
             axis=_vec(est.axis) if hinge else None, cost=float(costs[parent, child]), distance_mean=mean,
             distance_sd=sd, rotation_deg=float(motion[parent, child][0])))
-    spread = distance_spread(positions)
+    spread = distance_spread(positions, pair_frames(rate))
     segments_out = [Segment(name=names[s], markers=[labels[m] for m in g],
                             marker_offsets=[_vec(o) for o in shapes[s].marker_offsets],
                             rigidity_mm=float(np.nanmean(spread[np.ix_(g, g)][np.triu_indices(len(g), 1)])))
