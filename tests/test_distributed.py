@@ -95,7 +95,7 @@ class Lab:
 
     def start_router(self) -> None:
         self.router = cli(["router", "--listen", self.endpoint], self.tmp / "router.log", self.tmp)
-        wait_for("the router", lambda: "listening" in (self.tmp / "router.log").read_text())
+        wait_for("the router", lambda: "listening" in (self.tmp / "router.log").read_text(), timeout=60.0)
 
     def start_agent(self, name: str) -> None:
         log = self.tmp / f"agent-{name}.log"
@@ -197,6 +197,8 @@ def test_node_crash_router_restart_and_agent_loss(lab: Lab) -> None:
         again = wait_for("a new hub", lambda: (w := worker("hub", prefix)) and w[0] != first[0] and w)
         assert again[1] == lab.agents["workstation"].pid
         wait_for("frames after the node restart", lambda: watch.flowing_since(t))
+        restart = "[hub@workstation] stopped (exit code -9); restart 1"
+        wait_for("the agent's log of the restart at the launcher", lambda: restart in lab.log())
 
         # The router restarts: every session rejoins it and the stream resumes.
         stop(lab.router, signal.SIGKILL)
@@ -217,7 +219,7 @@ def test_node_crash_router_restart_and_agent_loss(lab: Lab) -> None:
         code = launcher.wait(timeout=60)
     out = lab.log()
     assert code == 0, out
-    assert "[hub@workstation] stopped (exit code -9); restart 1" in out  # the agent's log reached the launcher
+    assert restart in out  # the agent's log reached the launcher, and stays in its output
     assert "stopped (SIGINT)" in out
     hub_row = next(line for line in out.splitlines()[::-1] if line.startswith("hub "))
     assert hub_row.split()[-1] == "2"  # restarted once by its agent, deployed again once on the new agent

@@ -182,10 +182,11 @@ def build_skeleton(positions: np.ndarray, labels: Sequence[str], rate: float, gr
 
     fixed: set[tuple[int, int]] = set()  # joints too still to locate, placed between the closest markers
     chosen = np.union1d(sample_frames(frames, rate, every_s=0.05, at_least=200, at_most=600, seed=1), [reference])
+    ref = int(np.searchsorted(chosen, reference))
     if sequential:
         root, edges = _root_oriented(root, edges, poses)
-        tracks = _sequential_tracks(positions[chosen], groups, [p and p.subset(chosen) for p in poses], edges,
-                                    int(np.searchsorted(chosen, reference)), show_progress)
+        tracks = _sequential_tracks(positions[chosen], groups, [p and p.subset(chosen) for p in poses], edges, ref,
+                                    show_progress)
     else:
         tracks = {}
         for parent, child in progress(edges, len(edges), "joints", enabled=show_progress):
@@ -195,7 +196,6 @@ def build_skeleton(positions: np.ndarray, labels: Sequence[str], rate: float, gr
                 start = fit_joint_variance(markers, start, max_iterations=30).centres
             tracks[parent, child] = start
 
-    ref = int(np.searchsorted(chosen, reference))
     for attempt in range(2):
         shapes, offsets = [], {}
         for s, group in enumerate(groups):
