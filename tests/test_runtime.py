@@ -158,6 +158,21 @@ def test_node_failing_for_good_makes_the_run_fail(tmp_path: Path, free_endpoint:
     assert not workers_of(prefix)
 
 
+def test_a_port_in_use_is_one_line_naming_it(tmp_path: Path, free_endpoint: str) -> None:
+    import socket
+
+    host, port = free_endpoint.removeprefix("tcp/").rsplit(":", 1)
+    with socket.socket() as taken:
+        taken.bind((host, int(port)))
+        taken.listen()
+        path, prefix = graph(tmp_path, free_endpoint, name="busy")
+        run = start(["run", str(path), "--duration", "5"], tmp_path)
+        out, _ = run.communicate(timeout=60)
+    assert run.returncode == 2, out
+    assert f"{free_endpoint}: address already in use" in out and "--listen" in out and "Traceback" not in out
+    assert not workers_of(prefix)
+
+
 def test_introspection_commands_see_a_live_run(tmp_path: Path, free_endpoint: str) -> None:
     path, prefix = graph(tmp_path, free_endpoint, name="rn")
     run = start(["run", str(path), "--duration", "12"], tmp_path)

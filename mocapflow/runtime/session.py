@@ -14,6 +14,7 @@ from typing import Literal
 
 import zenoh
 
+from mocapflow.errors import MocapflowError
 from mocapflow.runtime.security import SecuritySettings, load_security, security_path
 
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
@@ -57,10 +58,17 @@ def open_client(connect: Sequence[str], security: str | Path | None = None) -> z
 
 
 def open_router(listen: Sequence[str], security: str | Path | None = None) -> zenoh.Session:
-    """A Zenoh router listening on ``listen``: the lab's router, or the launcher's embedded one."""
+    """A Zenoh router listening on ``listen``: the lab's router, or the launcher's embedded one. An endpoint that is
+    taken (another run or router on the same port) is a one-line error saying how to choose another."""
     chosen = settings(security)
-    if chosen is None:
-        return zenoh.open(zenoh_config("router", listen=listen or [DEFAULT_ENDPOINT]))
-    with chosen.users_dictionary() as users_file:
-        return zenoh.open(zenoh_config("router", listen=listen or [DEFAULT_ENDPOINT], security=chosen,
-                                       users_file=users_file))
+    endpoints = list(listen) or [DEFAULT_ENDPOINT]
+    try:
+        if chosen is None:
+            return zenoh.open(zenoh_config("router", listen=endpoints))
+        with chosen.users_dictionary() as users_file:
+            return zenoh.open(zenoh_config("router", listen=endpoints, security=chosen, users_file=users_file))
+    except zenoh.ZError as exc:
+        if "already in use" not in str(exc):
+            raise
+        raise MocapflowError(f"{', '.join(endpoints)}: address already in use (another mocapflow run or router?); "
+                             "listen elsewhere with --listen tcp/127.0.0.1:PORT") from None
