@@ -22,7 +22,7 @@ import numpy as np  # noqa: E402
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import fill_accuracy as fa  # noqa: E402
 
-from mocapflow.mocap.filler import FillerConfig  # noqa: E402
+from mocapflow.mocap.filling import FillerConfig  # noqa: E402
 
 OUT = Path(__file__).resolve().parents[1] / "docs" / "img"
 FILE = "lowerbody_clusters_knee_0401.c3d"

@@ -20,7 +20,7 @@ import numpy as np  # noqa: E402
 
 from mocapflow.io.markers import read_markers  # noqa: E402
 from mocapflow.mocap.calibration import calibrate  # noqa: E402
-from mocapflow.mocap.filler import FillerConfig, GapFiller  # noqa: E402
+from mocapflow.mocap.filling import FillerConfig, GapFiller  # noqa: E402
 from mocapflow.mocap.kalman import ConstantVelocityBank  # noqa: E402
 from mocapflow.mocap.model import SkeletonModel  # noqa: E402
 from mocapflow.mocap.rigs import make_rig  # noqa: E402

@@ -7,7 +7,7 @@ from pydantic import Field
 
 from mocapflow.io.skeleton import read_skeleton
 from mocapflow.messages import MarkerFrame, Skeleton
-from mocapflow.mocap.filler import FillerConfig, GapFiller
+from mocapflow.mocap.filling import FillerConfig, GapFiller
 from mocapflow.mocap.model import SkeletonModel
 from mocapflow.runtime.node import Input, Node, Output, Publish
 

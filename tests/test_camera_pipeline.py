@@ -12,7 +12,7 @@ import yaml
 
 from mocapflow.io.markers import MarkerData, read_markers
 from mocapflow.io.skeleton import write_skeleton
-from mocapflow.mocap.filler import FillCase, FillerConfig, GapFiller
+from mocapflow.mocap.filling import FillCase, FillerConfig, GapFiller
 from mocapflow.mocap.rigs import make_rig
 from mocapflow.mocap.simulator import SimulatorConfig, simulate, truth_skeleton
 

@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from mocapflow.mocap.cor import SequentialCoR, fit_pose, joint_track, quaternion_matrices, rotor
+from mocapflow.mocap.cor import SequentialCoR, joint_track
+from mocapflow.mocap.rigidfit import fit_pose, quaternion_matrices, rotor
 
 
 def _two_segments(frames: int = 600, hinge: bool = False, noise: float = 0.5, seed: int = 0) -> dict:

@@ -53,7 +53,7 @@ def run(args: argparse.Namespace) -> int:
 
     from mocapflow.io.markers import MarkerData, write_markers
     from mocapflow.io.skeleton import read_skeleton
-    from mocapflow.mocap.filler import FillCase, FillerConfig, GapFiller
+    from mocapflow.mocap.filling import FillCase, FillerConfig, GapFiller
     from mocapflow.progress import progress
 
     out = distinct_output(args.output, args.input)

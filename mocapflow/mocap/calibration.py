@@ -37,7 +37,8 @@ from scipy.spatial.transform import Rotation
 
 from mocapflow.errors import CalibrationError
 from mocapflow.mocap.clustering import PARTITIONERS, distance_spread, noise_floor, segment_names
-from mocapflow.mocap.cor import CoREstimate, PoseFit, SequentialCoR, joint_track
+from mocapflow.mocap.cor import CoREstimate, SequentialCoR, joint_track
+from mocapflow.mocap.rigidfit import PoseFit
 from mocapflow.mocap.joints import (
     ALPHA,
     distance_stats,

@@ -41,7 +41,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from scipy.optimize import linear_sum_assignment
 from scipy.spatial.distance import cdist
 
-from mocapflow.mocap.cor import kabsch
+from mocapflow.mocap.rigidfit import kabsch
 
 _STATS_HZ = 60.0  # distance statistics need no more: markers' mutual distances change slowly
 _VETO = 3.0  # a point breaking the distance to a rigid partner by this many tolerances cannot be that marker

@@ -1,6 +1,6 @@
 """Rigid parameters of segments (Schoenauer 2007, 3.8.1): marker and joint offsets averaged over many frames.
 
-Each segment is lined up with its reference-frame shape in every usable frame by Horn's method (``cor.fit_pose``);
+Each segment is lined up with its reference-frame shape in every usable frame by Horn's method (``rigidfit.fit_pose``);
 the markers and joint centres then form a cloud of positions per point in the segment frame. Frames whose fit
 residual is far above the typical one are dropped, and in each cloud the samples farther from the mean than the
 cloud's standard deviation are dropped before averaging again. The averages are the segment's marker offsets and its
@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mocapflow.mocap.cor import PoseFit, fit_pose
+from mocapflow.mocap.rigidfit import PoseFit, fit_pose
 from mocapflow.mocap.model import SkeletonModel
 
 RESIDUAL_MADS = 4.0

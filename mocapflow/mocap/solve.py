@@ -19,7 +19,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from mocapflow.mocap.cor import fit_pose, joint_track, quaternion_matrices
+from mocapflow.mocap.cor import joint_track
+from mocapflow.mocap.rigidfit import fit_pose, quaternion_matrices
 from mocapflow.mocap.model import Segment, SkeletonModel
 from mocapflow.progress import progress
 

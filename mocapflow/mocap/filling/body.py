@@ -1,0 +1,193 @@
+"""A skeleton compiled against the filler's label order (``Body``), with the index work of each visibility pattern
+kept for reuse (``SegmentFit``, ``Layout``), and the joint centres of a frame from its segments' poses."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import NamedTuple, TypeVar
+
+import numpy as np
+
+from mocapflow.mocap.filling.config import CASE_OBSERVED
+from mocapflow.mocap.model import SkeletonModel
+from mocapflow.mocap.rigidfit import RigidFit
+
+_T = TypeVar("_T")
+_PATTERNS_KEPT = 64  # visibility patterns whose index work is kept (``recall``)
+
+
+@dataclass
+class BodyJoint:
+    parent: int
+    child: int
+    parent_offset: np.ndarray  # (3,) in the parent's local frame
+    child_offset: np.ndarray  # (3,) in the child's local frame
+
+
+class Body:
+    """A skeleton compiled against the filler's label order, padded for batched per-segment work.
+
+    The index work that depends only on which markers are visible (segments near the gaps, pose-fit weights,
+    per-segment selections) is kept per visibility pattern (``_recall``): a gap keeps its pattern for many frames.
+    """
+
+    def __init__(self, skeleton: SkeletonModel, labels: list[str]) -> None:
+        index = {label: i for i, label in enumerate(labels)}
+        n = len(labels)
+        self.names: list[str] = []
+        self.members: list[np.ndarray] = []
+        self.offsets: list[np.ndarray] = []
+        for seg in skeleton.segments:
+            keep = [k for k, m in enumerate(seg.markers) if m in index]
+            if len(keep) < 2 or seg.marker_offsets is None:
+                continue  # a lone marker or an unknown shape constrains nothing
+            self.names.append(seg.name)
+            self.members.append(np.array([index[seg.markers[k]] for k in keep]))
+            self.offsets.append(np.array([seg.marker_offsets[k] for k in keep], dtype=float))
+        s = len(self.members)
+        width = max((len(m) for m in self.members), default=0)
+        self.idx = np.full((s, width), n)  # padding points at a NaN row appended to positions
+        self.local = np.zeros((s, width, 3))
+        self.slot = np.zeros((s, width), dtype=bool)
+        self.marker_seg = np.full(n, -1)
+        self.marker_local = np.zeros((n, 3))  # per marker: its offset in its segment
+        for k, (members, offsets) in enumerate(zip(self.members, self.offsets, strict=True)):
+            self.idx[k, : len(members)] = members
+            self.local[k, : len(members)] = offsets
+            self.slot[k, : len(members)] = True
+            self.marker_seg[members] = k
+            self.marker_local[members] = offsets
+        seg_index = {name: k for k, name in enumerate(self.names)}
+        self.joint_names: list[str] = []
+        self.joints: list[BodyJoint | None] = []  # None: a joint of the skeleton this body cannot use
+        self.neighbours: list[list[tuple[int, int]]] = [[] for _ in range(s)]  # (joint, other segment)
+        for j in skeleton.joints:
+            self.joint_names.append(j.name)
+            p, c = seg_index.get(j.parent), seg_index.get(j.child)
+            if p is None or c is None or j.parent_offset is None or j.child_offset is None:
+                self.joints.append(None)
+                continue
+            self.joints.append(BodyJoint(p, c, np.array(j.parent_offset, float), np.array(j.child_offset, float)))
+            self.neighbours[p].append((len(self.joints) - 1, c))
+            self.neighbours[c].append((len(self.joints) - 1, p))
+        kinds = [j.kind for j in skeleton.joints]
+        for k, links in enumerate(self.neighbours):  # the steadiest reference first: a hinge, then the parent
+            links.sort(key=lambda link: (kinds[link[0]] != "hinge", self.joints[link[0]].child != k))
+        # per segment: (joint, neighbour, centre in this segment's frame, centre in the neighbour's frame)
+        self.links = [[(j, other, self.joint_offset(j, k), self.joint_offset(j, other)) for j, other in links]
+                      for k, links in enumerate(self.neighbours)]
+        self.in_segment = self.marker_seg >= 0
+        self.near = np.zeros((n, s), dtype=bool)  # per marker: its segment and that segment's neighbours
+        for m, k in enumerate(self.marker_seg):
+            if k >= 0:
+                self.near[m, [k, *(other for _, other in self.neighbours[k])]] = True
+        usable = [j for j in self.joints if j is not None]
+        self.joint_usable = np.array([j is not None for j in self.joints], dtype=bool)
+        self.joint_segments = np.array([[j.parent, j.child] for j in usable], dtype=int).reshape(-1, 2)
+        self.joint_offsets = np.array([[j.parent_offset, j.child_offset] for j in usable]).reshape(-1, 2, 3)
+        self._around: dict[bytes, np.ndarray] = {}  # by visibility pattern
+        self._fits: dict[bytes, SegmentFit] = {}
+        self._layouts: dict[bytes, Layout] = {}
+
+    def joint_offset(self, joint: int, segment: int) -> np.ndarray:
+        """The centre of ``joint`` in ``segment``'s local frame."""
+        jt = self.joints[joint]
+        assert jt is not None
+        return jt.parent_offset if jt.parent == segment else jt.child_offset
+
+    def fit_for(self, use: np.ndarray, segments: np.ndarray) -> SegmentFit:
+        """The ``SegmentFit`` of ``segments`` to the markers selected by ``use`` (N,) bool."""
+        return recall(self._fits, use.tobytes() + segments.tobytes(), lambda: SegmentFit(self, use, segments))
+
+    def layout(self, visible: np.ndarray, targets: np.ndarray, near: np.ndarray) -> Layout:
+        """The ``Layout`` of a visibility pattern."""
+        return recall(self._layouts, visible.tobytes() + targets.tobytes() + near.tobytes(),
+                       lambda: Layout(self, visible, targets, near))
+
+    def around(self, markers: np.ndarray) -> np.ndarray:
+        """Indices of the segments holding any of ``markers`` (N,) bool, and of their neighbours."""
+        return recall(self._around, markers.tobytes(), lambda: np.flatnonzero(self.near[markers].any(axis=0)))
+
+
+def recall(cache: dict[bytes, _T], key: bytes, make: Callable[[], _T]) -> _T:
+    """``cache[key]``, made by ``make`` when missing. The keys are visibility patterns (the bytes of boolean masks);
+    patterns that do not repeat (scattered dropouts) are dropped by emptying the cache when it is full."""
+    value = cache.get(key)
+    if value is None:
+        if len(cache) >= _PATTERNS_KEPT:
+            cache.clear()
+        value = cache[key] = make()
+    return value
+
+
+class SegmentFit:
+    """The pose fit of some segments to the markers of one visibility pattern: what depends on the pattern alone is
+    worked out once (``cor.RigidFit``). ``complete``: the segments with all their markers in the pattern."""
+
+    def __init__(self, body: Body, use: np.ndarray, segments: np.ndarray) -> None:
+        idx = body.idx[segments]
+        used = np.append(use, False)[idx]
+        self.rows = np.minimum(idx, len(use) - 1)  # (B, M) marker rows, padding on any real row (unused)
+        self.used = used[..., None]
+        self.rigid = RigidFit(body.local[segments], used.astype(float))
+        self.complete = (used | ~body.slot[segments]).all(axis=1)
+
+    def __call__(self, positions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """R (B, 3, 3), t (B, 3) and ``ok`` (B,) of the segments fitted to ``positions`` (N, 3); ``ok`` is False where
+        the pattern's markers do not fix the pose."""
+        return self.rigid(np.where(self.used, positions[self.rows], 0.0))
+
+
+class SegmentPart(NamedTuple):
+    """A segment holding a target, in one visibility pattern: its visible markers (rows, offsets, anchor names) and
+    its targets (rows, and which of its markers they are)."""
+
+    seen_rows: np.ndarray
+    seen_offsets: np.ndarray
+    seen_names: list[tuple[str, int]]
+    miss: np.ndarray
+    hit: np.ndarray
+
+
+class Layout:
+    """The index work of ``GapFiller._constrain`` for one visibility pattern (``visible`` markers, ``targets`` to
+    estimate, segments ``near`` them).
+
+    ``seg_vis``: visible markers per segment; ``target_rows``, ``target_seg``, ``target_local``: each target's row,
+    segment and offset in it; ``segments``: the segments holding a target; ``fit``: the pose fit of the ``near``
+    segments; ``parts``: per segment holding a target, its ``SegmentPart``.
+    """
+
+    def __init__(self, body: Body, visible: np.ndarray, targets: np.ndarray, near: np.ndarray) -> None:
+        self.seg_vis = np.bincount(body.marker_seg[visible & body.in_segment], minlength=len(body.members))
+        self.target_rows = np.flatnonzero(targets & body.in_segment)
+        self.target_seg = body.marker_seg[self.target_rows]
+        self.target_local = body.marker_local[self.target_rows]
+        self.segments = np.unique(self.target_seg)
+        self.fit = body.fit_for(visible, near)
+        self.parts: dict[int, SegmentPart] = {}
+        for k in self.segments.tolist():
+            members = body.members[k]
+            vis, hit = visible[members], targets[members]
+            self.parts[k] = SegmentPart(members[vis], body.offsets[k][vis],
+                                        [("marker", x) for x in members[vis].tolist()],
+                             members[hit], hit)
+
+
+def joint_centres(body: Body, poses: tuple[np.ndarray, np.ndarray, np.ndarray], flags: np.ndarray) -> np.ndarray:
+    """Each joint's centre from the poses (R, t, known) of its two segments; from the side whose markers are all
+    observed when only one side is (tables 6.1, 6.2: a centre from a segment with estimated markers is worse), the
+    mean of both otherwise (eq. 4.29); NaN rows for joints the body cannot use."""
+    out = np.full((len(body.joints), 3), np.nan)
+    if not len(body.joint_segments):
+        return out
+    r, t, known = poses
+    seg = body.joint_segments  # (J, 2)
+    ends = (r[seg] @ body.joint_offsets[..., None])[..., 0] + t[seg]  # (J, 2, 3)
+    full = (np.append(flags == CASE_OBSERVED, False)[body.idx] | ~body.slot).all(axis=1)[seg]
+    weight = known[seg] * np.where(full.any(axis=1, keepdims=True), full, True)
+    total = weight.sum(axis=1)
+    centre = np.einsum("jk,jki->ji", weight, ends) / np.maximum(total, 1)[:, None]
+    out[body.joint_usable] = np.where(total[:, None] > 0, centre, np.nan)
+    return out

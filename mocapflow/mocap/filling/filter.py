@@ -1,0 +1,435 @@
+"""The streaming occlusion filler: a Kalman filter per marker fed by the rigid-body constraint cases (Aristidou 2008,
+ch. 5; the package's docstring lists the cases and the changes to the thesis)."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import NamedTuple
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from mocapflow.mocap.filling.body import Body, joint_centres
+from mocapflow.mocap.filling.config import (
+    CASE_KALMAN,
+    CASE_MISSING,
+    CASE_OBSERVED,
+    CASE_ONE_MISSING,
+    FillCase,
+    FillerConfig,
+    FillResult,
+)
+from mocapflow.mocap.filling.geometry import nearest_on_circle, project_on_rays, swing, unit
+from mocapflow.mocap.filling.learner import SkeletonLearner, is_complete
+from mocapflow.mocap.kalman import ConstantVelocityBank
+from mocapflow.mocap.model import SkeletonModel
+from mocapflow.mocap.rigidfit import fit_one
+
+
+class Hold(NamedTuple):
+    """The rotation of a segment placed through two anchors, held since its gap began: the anchors it was taken
+    for (``key``: reference segment and the two anchor names), the anchor line's direction and the rotation, both in
+    the reference's frame."""
+
+    key: tuple[int, tuple[str, int], tuple[str, int]]
+    axis: np.ndarray
+    rotation: np.ndarray
+
+
+class GapFiller:
+    """Streaming occlusion filler: one ``update`` per frame returns the frame with its gaps filled.
+
+    Markers are given in a fixed label order. With a skeleton (segments with marker offsets, joints with offsets)
+    every constraint case is available at once; without one, segments, their shapes and their joints are learned from
+    the frames seen so far (``FillerConfig.learn``).
+    """
+
+    def __init__(
+        self, labels: list[str], rate: float, config: FillerConfig | None = None, skeleton: SkeletonModel | None = None
+    ) -> None:
+        if rate <= 0:
+            raise ValueError(f"rate must be positive, got {rate}")
+        self.labels = list(labels)
+        self.rate = float(rate)
+        self.config = config or FillerConfig()
+        n = len(self.labels)
+        cfg = self.config
+        dt = 1.0 / self.rate
+        self.kf = ConstantVelocityBank(n, dt, cfg.accel_sd, cfg.initial_speed_sd)
+        self._coast_gain = np.exp(-dt / cfg.coast_decay_s) if cfg.coast_decay_s else 1.0
+        self._max_coast = round(cfg.extrapolate_max_s * self.rate) if cfg.extrapolate_max_s else None
+        self._variance = np.array([1.0, cfg.observed_sd, 1.0, cfg.rigid_sd, cfg.offset_sd, cfg.joint_sd,
+                                   cfg.rotor_sd, cfg.ray_sd]) ** 2  # per FillCase; unused where nothing is measured
+        self._unmeasured = np.zeros(n, dtype=np.int64)  # frames since a marker was last seen or anchored
+        self._extrapolated = np.zeros(n, dtype=bool)  # this frame: predicted from its past alone (a constant rotor
+        # with no anchor, or its filter along its ray)
+        self._last = np.full((2, n, 3), np.nan)  # the last two filled frames, newest first
+        self.body: Body | None = None
+        self._model: SkeletonModel | None = None
+        self._pose_r = np.zeros((2, 0, 3, 3))
+        self._pose_t = np.zeros((2, 0, 3))
+        self._pose_ok = np.zeros((2, 0), dtype=bool)
+        self._pose_fresh = np.zeros((2, 0), dtype=bool)  # per segment: pose this frame / last frame known
+        self._learner: SkeletonLearner | None = None
+        self._pending: SkeletonModel | None = None  # learned, taken up at the next frame
+        self._holds: dict[int, Hold] = {}
+        self._held: set[int] = set()  # segments whose hold was used this frame
+        if skeleton is not None:
+            self.set_skeleton(skeleton)
+        elif cfg.learn:
+            self._learner = SkeletonLearner(self.labels, self.rate, cfg, None)
+
+    # -- model -------------------------------------------------------------------------------------------------
+    def set_skeleton(self, skeleton: SkeletonModel) -> None:
+        """Adopt a new body model mid-stream. What it leaves open (segments without marker offsets, joints without
+        offsets) is learned from then on when ``config.learn``; poses restart from the last two filled frames."""
+        complete = is_complete(skeleton)
+        self._learner = None if complete or not self.config.learn else SkeletonLearner(
+            self.labels, self.rate, self.config, skeleton)
+        self._pending = None
+        self._adopt(skeleton)
+
+    @property
+    def skeleton(self) -> SkeletonModel | None:
+        """The body model in use (given, or learned so far)."""
+        return self._model
+
+    @property
+    def joint_names(self) -> list[str]:
+        """Names of the rows of ``FillResult.joint_centres``, which change as joints are learned."""
+        return list(self.body.joint_names) if self.body is not None else []
+
+    def _adopt(self, skeleton: SkeletonModel) -> None:
+        self._model = skeleton
+        self._holds = {}
+        self.body = Body(skeleton, self.labels)
+        s = len(self.body.members)
+        self._pose_r = np.zeros((2, s, 3, 3))
+        self._pose_t = np.zeros((2, s, 3))
+        self._pose_ok = np.zeros((2, s), dtype=bool)
+        self._pose_fresh = np.zeros((2, s), dtype=bool)  # fitted from the last two filled frames when next needed
+
+    @staticmethod
+    def _fitted_poses_for(body: Body, filled: np.ndarray, segments: np.ndarray
+                          ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The poses of ``segments`` fitted to a filled frame; a segment counts as posed only with all its markers."""
+        fit = body.fit_for(np.isfinite(filled).all(axis=1), segments)
+        r, t, ok = fit(filled)
+        return r, t, ok & fit.complete
+
+    def _ensure_poses(self, segments: np.ndarray | slice = slice(None), ages: int = 2) -> None:
+        """Fit the poses of ``segments`` (default all) in the last ``ages`` frames (this one, then the one before)
+        where they were skipped (segments with every marker seen, which no gap needed)."""
+        assert self.body is not None
+        if self._pose_fresh[:ages, segments].all():
+            return
+        for age in range(ages):
+            stale = np.arange(len(self.body.members))[segments]
+            stale = stale[~self._pose_fresh[age, stale]]
+            if len(stale):
+                self._pose_r[age, stale], self._pose_t[age, stale], self._pose_ok[age, stale] = (
+                    self._fitted_poses_for(self.body, self._last[age], stale))
+                self._pose_fresh[age, stale] = True
+
+    # -- per frame ---------------------------------------------------------------------------------------------
+    def predict_next(self) -> np.ndarray:
+        """(N, 3) where each marker is expected in the next frame: its filter's prediction, as the next ``update``
+        will start from it (NaN for a marker never seen)."""
+        return self.kf.predicted_position(self._velocity_gain())
+
+    def _velocity_gain(self) -> np.ndarray | None:
+        """Per-marker velocity factor of the next prediction: markers without news coast to rest."""
+        coasting = self._unmeasured > 0
+        return np.where(coasting, self._coast_gain, 1.0) if coasting.any() else None
+
+    def update(self, positions: np.ndarray, rays: np.ndarray | None = None) -> FillResult:
+        """Fill one frame. ``positions`` (N, 3) in label order, NaN where missing; ``rays`` (N, 6) optional origin
+        and direction of the single camera ray of a marker seen by one camera (NaN rows otherwise)."""
+        n = len(self.labels)
+        z = np.array(positions, dtype=float).reshape(n, 3)
+        seen = np.isfinite(z).all(axis=1)
+        z[~seen] = np.nan
+        if self._pending is not None:
+            self._adopt(self._pending)
+            self._pending = None
+        self._extrapolated[:] = False
+        self.kf.predict(self._velocity_gain())
+        body = self.body
+        flags = seen.astype(np.uint8)
+        poses = None if seen.all() else self._fill_missing(z, seen, flags, rays)
+        measured = flags >= CASE_OBSERVED
+        measured &= flags != CASE_KALMAN
+        self.kf.update(z, self._variance[flags], measured)
+        estimated = flags >= CASE_ONE_MISSING
+        z[estimated] = self.kf.position[estimated]
+        self._unmeasured = np.where(measured & ~self._extrapolated, 0, self._unmeasured + 1)
+
+        self._last[1] = self._last[0]
+        self._last[0] = z
+        centres: np.ndarray | Callable[[], np.ndarray] | None = None
+        if body is not None:
+            self._pose_r[1], self._pose_t[1], self._pose_ok[1] = self._pose_r[0], self._pose_t[0], self._pose_ok[0]
+            self._pose_fresh[1] = self._pose_fresh[0]
+            if poses is None:  # no segment lost a marker: the fit waits until a gap or a reader needs it
+                self._pose_fresh[0] = False
+                self._holds.clear()  # a later gap starts its own holds
+            else:  # the constraint's own poses around the gaps, so estimates cannot creep through the filter's lag
+                self._pose_r[0], self._pose_t[0], self._pose_ok[0], self._pose_fresh[0] = poses
+            centres = self._centres_later(z, flags)
+        if self._learner is not None:  # a new model is taken up from the next frame, so the result and
+            # ``joint_names`` keep describing the same body until then
+            self._pending = self._learner.observe(z, seen, flags, body, self._current_poses) or self._pending
+        return FillResult(positions=z, flags=flags, joint_centres=centres)
+
+    def _current_poses(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """This frame's segment poses, fitted now where skipped."""
+        self._ensure_poses(ages=1)
+        return self._pose_r[0].copy(), self._pose_t[0].copy(), self._pose_ok[0].copy()
+
+    def _centres_later(self, z: np.ndarray, flags: np.ndarray) -> Callable[[], np.ndarray]:
+        """The joint centres of this frame, computed on first read from its poses (fitted then where skipped)."""
+        body = self.body
+        assert body is not None
+        flags = flags.copy()  # the caller may edit the result's arrays before reading the centres
+        r, t, ok = self._pose_r[0].copy(), self._pose_t[0].copy(), self._pose_ok[0].copy()
+        stale = np.flatnonzero(~self._pose_fresh[0])
+        if not len(stale):
+            return lambda: joint_centres(body, (r, t, ok), flags)
+        z = z.copy()
+
+        def centres() -> np.ndarray:
+            r[stale], t[stale], ok[stale] = self._fitted_poses_for(body, z, stale)
+            return joint_centres(body, (r, t, ok), flags)
+        return centres
+
+    def _fill_missing(
+        self, z: np.ndarray, seen: np.ndarray, flags: np.ndarray, rays: np.ndarray | None,
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
+        """Write measurements for the missing rows of ``z`` and their ``flags``: single-camera markers first
+        (6.2.4), then the rigid-body cases, then each filter alone. Returns the segments' poses this frame (R, t,
+        known, and which segments these were worked out for: those that lost a marker and their neighbours) when a
+        marker of a segment was missing, else None."""
+        n = len(self.labels)
+        prior = self.kf.position
+        body = self.body if self.body is not None and (~seen & self.body.in_segment).any() else None
+        near = np.zeros(0, dtype=int)
+        if body is not None:
+            near = body.around(~seen)
+            self._ensure_poses(near)
+        visible = seen.copy()
+        if rays is not None:
+            rays = np.asarray(rays, dtype=float).reshape(n, 6)
+            ray_rows = ~seen & np.isfinite(rays).all(axis=1) & (np.linalg.norm(rays[:, 3:], axis=1) > 0)
+            if ray_rows.any():
+                guess = prior.copy()
+                anchored = np.zeros(n, dtype=bool)
+                if body is not None:
+                    est, _, _ = self._constrain(z, visible, prior, ray_rows & body.in_segment, near, keep=False)
+                    anchored = np.isfinite(est).all(axis=1)
+                    guess[anchored] = est[anchored]
+                ok = ray_rows & np.isfinite(guess).all(axis=1)
+                self._extrapolated |= ok & ~anchored  # nothing holds it along its ray: there it coasts to rest
+                z[ok] = project_on_rays(guess[ok], rays[ok])
+                if body is not None and self.config.ray_distances:
+                    self._fit_rays(z, seen, rays, np.flatnonzero(ok & body.in_segment))
+                flags[ok] = FillCase.RAY
+                visible |= ok
+        poses = None
+        if body is not None:
+            targets = ~visible & body.in_segment
+            self._held = set()
+            est, codes, (r, t, posed) = self._constrain(z, visible, prior, targets, near, keep=True)
+            fresh = np.zeros(len(body.members), dtype=bool)
+            fresh[near] = True
+            poses = r, t, posed, fresh
+            self._holds = {k: hold for k, hold in self._holds.items() if k in self._held}
+            done = targets & np.isfinite(est).all(axis=1)
+            if self._max_coast is not None:
+                done &= ~self._extrapolated | (self._unmeasured < self._max_coast)
+            z[done] = est[done]
+            flags[done] = codes[done]
+        lone = (flags == CASE_MISSING) & np.isfinite(prior).all(axis=1)
+        if self._max_coast is not None:
+            lone &= self._unmeasured < self._max_coast
+        z[lone] = prior[lone]
+        flags[lone] = CASE_KALMAN
+        return poses
+
+    def _fit_rays(self, z: np.ndarray, seen: np.ndarray, rays: np.ndarray, rows: np.ndarray) -> None:
+        """Slide each single-camera marker along its ray to the point whose distances to the observed markers of its
+        segment best match the segment's shape, held near its projected estimate (a few Gauss-Newton steps on the
+        ray parameter). This is the line-circle (appendix D) and line-sphere (appendix E) solutions with the
+        projected estimate of 5.3.5 as a prior, which picks the right intersection and steadies the near-tangent
+        cases that made the thesis prefer the projection alone."""
+        body = self.body
+        assert body is not None
+        prior_weight = (self.config.observed_sd / self.config.ray_sd) ** 2
+        for i in rows:
+            k = body.marker_seg[i]
+            members = body.members[k]
+            vis = seen[members]
+            if not vis.any():
+                continue
+            slot = int(np.flatnonzero(members == i)[0])
+            anchors = z[members[vis]]
+            radii = np.linalg.norm(body.offsets[k][vis] - body.offsets[k][slot], axis=1)
+            origin, direction = rays[i, :3], unit(rays[i, 3:])
+            start = float((z[i] - origin) @ direction)
+            ray_s = start
+            for _ in range(5):
+                diff = origin + ray_s * direction - anchors
+                dist = np.maximum(np.linalg.norm(diff, axis=1), 1e-9)
+                grad = diff @ direction / dist
+                step = -((dist - radii) @ grad + prior_weight * (ray_s - start)) / (grad @ grad + prior_weight)
+                ray_s += step
+                if abs(step) < 1e-4:
+                    break
+            z[i] = origin + ray_s * direction
+
+    def _constrain(
+        self, filled: np.ndarray, visible: np.ndarray, prior: np.ndarray, targets: np.ndarray, near: np.ndarray,
+        keep: bool,
+    ) -> tuple[np.ndarray, np.ndarray, tuple[np.ndarray, np.ndarray, np.ndarray]]:
+        """Rigid-body estimates (5.3) of the ``targets`` markers from the ``visible`` ones: (N, 3), case codes, and
+        the poses this frame (R, t, known) of the segments ``near`` the targets (holding one, or a neighbour of
+        one; the others are left unknown): fitted to their visible markers when three or more are, else as placed
+        here. ``keep`` stores the two-anchor holds (off for the single-camera pass)."""
+        body = self.body
+        assert body is not None
+        cfg = self.config
+        n = len(self.labels)
+        est = np.full((n, 3), np.nan)
+        codes = np.zeros(n, dtype=np.uint8)
+        layout = body.layout(visible, targets, near)
+        seg_vis, segments = layout.seg_vis, layout.segments
+        r_all, t_all = np.zeros((len(body.members), 3, 3)), np.zeros((len(body.members), 3))
+        posed = np.zeros(len(body.members), dtype=bool)
+        r_all[near], t_all[near], posed[near] = layout.fit(filled)  # three visible markers fix a pose
+        seen_posed = posed.copy()  # placed with at least one of their own markers visible
+        direct = posed[layout.target_seg]  # per target: its segment is fitted
+        if direct.any():
+            rows, seg = layout.target_rows[direct], layout.target_seg[direct]
+            est[rows] = (r_all[seg] @ layout.target_local[direct, :, None])[..., 0] + t_all[seg]
+            codes[rows] = CASE_ONE_MISSING
+        pending = sorted(segments[~posed[segments]].tolist(), key=lambda k: -seg_vis[k])
+        force = False  # set once no pending segment can be anchored: the rest keep their last rotation rate
+        while pending:
+            progress = False
+            for k in list(pending):
+                seen_rows, seen_offsets, seen_names, miss, hit = layout.parts[k]
+                nv = int(seg_vis[k])
+                links = [link for link in body.links[k] if posed[link[1]]]
+                reference = None  # the first posed neighbour, preferring one placed with its own markers seen
+                for _, other, _, _ in links:
+                    if self._pose_ok[0, other] and (reference is None or seen_posed[other] > seen_posed[reference[0]]):
+                        reference = (other, r_all[other], self._pose_r[0, other])
+                if not (nv == 0 or cfg.joint_anchors == "partial"):
+                    links = []
+                m = nv + len(links)
+                if m == 0 and not force:
+                    continue  # a hidden neighbour may be placed first and anchor this segment
+                p, a, w = np.empty((m, 3)), np.empty((m, 3)), np.ones(m)
+                p[:nv], a[:nv] = filled[seen_rows], seen_offsets
+                for i, (_, other, own, theirs) in enumerate(links, start=nv):
+                    p[i], a[i], w[i] = r_all[other] @ theirs + t_all[other], own, cfg.joint_weight
+                anchors = tuple(seen_names + [("joint", j) for j, *_ in links])
+                via_seen = any(seen_posed[other] for _, other, _, _ in links)
+                pending.remove(k)
+                progress = True
+                placed = self._estimate_segment(k, p, a, w, anchors, reference, prior, keep)
+                if placed is None:
+                    continue
+                r, t, points_on_circle = placed
+                est[miss] = (points_on_circle if points_on_circle is not None else body.offsets[k] @ r.T + t)[hit]
+                if seg_vis[k] >= 2:
+                    codes[miss] = FillCase.ONE_MISSING
+                elif seg_vis[k] == 1:
+                    codes[miss] = FillCase.TWO_MISSING
+                elif via_seen:
+                    codes[miss] = FillCase.VIA_JOINT
+                else:
+                    codes[miss] = FillCase.CONSTANT_ROTOR
+                    self._extrapolated[miss] = len(p) == 0
+                if len(p):
+                    r_all[k], t_all[k], posed[k] = r, t, True
+                    seen_posed[k] = seg_vis[k] > 0
+            force = not progress
+        return est, codes, (r_all, t_all, posed)
+
+    def _estimate_segment(
+        self, k: int, p: np.ndarray, a: np.ndarray, w: np.ndarray, anchors: tuple[tuple[str, int], ...],
+        reference: tuple[int, np.ndarray, np.ndarray] | None, prior: np.ndarray, keep: bool,
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None] | None:
+        """Pose (R, t) of segment ``k`` from anchor points ``p`` (world) at local ``a`` with weights ``w``, and for
+        two anchors the markers placed on their two-sphere circles.
+
+        The rotation left free by fewer than three anchors comes from the last frame, in the frame of a posed
+        neighbour ``reference`` (its index, rotation now and one frame ago) when there is one, else in the world.
+        Two anchors fix the axis through them: the rotation is the one held since the gap began, swung the least
+        way that brings that axis where the anchors are now (a path-independent swing-twist split, so the twist about
+        the axis cannot creep as the axis moves); ``anchors`` names them, so a new pair starts a new hold, which is
+        stored when ``keep``. One anchor: the rotation relative to the reference is held, or the segment turns on
+        by its last rotor (``hidden_rotation``). None: the last rotor and the markers' filtered centroid (5.3.4).
+        """
+        body = self.body
+        assert body is not None
+        offsets = body.offsets[k]
+        if len(p) >= 3:
+            fit = fit_one(a, p, w)
+            if fit is not None:
+                return fit[0], fit[1], None
+        if not self._pose_ok[0, k]:
+            return None
+        if reference is not None:
+            ref, frame, frame_prev = reference
+            relative = frame_prev.T @ self._pose_r[0, k]
+        else:
+            ref, frame, relative = -1, np.eye(3), self._pose_r[0, k]
+        if len(p) >= 2:
+            # 5.3.2 and appendix C, with the hold described above; each marker is then pulled onto its circle
+            key = (ref, anchors[0], anchors[1])
+            hold = self._holds.get(k)
+            if hold is None or hold.key != key:
+                hold = Hold(key, relative @ unit(a[1] - a[0]), relative)
+            if keep:
+                self._holds[k] = hold
+                self._held.add(k)
+            r = frame @ swing(hold.axis, frame.T @ unit(p[1] - p[0])) @ hold.rotation
+            t = 0.5 * (p[0] - r @ a[0] + p[1] - r @ a[1])
+            m = len(offsets)
+            placed = nearest_on_circle(np.repeat(p[:1], m, 0), np.repeat(p[1:2], m, 0),
+                                       np.linalg.norm(offsets - a[0], axis=1), np.linalg.norm(offsets - a[1], axis=1),
+                                       offsets @ r.T + t)
+            return r, t, placed
+        if len(p) == 1:  # 5.3.3 / 5.3.4: the rotated offset from the single anchor
+            r = frame @ relative if reference is not None and self.config.hidden_rotation == "joint" else (
+                self._rotor_prediction(k))
+            return r, p[0] - r @ a[0], None
+        centre = prior[body.members[k]]
+        if not np.isfinite(centre).all():
+            return None
+        r = self._rotor_prediction(k)
+        return r, centre.mean(axis=0) - r @ offsets.mean(axis=0), None
+
+    def _rotor_prediction(self, k: int) -> np.ndarray:
+        """Segment ``k``'s rotation one frame on, turned again by its last inter-frame rotor (5.3.4)."""
+        last = self._pose_r[0, k]
+        if not self._pose_ok[1, k]:
+            return last
+        step = Rotation.from_matrix(last @ self._pose_r[1, k].T)  # R_{k-1} R_{k-2}^T, re-orthonormalised
+        return (step * Rotation.from_matrix(last)).as_matrix()
+
+
+def fill_sequence(
+    positions: np.ndarray, labels: list[str], rate: float, config: FillerConfig | None = None,
+    skeleton: SkeletonModel | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Fill a whole recording (F, N, 3) frame by frame, exactly as a live stream would; returns positions and flags."""
+    positions = np.asarray(positions, dtype=float)
+    filler = GapFiller(labels, rate, config, skeleton)
+    out = np.full(positions.shape, np.nan)
+    flags = np.zeros(positions.shape[:2], dtype=np.uint8)
+    for f in range(len(positions)):
+        result = filler.update(positions[f])
+        out[f], flags[f] = result.positions, result.flags
+    return out, flags

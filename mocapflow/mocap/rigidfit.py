@@ -1,0 +1,203 @@
+"""Rigid fits: the rotation and translation that best map one set of points onto another (Aristidou 2008, 4.3).
+
+One module for every way the project fits a rigid body, all the same least-squares rotation as scipy's
+``Rotation.align_vectors`` (Kabsch):
+
+- ``rotor``: from the eigenvector of Horn's 4x4 quaternion matrix (Aristidou 4.3, Horn 1987), for thousands of
+  frames in one batched ``eigh`` call; ``fit_pose`` builds on it: a segment's pose ``world = R @ local + t`` in every
+  frame from whichever of its markers are visible, either free (centroid alignment) or pivoting about a known point
+  such as the joint with its parent.
+- ``kabsch`` / ``RigidFit``: a batched SVD for many point sets at once, ``RigidFit`` keeping what depends on the
+  local points alone for a caller fitting the same sets to many frames.
+- ``fit_one``: the same for a single point set, with less overhead (one frame's segment in the occlusion filler).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.linalg.lapack import dgesdd
+from scipy.spatial.transform import Rotation, Slerp
+
+
+def rotor(reference: np.ndarray, observed: np.ndarray,
+          weights: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Rotations ``q`` with ``observed ≈ q.apply(reference)`` in the weighted least-squares sense, per frame.
+
+    ``reference`` and ``observed`` are (..., n, 3) vectors, already relative to the rotation centre (the caller
+    subtracts centroids or a pivot); NaN rows and zero ``weights`` are ignored. Returns scalar-last quaternions
+    (..., 4) and the relative gap between the two largest eigenvalues of Horn's matrix N, in [0, 1]: near 0 the
+    rotation is not determined (fewer than two non-parallel vectors, e.g. two markers about their common line).
+    """
+    x = np.asarray(reference, dtype=np.float64)
+    y = np.asarray(observed, dtype=np.float64)
+    x, y = np.broadcast_arrays(x, y)
+    w = np.isfinite(x).all(-1) & np.isfinite(y).all(-1)
+    w = w * (1.0 if weights is None else np.asarray(weights, dtype=np.float64))
+    x = np.where(w[..., None] > 0, x, 0.0)
+    y = np.where(w[..., None] > 0, y, 0.0)
+    s = np.einsum("...n,...na,...nb->...ab", w, x, y)  # S_ab = sum x_a y_b (Schoenauer 3.7.4)
+    sxx, sxy, sxz = s[..., 0, 0], s[..., 0, 1], s[..., 0, 2]
+    syx, syy, syz = s[..., 1, 0], s[..., 1, 1], s[..., 1, 2]
+    szx, szy, szz = s[..., 2, 0], s[..., 2, 1], s[..., 2, 2]
+    n = np.stack([
+        np.stack([sxx + syy + szz, syz - szy, szx - sxz, sxy - syx], -1),
+        np.stack([syz - szy, sxx - syy - szz, sxy + syx, szx + sxz], -1),
+        np.stack([szx - sxz, sxy + syx, -sxx + syy - szz, syz + szy], -1),
+        np.stack([sxy - syx, szx + sxz, syz + szy, -sxx - syy + szz], -1),
+    ], -2)
+    values, vectors = np.linalg.eigh(n)
+    q = vectors[..., :, 3]  # Horn's (w, x, y, z) for the largest eigenvalue
+    scale = np.abs(values).max(-1)
+    gap = np.divide(values[..., 3] - values[..., 2], scale, out=np.zeros_like(scale), where=scale > 0)
+    return np.concatenate([q[..., 1:], q[..., :1]], -1), gap
+
+
+def kabsch(local: np.ndarray, world: np.ndarray, weight: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Weighted least-squares rigid transforms ``world ~ R @ local + t`` for a batch of point sets.
+
+    ``local``/``world`` (B, M, 3) finite, ``weight`` (B, M) with zero for absent points. A batched SVD: this runs
+    every frame, where scipy's ``Rotation.align_vectors`` would take one set per call and ``rotor`` (Horn's
+    eigenvector, plus the quaternion-to-matrix step) costs about twice as much. Returns R (B, 3, 3), t (B, 3) and
+    ``ok`` (B,): False where the points do not fix a rotation (fewer than three, or collinear).
+    """
+    return RigidFit(local, weight)(world)
+
+
+class RigidFit:
+    """``kabsch`` with its local points and weights fixed: what depends on them alone is worked out once, for a
+    caller fitting the same point sets to many frames."""
+
+    def __init__(self, local: np.ndarray, weight: np.ndarray) -> None:
+        w = weight / np.maximum(weight.sum(axis=1), 1e-300)[:, None]
+        self.rows = w[:, None]  # (B, 1, M): weighted means as products
+        self.columns = w[..., None]  # (B, M, 1)
+        self.centre = (self.rows @ local)[:, 0]
+        self.centred = (local - self.centre[:, None]).transpose(0, 2, 1)  # (B, 3, M)
+        self.enough = (weight > 0).sum(axis=1) >= 3
+
+    def __call__(self, world: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """R, t and ``ok`` of ``kabsch`` for the world points (B, M, 3)."""
+        cw = (self.rows @ world)[:, 0]
+        h = self.centred @ ((world - cw[:, None]) * self.columns)
+        u, s, vt = np.linalg.svd(h)
+        r = vt.transpose(0, 2, 1) @ u.transpose(0, 2, 1)  # V U^T, a reflection where its determinant is negative
+        flip = 2.0 * (np.linalg.det(r) < 0)  # there V diag(1, 1, -1) U^T, without indexing the batch
+        r -= flip[:, None, None] * (vt[:, 2, :, None] * u[:, None, :, 2])
+        t = cw - (r @ self.centre[..., None])[..., 0]
+        return r, t, self.enough & (s[:, 1] > 1e-6 * s[:, 0])
+
+
+def fit_one(local: np.ndarray, world: np.ndarray, weight: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """``kabsch`` for a single point set (M, 3) with less overhead (LAPACK's SVD called directly, without numpy's
+    wrapper); None where the points do not fix a rotation."""
+    w = weight / weight.sum()
+    cl, cw = w @ local, w @ world
+    u, s, vt, info = dgesdd((local - cl).T @ ((world - cw) * w[:, None]))
+    if info or s[1] <= 1e-6 * s[0]:
+        return None
+    r = vt.T @ u.T
+    a, b, c, d, e, f, g, h, i = r.ravel().tolist()
+    if a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g) < 0:  # a reflection: flip the last axis
+        r -= 2 * np.outer(vt[2], u[:, 2])
+    return r, cw - r @ cl
+
+
+
+
+@dataclass
+class PoseFit:
+    """Per-frame poses of one segment: ``world = R @ local + t``; NaN where too few markers were visible."""
+
+    rotations: np.ndarray  # (F, 4) scalar-last quaternions
+    translations: np.ndarray  # (F, 3) mm
+    residual: np.ndarray  # (F,) RMS distance between fitted and observed markers, mm
+    determined: np.ndarray  # (F,) bool: the data fixed all three rotation angles
+
+    def matrices(self) -> np.ndarray:
+        """(F, 3, 3) rotation matrices, NaN where the pose is unknown."""
+        return quaternion_matrices(self.rotations)
+
+    def subset(self, frames: np.ndarray) -> PoseFit:
+        """The poses of some frames only."""
+        return PoseFit(self.rotations[frames], self.translations[frames], self.residual[frames],
+                       self.determined[frames])
+
+
+def quaternion_matrices(quaternions: np.ndarray) -> np.ndarray:
+    """(..., 3, 3) matrices of scalar-last quaternions, NaN rows giving NaN matrices (scipy rejects NaN)."""
+    q = np.asarray(quaternions, dtype=np.float64)
+    known = np.isfinite(q).all(-1)
+    out = np.full((*q.shape[:-1], 3, 3), np.nan)
+    if known.any():
+        out[known] = Rotation.from_quat(q[known]).as_matrix()
+    return out
+
+
+def fit_pose(local: np.ndarray, observed: np.ndarray, pivot_local: np.ndarray | None = None,
+             pivot_world: np.ndarray | None = None, *, hold: bool = False, min_gap: float = 1e-3) -> PoseFit:
+    """Pose of a rigid marker set in every frame, from the visible markers only.
+
+    ``local`` (n, 3) are the markers in the segment frame, ``observed`` (F, n, 3) their positions with NaN gaps.
+    Free fit (Horn): align the centroids of the markers visible in that frame, so a missing marker moves neither
+    centroid. With a pivot (``pivot_local`` (3,), ``pivot_world`` (F, 3)), the segment only rotates about that point,
+    which stays exactly where it is (Schoenauer 3.8.2): one marker and the pivot then give a pose, and frames whose
+    pivot is NaN fall back to the free fit. Frames whose rotation the points do not fix (eigenvalue gap below
+    ``min_gap``: one direction only) are flagged in ``determined``; with ``hold`` their rotation becomes the smallest
+    turn of the previous frame's (before a first determined frame: the next one's) that matches the visible
+    direction, so a segment seen through two points keeps turning plausibly instead of spinning about them.
+    """
+    local = np.asarray(local, dtype=np.float64)
+    obs = np.asarray(observed, dtype=np.float64)
+    frames = obs.shape[0]
+    seen = np.isfinite(obs).all(-1)
+    count = seen.sum(1)
+    seen_f = seen.astype(np.float64)
+    safe = np.where(seen[..., None], obs, 0.0)
+    origin_loc = np.einsum("fn,nk->fk", seen_f, local) / np.maximum(count, 1)[:, None]
+    origin_obs = np.einsum("fn,fnk->fk", seen_f, safe) / np.maximum(count, 1)[:, None]
+    free = np.ones(frames, bool)
+    if pivot_local is not None and pivot_world is not None:
+        pivot_world = np.asarray(pivot_world, dtype=np.float64)
+        pinned = np.isfinite(pivot_world).all(-1)
+        free = ~pinned
+        origin_loc = np.where(pinned[:, None], np.asarray(pivot_local, dtype=np.float64), origin_loc)
+        origin_obs = np.where(pinned[:, None], pivot_world, origin_obs)
+    quats, gap = rotor(local[None] - origin_loc[:, None], obs - origin_obs[:, None])
+    usable = np.where(free, count >= 2, count >= 1)
+    quats[~usable] = np.nan
+    determined = usable & (gap >= min_gap)
+    if hold:
+        _hold(quats, determined, local, obs, origin_loc, origin_obs)
+    matrices = quaternion_matrices(quats)
+    t = origin_obs - np.einsum("fab,fb->fa", matrices, origin_loc)
+    fitted = np.einsum("fab,nb->fna", matrices, local) + t[:, None]
+    err = np.where(seen, np.linalg.norm(fitted - obs, axis=-1) ** 2, 0.0).sum(1)
+    residual = np.where(usable, np.sqrt(err / np.maximum(count, 1)), np.nan)
+    return PoseFit(quats, t, residual, determined)
+
+
+def _hold(quats: np.ndarray, determined: np.ndarray, local: np.ndarray, observed: np.ndarray,
+          origin_loc: np.ndarray, origin_obs: np.ndarray) -> None:
+    """In place: undetermined frames take the smallest turn that points their longest visible vector (from the
+    origin) at the data, from the rotation interpolated (slerp) between the nearest determined frames before and
+    after (or the nearest one, at an end)."""
+    todo = np.flatnonzero(np.isfinite(quats).all(1) & ~determined)
+    known = np.flatnonzero(determined)
+    if not len(known):
+        return
+    after = np.searchsorted(known, todo)
+    for f, k in zip(todo, after, strict=True):
+        if 0 < k < len(known):
+            a, b = known[k - 1], known[k]
+            pair = Rotation.from_quat(quats[[a, b]])
+            prior = Slerp([a, b], pair)([f])[0]
+        else:
+            prior = Rotation.from_quat(quats[known[min(k, len(known) - 1)]])
+        seen = np.isfinite(observed[f]).all(1)
+        u, w = local[seen] - origin_loc[f], observed[f, seen] - origin_obs[f]
+        longest = int(np.argmax(np.linalg.norm(u, axis=1)))
+        turn, _ = Rotation.align_vectors(w[longest][None], prior.apply(u[longest])[None])
+        quats[f] = (turn * prior).as_quat()
+
