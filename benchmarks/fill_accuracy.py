@@ -36,9 +36,9 @@ from scipy.interpolate import CubicSpline  # noqa: E402
 from mocapflow.io.bvh import read_bvh  # noqa: E402
 from mocapflow.io.markers import read_markers  # noqa: E402
 from mocapflow.mocap.calibration import build_skeleton  # noqa: E402
-from mocapflow.mocap.rigidfit import kabsch  # noqa: E402
 from mocapflow.mocap.filling import FillerConfig, GapFiller  # noqa: E402
 from mocapflow.mocap.model import SkeletonModel  # noqa: E402
+from mocapflow.mocap.rigidfit import kabsch  # noqa: E402
 from mocapflow.mocap.rigs import make_rig  # noqa: E402
 from mocapflow.mocap.simulator import SimulatorConfig, camera_ring, simulate, truth_skeleton  # noqa: E402
 

@@ -19,12 +19,11 @@ from pathlib import Path
 
 import numpy as np
 
+from mocapflow.mocap.evaluation import score_labelling, unlabel
 from mocapflow.mocap.labelling import (
     Labeller,
     LabellerConfig,
     label_sequence,
-    score_labelling,
-    unlabel,
 )
 from mocapflow.mocap.simulator import SimulatorConfig, simulate
 

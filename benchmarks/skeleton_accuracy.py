@@ -30,9 +30,9 @@ from scipy.optimize import minimize_scalar  # noqa: E402
 from mocapflow.io.markers import MarkerData, read_markers  # noqa: E402
 from mocapflow.mocap.calibration import calibrate  # noqa: E402
 from mocapflow.mocap.clustering import distance_spread, partition_threshold  # noqa: E402
-from mocapflow.mocap.rigidfit import quaternion_matrices  # noqa: E402
 from mocapflow.mocap.model import Joint, SkeletonModel  # noqa: E402
 from mocapflow.mocap.rigid import bone_lengths  # noqa: E402
+from mocapflow.mocap.rigidfit import quaternion_matrices  # noqa: E402
 from mocapflow.mocap.rigs import make_rig  # noqa: E402
 from mocapflow.mocap.simulator import SimRecording, SimulatorConfig, simulate  # noqa: E402
 from mocapflow.mocap.solve import SkeletonPose, solve  # noqa: E402

@@ -19,8 +19,8 @@ import numpy as np  # noqa: E402
 
 from mocapflow.io.markers import read_markers  # noqa: E402
 from mocapflow.mocap.calibration import calibrate  # noqa: E402
-from mocapflow.mocap.rigidfit import quaternion_matrices  # noqa: E402
 from mocapflow.mocap.model import SkeletonModel  # noqa: E402
+from mocapflow.mocap.rigidfit import quaternion_matrices  # noqa: E402
 from mocapflow.mocap.simulator import SimulatorConfig, simulate  # noqa: E402
 from mocapflow.mocap.solve import SkeletonPose, solve  # noqa: E402
 

@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 from filterpy.kalman import KalmanFilter
 
-from mocapflow.mocap.rigidfit import kabsch
 from mocapflow.mocap.filling import FillCase, FillerConfig, GapFiller, fill_sequence, nearest_on_circle
 from mocapflow.mocap.kalman import ConstantVelocityBank
 from mocapflow.mocap.model import SkeletonModel
+from mocapflow.mocap.rigidfit import kabsch
 from mocapflow.mocap.rigs import make_rig
 from mocapflow.mocap.simulator import SimRecording, SimulatorConfig, simulate, truth_skeleton
 

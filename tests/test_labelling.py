@@ -8,14 +8,13 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from mocapflow.mocap.evaluation import score_labelling, unlabel
 from mocapflow.mocap.labelling import (
     Labeller,
     LabellerConfig,
     LabelResult,
     label_sequence,
     merge_tracks,
-    score_labelling,
-    unlabel,
 )
 from mocapflow.mocap.simulator import Simulator, SimulatorConfig, simulate
 

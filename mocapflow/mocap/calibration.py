@@ -38,7 +38,6 @@ from scipy.spatial.transform import Rotation
 from mocapflow.errors import CalibrationError
 from mocapflow.mocap.clustering import PARTITIONERS, distance_spread, noise_floor, segment_names
 from mocapflow.mocap.cor import CoREstimate, SequentialCoR, joint_track
-from mocapflow.mocap.rigidfit import PoseFit
 from mocapflow.mocap.joints import (
     ALPHA,
     distance_stats,
@@ -49,6 +48,7 @@ from mocapflow.mocap.joints import (
 )
 from mocapflow.mocap.model import Joint, Segment, SkeletonModel
 from mocapflow.mocap.rigid import fit_shape
+from mocapflow.mocap.rigidfit import PoseFit
 from mocapflow.progress import progress
 
 log = logging.getLogger(__name__)

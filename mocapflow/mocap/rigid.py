@@ -14,8 +14,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mocapflow.mocap.rigidfit import PoseFit, fit_pose
 from mocapflow.mocap.model import SkeletonModel
+from mocapflow.mocap.rigidfit import PoseFit, fit_pose
 
 RESIDUAL_MADS = 4.0
 """A frame is an outlier when its fit residual exceeds the median by this many (normal-scaled) MADs."""

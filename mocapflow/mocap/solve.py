@@ -20,8 +20,8 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from mocapflow.mocap.cor import joint_track
-from mocapflow.mocap.rigidfit import fit_pose, quaternion_matrices
 from mocapflow.mocap.model import Segment, SkeletonModel
+from mocapflow.mocap.rigidfit import fit_pose, quaternion_matrices
 from mocapflow.progress import progress
 
 

@@ -1,0 +1,38 @@
+"""Labelling of unlabelled marker clouds: one persistent identity per physical marker.
+
+A passive optical tracker reports per frame an unordered set of points; occlusions remove some and reflections add
+ghosts. Identities are carried from frame to frame as in Schoenauer (2007) section 3.3, with the predictive tracker
+of its section 5.2 in place of nearest-point matching: each track predicts its position at constant velocity, and
+the optimal one-to-one assignment inside a gate (``linear_sum_assignment``) replaces the thesis's greedy
+smallest-distance-first pairing.
+
+A track whose marker disappears is never dropped. The thesis finds the tracks of one physical marker by aligning
+poses on a few nearby markers (its "local approach", 4-5 markers) and comparing positions (Kirk et al.'s *Marker Set*
+distance, a minimum over pairs of poses); here that comparison runs online. Every track learns from the labelled data
+which other tracks keep the steadiest distance to it (its neighbours, weighted by the inverse variance of that
+distance) and keeps snapshots of itself with them. When its marker is lost, the snapshot whose neighbour distances
+best match the current ones is fitted to the neighbours still visible and places the hidden marker, so a reappearing
+point is matched back to its old track after seconds of occlusion. Once segments are known
+(:meth:`Labeller.set_segments`) a track's neighbours are its segment mates: the snapshots are then the segment's rigid
+marker layout. Three more cues help: a constant-velocity coast over short dropouts; the distances to the marker's
+rigid partners (two of them hold a point to a circle: a segment reduced to two visible markers still recognises its
+third; a point breaking the distances to all of them is ruled out, one breaking some must lie close to where the
+marker is expected); positions predicted outside (a gap filler).
+
+Body occlusions often hide several markers of one segment at once, which then come back a few frames apart. A
+returning point keeps the distances to its lost partners that come back beside it, so rigid partners seen and lost
+ones count together, and where none is seen the looser neighbours must at least allow the point; a point that fits
+more than one lost marker so (a mirror-symmetric segment) is left to a new track rather than risk a swap.
+
+A placement from a rigid neighbourhood re-identifies at once; a looser one (neighbours across a joint) only takes a
+point that has lived ``confirm_frames`` frames, so that a passing ghost cannot steal the track. Points that match no
+track start tentative tracks, which become markers (or re-identify a lost one) when they live ``confirm_frames``
+frames; the rest, short-lived ghosts, are dropped. Offline, :func:`label_sequence` also merges what streaming could
+not (the thesis's *Marker Set* merging, :func:`merge_tracks`) and drops tracks too short to be markers.
+"""
+
+from mocapflow.mocap.labelling.config import LabellerConfig, LabelResult
+from mocapflow.mocap.labelling.labeller import Labeller
+from mocapflow.mocap.labelling.offline import label_sequence, merge_tracks
+
+__all__ = ["LabelResult", "Labeller", "LabellerConfig", "label_sequence", "merge_tracks"]

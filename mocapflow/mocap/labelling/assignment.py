@@ -1,0 +1,82 @@
+"""Gated optimal assignment of points to tracks, and the rigid-partner signature that screens it."""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.optimize import linear_sum_assignment
+from scipy.spatial.distance import cdist
+
+from mocapflow.mocap.labelling.config import VETO
+
+
+def norm(v: np.ndarray) -> np.ndarray:
+    """Euclidean norm over the last axis (NaN in, NaN out), cheaper than ``np.linalg.norm`` on small batches."""
+    return np.sqrt(np.einsum("...i,...i->...", v, v))
+
+
+def nanmedian(x: np.ndarray) -> np.ndarray:
+    """Median over the last axis ignoring NaN (NaN when all are): ``np.nanmedian`` costs far more on small rows."""
+    ordered = np.sort(x, axis=-1)  # NaN sort last
+    n = np.isfinite(x).sum(axis=-1, keepdims=True)
+    low = np.take_along_axis(ordered, np.maximum((n - 1) // 2, 0), axis=-1)[..., 0]
+    high = np.take_along_axis(ordered, n // 2, axis=-1)[..., 0]
+    return np.where(n[..., 0] > 0, (low + high) / 2, np.nan)
+
+
+def gated_cost(pred: np.ndarray, gate: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Cost ``(A, B)`` of giving each point to each track: ``d / gate - 1`` inside the track's gate, 0 outside.
+
+    ``pred`` is ``(A, 3)``, or ``(A, H, 3)`` for tracks with several hypotheses (NaN where absent) of which the best
+    counts; ``gate`` is ``(A,)`` or ``(A, H)``. With 0 for "unmatched" this is the classic assignment with a dummy
+    option costing half a gate on each side, so a match is made only when it lowers the total distance.
+    """
+    if pred.ndim == 2:
+        cost = cdist(pred, points) / gate[:, None]
+    else:
+        d = cdist(pred.reshape(-1, 3), points).reshape(*pred.shape[:2], -1) / gate[..., None]
+        cost = np.fmin.reduce(d, axis=1)
+        cost[np.isnan(cost)] = np.inf
+    return np.minimum(cost - 1.0, 0.0)
+
+
+def match(cost: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Optimal one-to-one assignment on a cost matrix where only negative entries are admissible pairs."""
+    if cost.size == 0:
+        return np.empty(0, np.intp), np.empty(0, np.intp)
+    rows, cols = linear_sum_assignment(cost)
+    keep = cost[rows, cols] < 0.0
+    return rows[keep], cols[keep]
+
+
+def assign(pred: np.ndarray, gate: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Optimal one-to-one matching of tracks to points, each pair inside the track's gate (see ``gated_cost``)."""
+    if len(pred) == 0 or len(points) == 0:
+        return np.empty(0, np.intp), np.empty(0, np.intp)
+    return match(gated_cost(pred, gate, points))
+
+
+def rigid_signature(points: np.ndarray, partners: np.ndarray, mean: np.ndarray, sd: np.ndarray,
+               tolerance: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """How far points ``(B, 3)`` break each marker's distances to its rigid partners, how many partners count, and
+    how many of those distances are broken.
+
+    ``partners`` are the partners' positions, ``(P, 3)`` for all points or ``(B, P, 3)`` one set per point, NaN where
+    unseen; ``mean``, ``sd`` ``(A, P)`` the learnt distances of each of A markers to each partner, NaN where a partner
+    is not rigid with it. Returns ``(A, B)`` worst distance errors in units of ``tolerance + 3 sd`` (0 without
+    partners), ``(A, B)`` partner counts and ``(A, B)`` counts of errors above 1. Two partners hold a point to a
+    circle, three to a point: this recognises a marker whose rigid body has too few markers left to fit a pose (a
+    two-marker remnant), and one partner is enough to rule a point out.
+    """
+    d = norm(points[:, None] - partners) if partners.ndim == 3 else cdist(points, partners)
+    error = np.abs(d[None] - mean[:, None]) / (tolerance + 3.0 * sd[:, None])
+    valid = np.isfinite(error)
+    return np.where(valid, error, 0.0).max(axis=2, initial=0.0), valid.sum(axis=2), (error > 1.0).sum(axis=2)
+
+
+def screened(cost: np.ndarray, broken: np.ndarray, partners: np.ndarray, violated: np.ndarray) -> np.ndarray:
+    """Gated costs (``gated_cost``) of points screened by their ``rigid_signature``: a point cannot be the marker
+    when it breaks the distance to a rigid partner by ``VETO`` tolerances or those to all its partners, and it must
+    lie within half the gate when it breaks some of them."""
+    cost = np.where(broken > 1.0, np.minimum(2.0 * cost + 1.0, 0.0), cost)
+    return np.where((broken > VETO) | ((violated >= 1) & (violated == partners)), 0.0, cost)
+

@@ -1,0 +1,332 @@
+"""The streaming labeller: one persistent identity per physical marker, frame by frame (the package's docstring
+describes the method)."""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial.distance import cdist
+
+from mocapflow.mocap.labelling.assignment import assign, gated_cost, match, norm, rigid_signature, screened
+from mocapflow.mocap.labelling.config import UNGATED_MM, LabellerConfig, LabelResult
+from mocapflow.mocap.labelling.placement import place_marker
+from mocapflow.mocap.labelling.tracks import Tracks
+
+
+class Labeller:
+    """Streaming labeller: feed frames in time order to :meth:`update`; ``labels`` grows as markers are confirmed."""
+
+    def __init__(self, config: LabellerConfig, rate: float) -> None:
+        if rate <= 0:
+            raise ValueError("rate must be positive")
+        self.config = config
+        self.rate = float(rate)
+        self.labels: list[str] = []
+        self.frame = 0
+        self._time = -np.inf
+        self._tracks = Tracks(config, self.rate)
+        # tentative tracks and the points they have collected
+        self._tpos = np.empty((0, 3))
+        self._tvel = np.empty((0, 3))
+        self._tlast = np.empty(0)
+        self._thits = np.empty(0, np.int64)
+        self._thist: list[list[tuple[int, np.ndarray]]] = []
+
+    def set_segments(self, segments: list[list[int]]) -> None:
+        """Declare groups of track indices that move rigidly: a track's segment mates become its neighbours.
+
+        Tracks switch to their new neighbours when next seen, so a marker hidden now keeps the snapshots that can
+        still find it.
+        """
+        n = len(self.labels)
+        mates = np.zeros((n, n), bool)
+        for seg in segments:
+            idx = np.asarray(seg, np.intp)
+            if np.any((idx < 0) | (idx >= n)):
+                raise ValueError(f"segment {list(seg)} names a track outside 0..{n - 1}")
+            mates[np.ix_(idx, idx)] = True
+        np.fill_diagonal(mates, False)
+        self._tracks.set_mates(mates)
+
+    def update(self, points: np.ndarray, time: float, predictions: np.ndarray | None = None,
+               rays: np.ndarray | None = None) -> LabelResult:
+        """Label one frame of points ``(M, 3)`` (NaN rows ignored) captured at ``time`` seconds (increasing).
+
+        ``predictions`` ``(T, 3)``, in track order with NaN where unknown, are positions of the current tracks
+        predicted elsewhere (a gap filler); they replace the internal prediction when re-identifying lost tracks.
+        ``rays`` ``(M, 6)``, by row of ``points`` with NaN where none, are single-camera rays (origin, direction) of
+        markers the tracker could not place; each goes to the unseen track expected nearest its line (``_ray_owners``).
+        """
+        cfg = self.config
+        if time <= self._time:
+            raise ValueError(f"frame times must increase: {time} after {self._time}")
+        self._time = time
+        pts = np.asarray(points, dtype=float).reshape(-1, 3)
+        rows = np.flatnonzero(np.isfinite(pts).all(axis=1))
+        z = pts[rows]
+        taken = np.full(len(z), -1, np.intp)
+        n_tracks = len(self.labels)
+        if predictions is not None:
+            predictions = np.asarray(predictions, dtype=float)
+            if predictions.shape != (n_tracks, 3):
+                raise ValueError(f"predictions must have shape ({n_tracks}, 3), got {predictions.shape}")
+        cur = np.full((n_tracks, 3), np.nan)
+
+        # 1. tracks seen in the previous frame: constant-velocity prediction, gated optimal assignment
+        live = np.flatnonzero(self._tracks.streak > 0)
+        pred = self._tracks.pos[live] + self._tracks.vel[live] * (time - self._tracks.last[live])[:, None]
+        ti, pi = assign(pred, np.full(len(live), cfg.gate_mm), z)
+        cur[live[ti]] = z[pi]
+        taken[pi] = live[ti]
+
+        # 2. the others: re-identification from rigid neighbours or outside predictions, else a short coast
+        lost = np.flatnonzero(np.isnan(cur[:, 0]))
+        lost_pred, lost_gate, instant = self._lost_predictions(lost, cur, time, predictions, z[taken < 0])
+        now_pred = lost_pred.copy()
+        now_pred[~instant, 0] = np.nan
+        has = np.flatnonzero(np.isfinite(now_pred[..., 0]).any(axis=1))
+        free = np.flatnonzero(taken < 0)
+        ti = pi = np.empty(0, np.intp)
+        if len(has) and len(free):
+            cost = gated_cost(now_pred[has], lost_gate[has], z[free])
+            broken, partners, violated = self._signature(lost[has], cur, z[free])
+            cost = screened(cost, broken, partners, violated)
+            ti, pi = match(cost)
+        cur[lost[has[ti]]] = z[free[pi]]
+        taken[free[pi]] = lost[has[ti]]
+        self._tracks.observe(cur, time)
+
+        # 3. tentative tracks on what is left; the long-lived ones become markers
+        ready, ready_rows = self._advance_tentatives(z, taken, time)
+        history: list[tuple[int, np.ndarray, np.ndarray]] = []
+        if len(ready):
+            still = np.isnan(cur[lost, 0])
+            owners = self._owners(z[ready_rows], cur, lost[still], lost_pred[still], lost_gate[still])
+            cur = np.vstack([cur, np.full((len(self.labels) - n_tracks, 3), np.nan)])
+            history = self._adopt(ready, owners)
+            cur[owners[owners >= 0]] = z[ready_rows[owners >= 0]]
+            taken[ready_rows[owners >= 0]] = owners[owners >= 0]
+        ray_out = None
+        if rays is not None:
+            rays = np.asarray(rays, dtype=float)
+            if rays.shape != (len(pts), 6):
+                raise ValueError(f"rays must have shape ({len(pts)}, 6), one per row of points, got {rays.shape}")
+            ray_out = self._ray_owners(rays, cur, time, predictions)
+        self._tracks.learn(cur, time, self.frame)
+        self.frame += 1
+        point_track = np.full(len(pts), -1, np.intp)
+        point_track[rows] = taken
+        return LabelResult(positions=cur, point_track=point_track, history=history, rays=ray_out)
+
+    def _ray_owners(self, rays: np.ndarray, cur: np.ndarray, time: float,
+                    outside: np.ndarray | None) -> np.ndarray:
+        """The rays ``(M, 6)`` given to the tracks not seen this frame, ``(T, 6)`` by track (NaN rows where none).
+
+        A track expects its marker where it is predicted outside (a gap filler; gate ``reid_gate_mm``) or, within
+        ``max_coast_s`` of its last sighting, where its constant-velocity coast takes it (gate growing with the
+        unknown acceleration). A ray passing in front of the camera within that gate of the expected position may be
+        the marker's, and is given to it when neither has another candidate: a line of sight crosses the whole
+        volume, so where two markers could own a ray (or two rays a marker) none is given rather than a wrong one.
+        """
+        cfg = self.config
+        out = np.full((len(cur), 6), np.nan)
+        rows = np.flatnonzero(np.isfinite(rays).all(axis=1) & (norm(rays[:, 3:]) > 0))
+        unseen = np.flatnonzero(np.isnan(cur[:, 0]))
+        if not len(rows) or not len(unseen):
+            return out
+        dt = time - self._tracks.last[unseen]
+        tracks = self._tracks
+        expected = np.where((dt <= cfg.max_coast_s)[:, None], tracks.pos[unseen] + tracks.vel[unseen] * dt[:, None],
+                            np.nan)
+        gate = cfg.gate_mm + 0.5 * cfg.max_accel_mm_s2 * dt**2
+        if outside is not None:
+            known = np.zeros(len(unseen), bool)
+            known[unseen < len(outside)] = np.isfinite(outside[unseen[unseen < len(outside)], 0])
+            expected[known] = outside[unseen[known]]
+            gate[known] = cfg.reid_gate_mm
+        origin = rays[rows, :3]
+        direction = rays[rows, 3:] / norm(rays[rows, 3:])[:, None]
+        rel = expected[:, None] - origin[None]  # (U, R, 3)
+        along = np.einsum("uri,ri->ur", rel, direction)
+        miss = norm(rel - along[..., None] * direction[None])
+        fits = (along > 0) & (miss < gate[:, None])  # NaN (nothing expected) fits nothing
+        unique = fits & (fits.sum(axis=0) == 1)[None] & (fits.sum(axis=1) == 1)[:, None]
+        ui, ri = np.nonzero(unique)
+        out[unseen[ui]] = rays[rows[ri]]
+        return out
+
+    def _lost_predictions(self, lost: np.ndarray, cur: np.ndarray, time: float, outside: np.ndarray | None,
+                          free: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Hypotheses ``(L, 2, 3)`` and gates ``(L, 2)`` for the tracks step 1 did not match (NaN where none).
+
+        The first places the marker from its neighbours matched in this frame (or is the outside prediction, which
+        replaces it); the second is a short constant-velocity coast whose gate grows with the unknown acceleration.
+        Neighbours excel over long gaps and rigid neighbourhoods, the coast over a few frames among loose ones. The
+        ``(L,)`` mask tells where the first is trusted at once: an outside prediction, or a placement whose misfit and
+        spread (``place_marker``) are within ``instant_fit_mm`` (a rigid segment). A looser placement widens its gate by
+        that doubt and is only used for points that have already lived ``confirm_frames`` frames, so a passing ghost
+        cannot take the track; one doubtful by more than ``reid_gate_mm`` is not used at all. Only markers with a
+        ``free`` point (one step 1 left) at distances from three of their seen neighbours that the snapshots have
+        shown (give or take ``reid_gate_mm``) are placed: no other can be found, and most frames need no fit at all.
+        """
+        cfg = self.config
+        pred = np.full((len(lost), 2, 3), np.nan)
+        gate = np.full((len(lost), 2), cfg.reid_gate_mm)
+        instant = np.zeros(len(lost), bool)
+        if len(lost) == 0:
+            return pred, gate, instant
+        # each snapshot fitted to the neighbours matched in this frame; the best-fitting pose places the marker
+        anchors = self._tracks.anchors[lost]
+        now = np.where((anchors >= 0)[..., None], cur[anchors], np.nan)
+        if len(free):
+            near = np.flatnonzero(self._tracks.plausible(lost, cur, free).any(axis=1))
+            place, misfit, spread = place_marker(self._tracks.poses[lost[near]], now[near],
+                                                 self._tracks.anchor_w[lost[near]], cfg.instant_fit_mm)
+            doubt = np.fmax(misfit, spread)
+            usable = doubt <= cfg.reid_gate_mm
+            pred[near[usable], 0] = place[usable]
+            gate[near, 0] += np.where(np.isnan(doubt), 0.0, doubt)
+            instant[near] = doubt <= cfg.instant_fit_mm
+        if outside is not None:
+            given = np.isfinite(outside[lost]).all(axis=1)
+            pred[given, 0] = outside[lost[given]]
+            gate[given, 0] = cfg.reid_gate_mm
+            instant |= given
+        dt = time - self._tracks.last[lost]
+        coast = dt <= cfg.max_coast_s
+        pred[coast, 1] = self._tracks.pos[lost[coast]] + self._tracks.vel[lost[coast]] * dt[coast, None]
+        gate[:, 1] = cfg.gate_mm + 0.5 * cfg.max_accel_mm_s2 * dt**2
+        # a prediction on top of a marker already matched points at that marker, seen under another track: what lies
+        # near it is a ghost or that marker, never this one
+        matched = cur[np.isfinite(cur[:, 0])]
+        if len(matched):
+            near = cdist(pred.reshape(-1, 3), matched).min(axis=1).reshape(pred.shape[:2])
+            pred[near < cfg.gate_mm / 2] = np.nan
+        return pred, gate, instant
+
+    def _signature(self, tracks: np.ndarray, cur: np.ndarray,
+                   z: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``rigid_signature`` of points ``z`` against ``tracks`` and their rigid partners among this frame's
+        matches."""
+        seen = np.flatnonzero(np.isfinite(cur[:, 0]))
+        mean, sd = self._tracks.rigid(tracks, seen)
+        return rigid_signature(z, cur[seen], mean, sd, self.config.rigid_tolerance_mm)
+
+    def _lost_partners(self, lost: np.ndarray, cur: np.ndarray, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``rigid_signature`` of points ``z`` against ``lost`` tracks and their lost rigid partners, each placed on a
+        tentative point of this frame.
+
+        Markers of one body are often hidden together and come back a few frames apart, each with too few rigid
+        partners seen to be recognised alone. A lost partner counts for a point when some other tentative point lies
+        at their learnt distance from it and could be that partner: no rigid partner of the partner seen now rules
+        it out. Returns ``(L, B)`` worst distance errors (as ``rigid_signature``) and counts of such partners.
+        """
+        tol = self.config.rigid_tolerance_mm
+        mean, sd = self._tracks.rigid(lost, lost)
+        np.fill_diagonal(mean, np.nan)
+        broken, partners, _ = self._signature(lost, cur, self._tpos)
+        possible = (partners == 0) | (broken < 1.0)
+        d = cdist(z, self._tpos)
+        error = np.abs(d[None, None] - mean[..., None, None]) / (tol + 3.0 * sd[..., None, None])
+        best = np.where(possible[None, :, None], error, np.inf).min(axis=3, initial=np.inf)
+        fits = best < 1.0
+        return np.where(fits, best, 0.0).max(axis=1, initial=0.0), fits.sum(axis=1)
+
+    def _advance_tentatives(self, z: np.ndarray, taken: np.ndarray, time: float) -> tuple[np.ndarray, np.ndarray]:
+        """Carry tentative tracks on the points no marker took and start new ones on the rest.
+
+        A tentative track missing one frame dies: a new marker must be tracked without a gap to be believed. Returns
+        the tentative tracks now old enough to confirm and their rows in ``z``.
+        """
+        cfg = self.config
+        free = np.flatnonzero(taken < 0)
+        if len(free) == 0 and len(self._tpos) == 0:
+            return free, free
+        pred = self._tpos + self._tvel * (time - self._tlast)[:, None]
+        # a point seen once has no velocity yet: its first step may be as long as the fastest marker moves
+        gate = cfg.gate_mm + np.where(self._thits == 1, cfg.max_speed_mm_s * (time - self._tlast), 0.0)
+        ui, pi = assign(pred, gate, z[free])
+        zu = z[free[pi]]
+        measured = (zu - self._tpos[ui]) / (time - self._tlast[ui])[:, None]
+        smooth = self._tvel[ui] + cfg.velocity_smoothing * (measured - self._tvel[ui])
+        vel = np.where((self._thits[ui] >= 2)[:, None], smooth, measured)
+        kept = [self._thist[u] for u in ui]
+        for points, p in zip(kept, zu, strict=True):
+            points.append((self.frame, p))
+            if len(points) > self.rate:  # only a tentative track held back by expected_markers grows this long
+                del points[0]
+        unclaimed = np.ones(len(free), bool)
+        unclaimed[pi] = False
+        fresh = np.flatnonzero(unclaimed)
+        rows = np.concatenate([free[pi], free[fresh]])
+        self._tpos = z[rows]
+        self._tvel = np.concatenate([vel, np.zeros((len(fresh), 3))])
+        self._tlast = np.full(len(rows), time)
+        self._thits = np.concatenate([self._thits[ui] + 1, np.ones(len(fresh), np.int64)])
+        self._thist = kept + [[(self.frame, p)] for p in z[free[fresh]]]
+        ready = np.flatnonzero(self._thits >= cfg.confirm_frames)
+        return ready, rows[ready]
+
+    def _owners(self, z: np.ndarray, cur: np.ndarray, lost: np.ndarray, pred: np.ndarray,
+                gate: np.ndarray) -> np.ndarray:
+        """The track each confirmed tentative point belongs to: a lost track that fits it, else a new one (-1: none).
+
+        This is the thesis's merging of *Marker Sets*, done as the new set is born: a lost track fits when one of its
+        hypotheses (``pred``, ``gate`` from ``_lost_predictions``; the last position where its neighbours place
+        nothing) is within the gate, or when the point keeps its distances to two of the track's rigid partners seen
+        now. With fewer seen, its lost partners placed on other tentative points (``_lost_partners``) and its looser
+        neighbours (``_plausible``) complete the evidence: one partner seen and one more cue, or without any the
+        neighbours and a lost partner, as long as no other lost track fits the point that way. Once
+        ``expected_markers`` tracks exist, the lost tracks are the only possible owners and the nearest wins without a
+        gate; points left over stay tentative.
+        """
+        cfg = self.config
+        pred = pred.copy()
+        known = np.isfinite(pred[:, 0, 0])
+        pred[~known, 0] = self._tracks.pos[lost[~known]]
+        gate = gate.copy()
+        gate[~known, 0] = cfg.reid_gate_mm
+        full = cfg.expected_markers is not None and len(self.labels) >= cfg.expected_markers
+        li, ri = np.empty(0, np.intp), np.empty(0, np.intp)
+        if len(lost):
+            cost = gated_cost(pred, np.full(gate.shape, UNGATED_MM) if full else gate, z)
+            broken, partners, violated = self._signature(lost, cur, z)
+            lost_broken, helpers = self._lost_partners(lost, cur, z)
+            near = self._tracks.plausible(lost, cur, z)
+            worst = np.where(partners >= 2, broken, np.fmax(broken, lost_broken))
+            # partners seen and lost, and the looser neighbours, for a point that fits no other lost track so
+            pooled = (worst < 1.0) & np.where(partners >= 1, partners + helpers + near >= 2, near & (helpers >= 1))
+            fits = ((partners >= 2) & (broken < 1.0)) | (pooled & (pooled.sum(axis=0) == 1))
+            cost = np.where(fits, np.minimum(cost, worst - 1.0), cost)
+            cost = screened(cost, broken, partners, violated)
+            li, ri = match(cost)
+        owners = np.full(len(z), -1, np.intp)
+        owners[ri] = lost[li]
+        room = len(z) if cfg.expected_markers is None else cfg.expected_markers - len(self.labels)
+        for j in np.flatnonzero(owners < 0)[: max(room, 0)]:
+            owners[j] = self._new_track()
+        return owners
+
+    def _adopt(self, ready: np.ndarray, owners: np.ndarray) -> list[tuple[int, np.ndarray, np.ndarray]]:
+        """Hand confirmed tentative tracks to their owners and return their earlier, so far unlabelled, points."""
+        history = []
+        done = owners >= 0
+        for u, track in zip(ready[done], owners[done], strict=True):
+            frames = np.array([f for f, _ in self._thist[u]])
+            pos = np.array([p for _, p in self._thist[u]])
+            tracks = self._tracks
+            tracks.pos[track], tracks.vel[track], tracks.last[track] = self._tpos[u], self._tvel[u], self._tlast[u]
+            tracks.streak[track] = self._thits[u]
+            history.append((int(track), frames[:-1], pos[:-1]))
+        keep = np.ones(len(self._thits), bool)
+        keep[ready[done]] = False
+        self._tpos, self._tvel, self._tlast, self._thits = (
+            a[keep] for a in (self._tpos, self._tvel, self._tlast, self._thits))
+        self._thist = [h for h, k in zip(self._thist, keep, strict=True) if k]
+        return history
+
+    def _new_track(self) -> int:
+        """Append a confirmed track with empty state; labels are never reused."""
+        t = len(self.labels)
+        self.labels.append(f"M{t + 1:03d}")
+        self._tracks.add()
+        return t

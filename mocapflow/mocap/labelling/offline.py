@@ -1,0 +1,140 @@
+"""Offline labelling of a whole recording: streaming, then filling in what tentative tracks collected, merging the
+tracks of one marker (the thesis's *Marker Set* merging) and dropping tracks too short to be markers."""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+
+import numpy as np
+
+from mocapflow.mocap.labelling.assignment import norm, rigid_signature
+from mocapflow.mocap.labelling.config import SD_FLOOR_MM, LabellerConfig
+from mocapflow.mocap.labelling.labeller import Labeller
+from mocapflow.mocap.labelling.placement import place_marker
+
+
+def merge_tracks(tracks: np.ndarray, config: LabellerConfig | None = None) -> list[list[int]]:
+    """Groups of tracks ``(F, T, 3)`` that are one physical marker: the thesis's merging of *Marker Sets*, offline.
+
+    Online re-identification needs a lost track's neighbours to be known and seen when its marker comes back; a
+    track lost before that, or whose neighbours were lost with it, comes back as a new track. Here every pair of
+    tracks never seen together is compared as in Schoenauer (2007) section 3.3, on the thesis's local neighbourhood:
+    snapshots of one track with its neighbours are fitted to those neighbours in the other track's frames, and the
+    other track must lie within ``reid_gate_mm`` of the placed marker, or keep the distances to the first one's rigid
+    partners; the median over frames decides (not the thesis's minimum, so that one coincidence cannot merge two
+    markers). Pairs are merged greedily, best first, never joining tracks seen in the same frame, and the comparison
+    is repeated on the merged tracks until nothing changes: merging the fragments of one marker gives its neighbours'
+    fragments the partners they lacked.
+    """
+    cfg = config or LabellerConfig()
+    groups = [[i] for i in range(tracks.shape[1])]
+    while groups:
+        joined = np.stack([np.fmax.reduce(tracks[:, g], axis=1) for g in groups], axis=1)
+        seen = np.isfinite(joined[..., 0])
+        overlap = seen.T.astype(np.int64) @ seen
+        scored = []
+        spreads: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        for i, j in zip(*np.nonzero(np.triu(overlap == 0, 1)), strict=True):
+            for k in (i, j):
+                if k not in spreads:
+                    spreads[k] = _distance_spread(joined, seen, k, cfg.confirm_frames)
+            score = min(_set_score(joined, seen, i, j, spreads[i], cfg),
+                        _set_score(joined, seen, j, i, spreads[j], cfg))
+            if score < 1.0:
+                scored.append((score, i, j))
+        taken: set[int] = set()
+        for _, i, j in sorted(scored):
+            if i not in taken and j not in taken:
+                groups[i] += groups[j]
+                groups[j] = []
+                taken |= {i, j}
+        groups = [g for g in groups if g]
+        if not taken:
+            break
+    return groups
+
+
+def _distance_spread(tracks: np.ndarray, seen: np.ndarray, i: int, least: int) -> tuple[np.ndarray, np.ndarray]:
+    """Mean and standard deviation of track ``i``'s distance to every track over the frames they share; NaN where
+    they share fewer than ``least`` frames (or than ``i`` has)."""
+    d = norm(tracks[seen[:, i], i, None] - tracks[seen[:, i]])
+    count = np.isfinite(d).sum(axis=0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mean = np.nansum(d, axis=0) / count
+        sd = np.sqrt(np.nansum((d - mean) ** 2, axis=0) / count)
+    few = count < min(len(d), least)
+    mean[few] = sd[few] = np.nan
+    return mean, sd
+
+
+def _set_score(tracks: np.ndarray, seen: np.ndarray, i: int, j: int, spread: tuple[np.ndarray, np.ndarray],
+               cfg: LabellerConfig) -> float:
+    """How well track ``j`` fits marker ``i`` in ``j``'s frames, below 1 when it is the same marker.
+
+    The median over (at most ``poses``) frames of the smaller of: the distance to where ``i``'s neighbours place it,
+    in units of ``reid_gate_mm``; the worst error of its distances to ``i``'s rigid partners (two or more seen), in
+    units of their tolerance (``rigid_signature``).
+    """
+    fi, fj = np.flatnonzero(seen[:, i]), np.flatnonzero(seen[:, j])
+    mean, sd = spread
+    known = np.isfinite(sd)
+    known[[i, j]] = False
+    b = _evenly(fj, cfg.poses)
+    partners = np.flatnonzero(known & (sd <= cfg.rigid_sd_mm))
+    broken, count, _ = rigid_signature(tracks[b, j], tracks[b][:, partners], mean[None, partners], sd[None, partners],
+                                  cfg.rigid_tolerance_mm)
+    signature = np.where(count[0] >= 2, broken[0], np.inf)
+    score = np.where(known, sd + 0.02 * mean, np.inf)
+    score[~(sd <= cfg.neighbour_sd_mm) | (seen[fj].sum(axis=0) < 3)] = np.inf
+    nb = np.argsort(score)[: cfg.neighbours]
+    nb = nb[np.isfinite(score[nb])]
+    placed = np.full(len(b), np.inf)
+    a = _evenly(fi[seen[fi][:, nb].sum(axis=1) >= 3], cfg.poses)
+    if len(nb) >= 3 and len(a):
+        poses = np.concatenate([tracks[a, i, None], tracks[a][:, nb]], axis=1)
+        trust = np.broadcast_to(1.0 / (sd[nb] ** 2 + SD_FLOOR_MM**2), (len(b), len(nb)))
+        place, _, _ = place_marker(np.broadcast_to(poses, (len(b), *poses.shape)), tracks[b][:, nb], trust,
+                             cfg.instant_fit_mm)
+        err = norm(place - tracks[b, j]) / cfg.reid_gate_mm
+        placed = np.where(np.isfinite(err), err, np.inf)
+    best = np.minimum(placed, signature)
+    best = best[np.isfinite(best)]
+    return float(np.median(best)) if len(best) else np.inf
+
+
+def _evenly(frames: np.ndarray, count: int) -> np.ndarray:
+    """At most ``count`` of ``frames``, evenly spread."""
+    if len(frames) <= count:
+        return frames
+    return frames[np.linspace(0, len(frames) - 1, count).round().astype(int)]
+
+
+def label_sequence(frames: Iterable[np.ndarray], rate: float,
+                   config: LabellerConfig | None = None) -> tuple[np.ndarray, list[str]]:
+    """Label a whole recording of point clouds: ``(F, T, 3)`` trajectories of the ``T`` markers found, and labels.
+
+    Knowing the whole recording allows more than streaming: points a track collected while still tentative are
+    filled in, tracks of one marker are merged (:func:`merge_tracks`), and tracks seen for less than ``min_track_s``
+    in all are dropped. Markers are labelled ``M001``... in order of first appearance.
+    """
+    cfg = config or LabellerConfig()
+    labeller = Labeller(cfg, rate)
+    rows: list[np.ndarray] = []
+    late: list[tuple[int, np.ndarray, np.ndarray]] = []
+    for i, points in enumerate(frames):
+        result = labeller.update(points, i / rate)
+        rows.append(result.positions)
+        late += result.history
+    tracks = np.full((len(rows), len(labeller.labels), 3), np.nan)
+    for i, row in enumerate(rows):
+        tracks[i, : len(row)] = row
+    for track, idx, pos in late:
+        tracks[idx, track] = pos
+    markers = []
+    for group in merge_tracks(tracks, cfg):
+        merged = np.fmax.reduce(tracks[:, group], axis=1)  # the tracks of a group never share a frame
+        if np.isfinite(merged[:, 0]).sum() >= cfg.min_track_s * rate:
+            markers.append(merged)
+    markers.sort(key=lambda m: np.flatnonzero(np.isfinite(m[:, 0]))[0])
+    out = np.stack(markers, axis=1) if markers else np.full((len(rows), 0, 3), np.nan)
+    return out, [f"M{k + 1:03d}" for k in range(out.shape[1])]

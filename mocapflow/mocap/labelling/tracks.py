@@ -1,0 +1,182 @@
+"""The confirmed tracks of the labeller and what they learn from labelled frames: kinematic state, running
+distance statistics between tracks, neighbour sets and snapshots of each track with its neighbours."""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial.distance import cdist
+
+from mocapflow.mocap.labelling.assignment import norm
+from mocapflow.mocap.labelling.config import SD_FLOOR_MM, STATS_HZ, LabellerConfig
+
+
+class Tracks:
+    """Per confirmed track, in track order: last observation, velocity, consecutive frames seen, neighbours and a
+    ring of snapshots of the track with its neighbours (row 0 the track itself); per pair of tracks, running distance
+    statistics (Welford) and whether they are declared segment mates. ``add`` grows every array by one track."""
+
+    def __init__(self, config: LabellerConfig, rate: float) -> None:
+        self.config = config
+        self.rate = rate
+        self.stats_every = max(1, round(rate / STATS_HZ))
+        k = config.neighbours
+        self.pos = np.empty((0, 3))
+        self.vel = np.empty((0, 3))
+        self.last = np.empty(0)
+        self.streak = np.empty(0, np.int64)
+        self.anchors = np.empty((0, k), np.intp)
+        self.anchor_w = np.empty((0, k))
+        self.poses = np.empty((0, config.poses, k + 1, 3))
+        self.pose_count = np.empty(0, np.int64)
+        self.pose_time = np.empty(0)
+        self.span = np.empty((0, k, 2))  # nearest and farthest each neighbour has been in the snapshots
+        self.pair_n = np.empty((0, 0))
+        self.pair_mean = np.empty((0, 0))
+        self.pair_m2 = np.empty((0, 0))
+        self.mates = np.empty((0, 0), bool)
+        self.next_select = config.rigid_min_s
+
+    def add(self) -> None:
+        """Append a track with empty state."""
+        k = self.anchors.shape[1]
+        self.pos = np.vstack([self.pos, np.full((1, 3), np.nan)])
+        self.vel = np.vstack([self.vel, np.zeros((1, 3))])
+        self.last = np.append(self.last, -np.inf)
+        self.streak = np.append(self.streak, 0)
+        self.anchors = np.vstack([self.anchors, np.full((1, k), -1, np.intp)])
+        self.anchor_w = np.vstack([self.anchor_w, np.zeros((1, k))])
+        self.poses = np.concatenate([self.poses, np.full((1, self.config.poses, k + 1, 3), np.nan)])
+        self.pose_count = np.append(self.pose_count, 0)
+        self.pose_time = np.append(self.pose_time, -np.inf)
+        self.span = np.concatenate([self.span, np.tile([np.inf, -np.inf], (1, k, 1))])
+        self.pair_n, self.pair_mean, self.pair_m2 = (
+            np.pad(a, ((0, 1), (0, 1))) for a in (self.pair_n, self.pair_mean, self.pair_m2))
+        self.mates = np.pad(self.mates, ((0, 1), (0, 1)))
+
+    def set_mates(self, mates: np.ndarray) -> None:
+        """Declare segment mates ``(T, T)`` bool; neighbour sets widen to hold them and are chosen again."""
+        self.mates = mates
+        width = max(self.config.neighbours, int(mates.sum(axis=1).max(initial=0)))
+        extra = width - self.anchors.shape[1]
+        if extra > 0:
+            self.anchors = np.pad(self.anchors, ((0, 0), (0, extra)), constant_values=-1)
+            self.anchor_w = np.pad(self.anchor_w, ((0, 0), (0, extra)))
+            self.poses = np.pad(self.poses, ((0, 0), (0, 0), (0, extra), (0, 0)), constant_values=np.nan)
+            self.span = np.concatenate([self.span, np.tile([np.inf, -np.inf], (len(self.span), extra, 1))], axis=1)
+        self.next_select = -np.inf
+
+    def plausible(self, tracks: np.ndarray, cur: np.ndarray, z: np.ndarray) -> np.ndarray:
+        """``(T, B)``: where point ``z[b]`` can be the marker of ``tracks[t]``: its distances to three of the track's
+        neighbours seen now (all, if fewer; one at least) are ones the snapshots have shown, give or take
+        ``reid_gate_mm``."""
+        anchors = self.anchors[tracks]
+        now = np.where((anchors >= 0)[..., None], cur[anchors], np.nan)
+        d = cdist(now.reshape(-1, 3), z).reshape(*now.shape[:2], len(z))
+        span = self.span[tracks]
+        fits = (d >= span[..., :1] - self.config.reid_gate_mm) & (d <= span[..., 1:] + self.config.reid_gate_mm)
+        seen = np.isfinite(d[:, :, 0]).sum(axis=1)[:, None]
+        return (fits.sum(axis=1) >= np.minimum(seen, 3)) & (seen >= 1)
+
+    def rigid(self, tracks: np.ndarray, others: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Learnt mean (NaN where the two are not one rigid body) and standard deviation of the distance between
+        each of ``tracks`` and each of ``others``."""
+        cfg = self.config
+        block = np.ix_(tracks, others)
+        n = self.pair_n[block]
+        sd = np.sqrt(self.pair_m2[block] / np.maximum(n - 1.0, 1.0))
+        rigid = (n >= cfg.rigid_min_s * self.rate / self.stats_every) & (sd <= cfg.rigid_sd_mm)
+        return np.where(rigid, self.pair_mean[block], np.nan), sd
+
+    def observe(self, cur: np.ndarray, time: float) -> None:
+        """Update the kinematic state of confirmed tracks from this frame's matches."""
+        seen = np.isfinite(cur[:, 0])
+        m = np.flatnonzero(seen)
+        dt = time - self.last[m]
+        measured = (cur[m] - self.pos[m]) / dt[:, None]
+        prev = self.streak[m]
+        smooth = self.vel[m] + self.config.velocity_smoothing * (measured - self.vel[m])
+        # a velocity measured across a long gap says little about the motion now
+        across = np.where((dt <= self.config.max_coast_s)[:, None], measured, 0.0)
+        self.vel[m] = np.where((prev >= 2)[:, None], smooth, np.where((prev == 1)[:, None], measured, across))
+        self.pos[m] = cur[m]
+        self.last[m] = time
+        self.streak = np.where(seen, np.where(self.streak > 0, self.streak + 1, 1), 0)
+
+    def learn(self, cur: np.ndarray, time: float, frame: int) -> None:
+        """Learn from this frame's labelled points: distance statistics and neighbour sets (at up to ``STATS_HZ``),
+        and snapshots."""
+        seen = np.flatnonzero(np.isfinite(cur[:, 0]))
+        self._remember(seen, cur, time)
+        if len(seen) < 2 or frame % self.stats_every:
+            return
+        block = np.ix_(seen, seen)
+        d = cdist(cur[seen], cur[seen])
+        n = self.pair_n[block] + 1.0
+        mean = self.pair_mean[block]
+        delta = d - mean
+        mean = mean + delta / n
+        self.pair_n[block], self.pair_mean[block] = n, mean
+        self.pair_m2[block] += delta * (d - mean)
+        if time >= self.next_select:
+            self._select_neighbours(seen, time)
+            self.next_select = time + self.config.reselect_s
+        else:
+            alone = seen[self.anchors[seen].max(axis=1) < 0]
+            if len(alone):
+                self._select_neighbours(alone, time)
+
+    def _select_neighbours(self, tracks: np.ndarray, time: float) -> None:
+        """Choose each track's neighbours: its segment mates if known, else the markers keeping the steadiest distance.
+
+        Only markers seen lately qualify, so a marker lost for good stops being anyone's neighbour. A track whose
+        neighbours change starts its snapshots afresh. Each neighbour is weighted by the inverse variance of its
+        distance, so a loose one helps when the steady ones are hidden without spoiling the fit when they are not.
+        """
+        cfg = self.config
+        n = self.pair_n[tracks]
+        sd = np.sqrt(self.pair_m2[tracks] / np.maximum(n - 1.0, 1.0))
+        recent = self.last >= time - cfg.reselect_s
+        rigid = (n >= cfg.rigid_min_s * self.rate / self.stats_every) & (sd <= cfg.neighbour_sd_mm) & recent[None]
+        rigid[np.arange(len(tracks)), tracks] = False
+        # steadiest first, favouring near markers as the thesis does; current neighbours that still qualify stay, so
+        # snapshots are not discarded for a marginal gain
+        score = np.where(rigid, sd + 0.02 * self.pair_mean[tracks], np.inf)
+        current = self.anchors[tracks]
+        rows = np.repeat(np.arange(len(tracks)), current.shape[1])
+        held = current.ravel() >= 0
+        score[rows[held], current.ravel()[held]] -= 1e3
+        mates = self.mates[tracks]
+        enough = mates.sum(axis=1) >= 3
+        score = np.where(mates, -1e4 + 1e-6 * self.pair_mean[tracks], np.where(enough[:, None], np.inf, score))
+        width = self.anchors.shape[1]
+        order = np.argsort(score, axis=1)[:, :width]
+        chosen = np.where(np.isfinite(np.take_along_axis(score, order, axis=1)), order, -1)
+        chosen = np.sort(chosen, axis=1)
+        if chosen.shape[1] < width:
+            chosen = np.pad(chosen, ((0, 0), (0, width - chosen.shape[1])), constant_values=-1)
+        spread = np.take_along_axis(sd, np.maximum(chosen, 0), axis=1)
+        self.anchor_w[tracks] = np.where(chosen >= 0, 1.0 / (spread**2 + SD_FLOOR_MM**2), 0.0)
+        changed = (chosen != self.anchors[tracks]).any(axis=1)
+        moved = tracks[changed]
+        self.anchors[moved] = chosen[changed]
+        self.poses[moved] = np.nan
+        self.pose_count[moved] = 0
+        self.pose_time[moved] = -np.inf
+        self.span[moved] = [np.inf, -np.inf]
+
+    def _remember(self, seen: np.ndarray, cur: np.ndarray, time: float) -> None:
+        """Snapshot, every ``pose_interval_s``, each seen track together with its neighbours (3 or more seen), and
+        the range of its distances to each neighbour."""
+        seen = seen[time - self.pose_time[seen] >= self.config.pose_interval_s]
+        if len(seen) == 0:
+            return
+        anchors = self.anchors[seen]
+        x = np.concatenate([cur[seen, None], np.where((anchors >= 0)[..., None], cur[anchors], np.nan)], axis=1)
+        due = np.isfinite(x[:, 1:, 0]).sum(axis=1) >= 3
+        tracks = seen[due]
+        self.poses[tracks, self.pose_count[tracks] % self.config.poses] = x[due]
+        self.pose_count[tracks] += 1
+        self.pose_time[tracks] = time
+        d = norm(x[due, 1:] - x[due, :1])
+        self.span[tracks, :, 0] = np.fmin(self.span[tracks, :, 0], d)
+        self.span[tracks, :, 1] = np.fmax(self.span[tracks, :, 1], d)
