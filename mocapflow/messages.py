@@ -11,7 +11,7 @@ orjson encodes numpy arrays natively (NaN becomes null), which keeps a 60-marker
 
 from __future__ import annotations
 
-from typing import Annotated, Any, ClassVar, Literal
+from typing import TYPE_CHECKING, Annotated, Any, ClassVar, Literal
 
 import numpy as np
 import orjson
@@ -74,16 +74,14 @@ def _array(dtype: type, width: int | None) -> Any:
     ]
 
 
-Points = _array(np.float32, 3)
-Rays = _array(np.float32, 6)
-Quaternions = _array(np.float64, 4)
-Flags = _array(np.uint8, None)
-Indices = _array(np.int32, None)
-
-# Per-sample flags carried in MarkerFrame.flags (and written to files).
-FLAG_MISSING = 0
-FLAG_OBSERVED = 1
-FLAG_ESTIMATED = 2
+if TYPE_CHECKING:  # to a type checker the fields are plain arrays
+    Points = Rays = Quaternions = Flags = Indices = np.ndarray
+else:
+    Points = _array(np.float32, 3)
+    Rays = _array(np.float32, 6)
+    Quaternions = _array(np.float64, 4)
+    Flags = _array(np.uint8, None)
+    Indices = _array(np.int32, None)
 
 
 class Message(BaseModel):
@@ -181,7 +179,10 @@ class NodeStats(BaseModel):
         return f"application/json;{SCHEMA_PREFIX}{cls.type_name}"
 
 
-MESSAGE_TYPES: dict[str, type[BaseModel]] = {
+MessageType = type[Message] | type[NodeStats]
+"""A type that travels on the wire: a message, or a node's statistics."""
+
+MESSAGE_TYPES: dict[str, MessageType] = {
     t.type_name: t for t in (MarkerFrame, Segments, Skeleton, Pose, SimTruth, NodeStats)
 }
 
@@ -191,7 +192,7 @@ def encode(message: BaseModel) -> bytes:
     return orjson.dumps(message.model_dump(mode="python"), option=orjson.OPT_SERIALIZE_NUMPY)
 
 
-def decode(payload: bytes | bytearray | memoryview, message_type: type[BaseModel]) -> Any:
+def decode(payload: bytes | bytearray | memoryview, message_type: MessageType) -> Any:
     """Parse and validate a payload as ``message_type``; raise DecodeError with a one-line reason otherwise."""
     try:
         data = orjson.loads(payload)
@@ -209,7 +210,7 @@ def decode(payload: bytes | bytearray | memoryview, message_type: type[BaseModel
         ) from None
 
 
-def json_schema(message_type: type[BaseModel]) -> dict[str, Any]:
+def json_schema(message_type: MessageType) -> dict[str, Any]:
     """The JSON Schema of a message type, as served to clients in other languages."""
     schema = message_type.model_json_schema(mode="serialization")
     schema["$id"] = f"{SCHEMA_PREFIX}{message_type.type_name}"

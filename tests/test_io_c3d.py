@@ -17,15 +17,8 @@ import pytest
 import mocapflow.io.c3d as c3d_module
 from mocapflow.errors import MocapFileError
 from mocapflow.io.c3d import read_c3d, write_c3d
-from mocapflow.io.markers import (
-    FLAG_ESTIMATED,
-    FLAG_MISSING,
-    FLAG_OBSERVED,
-    MarkerData,
-    clean_labels,
-    read_markers,
-    write_markers,
-)
+from mocapflow.io.markerdata import FLAG_ESTIMATED, FLAG_MISSING, FLAG_OBSERVED, MarkerData, clean_labels
+from mocapflow.io.markers import read_markers, write_markers
 
 
 def synthetic(frames: int = 60, markers: int = 6, first_frame: int = 1, seed: int = 0) -> MarkerData:

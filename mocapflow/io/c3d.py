@@ -31,7 +31,7 @@ import ezc3d
 import numpy as np
 
 from mocapflow.errors import MocapFileError
-from mocapflow.io.markers import (
+from mocapflow.io.markerdata import (
     FLAG_ESTIMATED,
     FLAG_MAX,
     FLAG_MISSING,

@@ -15,7 +15,7 @@ from typing import Final
 import numpy as np
 
 from mocapflow.errors import MocapFileError
-from mocapflow.io.markers import (
+from mocapflow.io.markerdata import (
     FLAG_MISSING,
     FLAG_OBSERVED,
     MarkerData,

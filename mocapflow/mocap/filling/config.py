@@ -4,25 +4,12 @@ frame."""
 from __future__ import annotations
 
 from collections.abc import Callable
-from enum import IntEnum
 from typing import Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-
-class FillCase(IntEnum):
-    """Per-marker flag of a filled frame: how its position was obtained."""
-
-    MISSING = 0  # unfillable, left NaN
-    OBSERVED = 1
-    KALMAN = 2  # the marker's own filter only
-    ONE_MISSING = 3  # two or more markers of the segment visible (rigid fit, or the two-sphere circle)
-    TWO_MISSING = 4  # one marker of the segment visible (rotated offset)
-    VIA_JOINT = 5  # whole segment hidden, placed through the neighbour's centre of rotation
-    CONSTANT_ROTOR = 6  # segment and neighbours hidden: through an estimated neighbour's joint, else constant rotor
-    RAY = 7  # seen by a single camera: on its ray
-
+from mocapflow.mocap.flags import FillCase
 
 CASE_MISSING, CASE_OBSERVED, CASE_KALMAN = int(FillCase.MISSING), int(FillCase.OBSERVED), int(FillCase.KALMAN)
 CASE_ONE_MISSING = int(FillCase.ONE_MISSING)
