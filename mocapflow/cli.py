@@ -44,7 +44,7 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         return 130
     except BrokenPipeError:  # output piped into a reader that closed early (`| head`): not an error
-        sys.stdout = None  # type: ignore[assignment]  # nothing left to flush at exit
+        sys.stdout = None  # type: ignore[assignment,unused-ignore]  # nothing left to flush at exit
         return 0
 
 

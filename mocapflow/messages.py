@@ -11,7 +11,7 @@ orjson encodes numpy arrays natively (NaN becomes null), which keeps a 60-marker
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Annotated, Any, ClassVar, Literal
+from typing import TYPE_CHECKING, Annotated, Any, ClassVar, Literal, Self, TypeAlias
 
 import numpy as np
 import orjson
@@ -47,7 +47,7 @@ def _array(dtype: type, width: int | None) -> Any:
 
     def validate(value: Any) -> np.ndarray:
         try:
-            arr = np.asarray(value, dtype=dtype)
+            arr: np.ndarray = np.asarray(value, dtype=dtype)
         except (TypeError, ValueError) as exc:
             raise ValueError(f"not an array of {np.dtype(dtype).name}: {exc}") from None
         if width is None:
@@ -62,7 +62,7 @@ def _array(dtype: type, width: int | None) -> Any:
             raise ValueError(f"expected shape (n, {width}), got {arr.shape}")
         return arr
 
-    item = {"type": "number"} if np.dtype(dtype).kind == "f" else {"type": "integer"}
+    item: dict[str, Any] = {"type": "number"} if np.dtype(dtype).kind == "f" else {"type": "integer"}
     if np.dtype(dtype).kind == "f":
         item = {"anyOf": [item, {"type": "null"}]}
     doc = f"flat row-major array, {width} values per row" if width else "flat array"
@@ -75,7 +75,11 @@ def _array(dtype: type, width: int | None) -> Any:
 
 
 if TYPE_CHECKING:  # to a type checker the fields are plain arrays
-    Points = Rays = Quaternions = Flags = Indices = np.ndarray
+    Points: TypeAlias = np.ndarray
+    Rays: TypeAlias = np.ndarray
+    Quaternions: TypeAlias = np.ndarray
+    Flags: TypeAlias = np.ndarray
+    Indices: TypeAlias = np.ndarray
 else:
     Points = _array(np.float32, 3)
     Rays = _array(np.float32, 6)
@@ -100,6 +104,14 @@ class Message(BaseModel):
     @classmethod
     def encoding(cls) -> str:
         return f"application/json;{SCHEMA_PREFIX}{cls.type_name}"
+
+    @classmethod
+    def derive(cls, source: Message, **fields: Any) -> Self:
+        """A message of this type about the same tracker frame as ``source``: its frame number, capture time and
+        (where both types have one) rate carried over, ``fields`` giving the rest (or overriding them)."""
+        carried: dict[str, Any] = {name: getattr(source, name) for name in ("frame", "capture_ns", "rate")
+                   if name in cls.model_fields and name in type(source).model_fields}
+        return cls(**{**carried, **fields})
 
 
 class MarkerFrame(Message):

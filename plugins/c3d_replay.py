@@ -15,7 +15,7 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from mocapflow.io.markers import read_markers
 from mocapflow.messages import MarkerFrame
-from mocapflow.runtime.node import Node, Output, Publish
+from mocapflow.runtime.node import Node, Output
 
 
 class ReplayConfig(BaseModel):
@@ -37,7 +37,7 @@ class ReplayConfig(BaseModel):
         return self
 
 
-class FileReplay(Node):
+class FileReplay(Node[ReplayConfig]):
     """Streams a marker file at its own rate (times ``speed``). Frame numbers are the file's own (its first frame
     number plus the row), so a recording of the stream is numbered like the file; when looping they keep rising, so
     downstream stages see one continuous capture. The stream ends after the last frame unless looping."""
@@ -45,20 +45,19 @@ class FileReplay(Node):
     Config = ReplayConfig
     outputs = {"markers": Output(MarkerFrame, doc="the file's markers, labelled or as an unlabelled point cloud")}
 
-    def __init__(self, config: ReplayConfig, publish: Publish, name: str = "tracker") -> None:
-        super().__init__(config, publish, name)
-        data = read_markers(config.path)
-        end = min(config.end or len(data.positions), len(data.positions))
-        if config.start >= end:
-            raise ValueError(f"{config.path}: start frame {config.start} is past the last frame ({end - 1})")
-        self.positions = data.positions[config.start:end]
+    def setup(self) -> None:
+        data = read_markers(self.config.path)
+        end = min(self.config.end or len(data.positions), len(data.positions))
+        if self.config.start >= end:
+            raise ValueError(f"{self.config.path}: start frame {self.config.start} is past the last frame ({end - 1})")
+        self.positions = data.positions[self.config.start:end]
         if not np.isfinite(self.positions).all(axis=2).any():
-            raise ValueError(f"{config.path}: no marker position in frames {config.start} to {end - 1}")
-        self.first_frame = data.first_frame + config.start
+            raise ValueError(f"{self.config.path}: no marker position in frames {self.config.start} to {end - 1}")
+        self.first_frame = data.first_frame + self.config.start
         self.labels = data.labels
         self.file_rate = data.rate
-        self.rate = data.rate * config.speed
-        self.log.info("replaying %s: %d frames x %d markers at %g Hz", config.path, len(self.positions),
+        self.rate = data.rate * self.config.speed
+        self.log.info("replaying %s: %d frames x %d markers at %g Hz", self.config.path, len(self.positions),
                       len(self.labels), self.rate)
 
     def emit(self, index: int) -> bool:

@@ -2,14 +2,14 @@
 
 from __future__ import annotations
 
-from typing import ClassVar, Literal
+from typing import Any, ClassVar, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
 from mocapflow.io.skeleton import read_skeleton
 from mocapflow.messages import MarkerFrame, Segments
 from mocapflow.mocap.clustering import SegmentTracker
-from mocapflow.runtime.node import Input, Node, Output, Publish
+from mocapflow.runtime.node import Input, Node, Output
 
 
 class ClustererConfig(BaseModel):
@@ -26,7 +26,7 @@ class DistanceClustererConfig(ClustererConfig):
     threshold_mm: float = Field(default=5.0, gt=0, description="largest distance spread within a segment (mm)")
 
 
-class SpectralClusterer(Node):
+class SpectralClusterer(Node[ClustererConfig]):
     """Spectral clustering of the distance-spread graph with local scaling (Schoenauer 2007, 3.4). Publishes a
     segment model after one window and again only when it changes (at once, when seeded with a saved skeleton)."""
 
@@ -35,19 +35,18 @@ class SpectralClusterer(Node):
     inputs = {"markers": Input(MarkerFrame, doc="labelled markers")}
     outputs = {"segments": Output(Segments, state=True, doc="the current segment model")}
 
-    def __init__(self, config: ClustererConfig, publish: Publish, name: str = "clusterer") -> None:
-        super().__init__(config, publish, name)
+    def setup(self) -> None:
         self.tracker: SegmentTracker | None = None
-        self.seed = read_skeleton(config.skeleton).segments if config.skeleton else None
+        self.seed = read_skeleton(self.config.skeleton).segments if self.config.skeleton else None
 
-    def options(self) -> dict[str, object]:
+    def options(self) -> dict[str, Any]:
         return {"k": self.config.segments}
 
     def process(self, port: str, message: MarkerFrame) -> None:
         if message.labels is None:
             raise ValueError("the clusterer needs labelled markers: link it after a labeller")
         if self.seed is not None:  # a calibrated subject: its segments from the first frame, no warm-up
-            self.publish("segments", Segments(frame=message.frame, capture_ns=message.capture_ns, segments=self.seed))
+            self.publish("segments", Segments.derive(message, segments=self.seed))
             self.seed = None
         if self.tracker is None or self.tracker.labels != message.labels:
             # new markers were confirmed upstream: start the statistics again over the new set
@@ -58,8 +57,7 @@ class SpectralClusterer(Node):
         model = self.tracker.update(message.positions)
         if model is not None:
             self.log.info("segments: %s", "; ".join(f"{s.name}: {' '.join(s.markers)}" for s in model.segments))
-            self.publish("segments", Segments(frame=message.frame, capture_ns=message.capture_ns,
-                                              segments=model.segments))
+            self.publish("segments", Segments.derive(message, segments=model.segments))
 
 
 class DistanceClusterer(SpectralClusterer):
@@ -68,5 +66,7 @@ class DistanceClusterer(SpectralClusterer):
     Config = DistanceClustererConfig
     method = "distance-threshold"
 
-    def options(self) -> dict[str, object]:
-        return {"k": self.config.segments, "threshold_mm": self.config.threshold_mm}
+    def options(self) -> dict[str, Any]:
+        config = self.config
+        assert isinstance(config, DistanceClustererConfig)
+        return {"k": config.segments, "threshold_mm": config.threshold_mm}

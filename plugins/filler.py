@@ -9,14 +9,14 @@ from mocapflow.io.skeleton import read_skeleton
 from mocapflow.messages import MarkerFrame, Skeleton
 from mocapflow.mocap.filling import FillerConfig, GapFiller
 from mocapflow.mocap.model import SkeletonModel
-from mocapflow.runtime.node import Input, Node, Output, Publish
+from mocapflow.runtime.node import Input, Node, Output
 
 
 class FillerNodeConfig(FillerConfig):
     skeleton: str | None = Field(default=None, description="SKELETON.json to fill with from the first frame")
 
 
-class Filler(Node):
+class Filler(Node[FillerNodeConfig]):
     """Kalman filter per marker fused with rigid-body constraints; causal. Flags say how each sample was obtained.
     Also publishes, after each frame, its prediction of the next one (the labeller re-identifies markers with it)."""
 
@@ -30,10 +30,8 @@ class Filler(Node):
         "predictions": Output(MarkerFrame, doc="predicted positions for the next frame"),
     }
 
-    def __init__(self, config: FillerNodeConfig, publish: Publish, name: str = "filler") -> None:
-        super().__init__(config, publish, name)
-        self.filler_config = FillerConfig.model_validate(config.model_dump(exclude={"skeleton"}))
-        self.model: SkeletonModel | None = read_skeleton(config.skeleton) if config.skeleton else None
+    def setup(self) -> None:
+        self.model: SkeletonModel | None = read_skeleton(self.config.skeleton) if self.config.skeleton else None
         self.filler: GapFiller | None = None
 
     def process(self, port: str, message: MarkerFrame | Skeleton) -> None:
@@ -46,10 +44,9 @@ class Filler(Node):
             raise ValueError("the filler needs labelled markers: link it after a labeller")
         if self.filler is None or self.filler.labels != message.labels:
             # new markers confirmed upstream: a filler for the new marker set
-            self.filler = GapFiller(message.labels, message.rate, self.filler_config, self.model)
+            self.filler = GapFiller(message.labels, message.rate, self.config, self.model)
         result = self.filler.update(message.positions.astype(np.float64), message.rays)
-        self.publish("markers", MarkerFrame(frame=message.frame, capture_ns=message.capture_ns, rate=message.rate,
-                                            positions=result.positions, labels=message.labels, flags=result.flags))
-        self.publish("predictions", MarkerFrame(frame=message.frame + 1, capture_ns=message.capture_ns,
-                                                rate=message.rate, positions=self.filler.predict_next(),
-                                                labels=message.labels))
+        self.publish("markers", MarkerFrame.derive(message, positions=result.positions, labels=message.labels,
+                                                   flags=result.flags))
+        self.publish("predictions", MarkerFrame.derive(message, frame=message.frame + 1,
+                                                       positions=self.filler.predict_next(), labels=message.labels))

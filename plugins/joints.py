@@ -12,7 +12,7 @@ from mocapflow.errors import CalibrationError
 from mocapflow.io.skeleton import read_skeleton
 from mocapflow.messages import MarkerFrame, Segments, Skeleton
 from mocapflow.mocap.calibration import build_skeleton
-from mocapflow.runtime.node import Input, Node, Output, Publish
+from mocapflow.runtime.node import Input, Node, Output
 
 
 class JointsConfig(BaseModel):
@@ -24,7 +24,7 @@ class JointsConfig(BaseModel):
     every_s: float = Field(default=5.0, gt=0, description="time between two estimates (s)")
 
 
-class VarianceJoints(Node):
+class VarianceJoints(Node[JointsConfig]):
     """Joint positions minimising the variance of marker-to-joint distances (Schoenauer 2007, 3.5), topology by
     minimum spanning tree, rigid parameters by Horn's method; recomputed over a sliding window of recent frames."""
 
@@ -36,9 +36,8 @@ class VarianceJoints(Node):
     }
     outputs = {"skeleton": Output(Skeleton, state=True, doc="the current skeleton model")}
 
-    def __init__(self, config: JointsConfig, publish: Publish, name: str = "joints") -> None:
-        super().__init__(config, publish, name)
-        self.seed = read_skeleton(config.skeleton) if config.skeleton else None
+    def setup(self) -> None:
+        self.seed = read_skeleton(self.config.skeleton) if self.config.skeleton else None
         self.published = False
         self.segments: Segments | None = None
         self.frames: deque[np.ndarray] = deque()
@@ -51,7 +50,7 @@ class VarianceJoints(Node):
             return
         if self.seed is not None and not self.published:
             self.published = True
-            self.publish("skeleton", Skeleton(frame=message.frame, capture_ns=message.capture_ns, skeleton=self.seed))
+            self.publish("skeleton", Skeleton.derive(message, skeleton=self.seed))
         if not self.config.refine or message.labels is None:
             return
         if message.labels != self.labels:
@@ -82,7 +81,7 @@ class VarianceJoints(Node):
         self.published = True
         self.log.info("skeleton: root %s, joints %s", skeleton.root,
                       ", ".join(f"{j.parent}-{j.child}" for j in skeleton.joints))
-        self.publish("skeleton", Skeleton(frame=message.frame, capture_ns=message.capture_ns, skeleton=skeleton))
+        self.publish("skeleton", Skeleton.derive(message, skeleton=skeleton))
 
 
 class ClosedFormJoints(VarianceJoints):

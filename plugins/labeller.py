@@ -6,10 +6,10 @@ import numpy as np
 
 from mocapflow.messages import MarkerFrame, Segments
 from mocapflow.mocap.labelling import Labeller, LabellerConfig
-from mocapflow.runtime.node import Input, Node, Output, Publish
+from mocapflow.runtime.node import Input, Node, Output
 
 
-class LabellerNode(Node):
+class LabellerNode(Node[LabellerConfig]):
     """Tracks points frame to frame; re-identifies reappearing markers from their segment mates or, when linked, from
     the gap filler's predictions. Publishes the confirmed markers in a fixed order that only grows, with the
     single-camera rays it could attribute to markers it did not see."""
@@ -22,8 +22,7 @@ class LabellerNode(Node):
     }
     outputs = {"markers": Output(MarkerFrame, doc="labelled markers, NaN where not seen")}
 
-    def __init__(self, config: LabellerConfig, publish: Publish, name: str = "labeller") -> None:
-        super().__init__(config, publish, name)
+    def setup(self) -> None:
         self.labeller: Labeller | None = None
         self.predictions: MarkerFrame | None = None
         self.segments: Segments | None = None
@@ -45,9 +44,8 @@ class LabellerNode(Node):
         rays = None if frame.rays is None else frame.rays.astype(np.float64)
         result = labeller.update(frame.positions.astype(np.float64), frame.frame / frame.rate, self._predicted(frame),
                                  rays)
-        self.publish("markers", MarkerFrame(frame=frame.frame, capture_ns=frame.capture_ns, rate=frame.rate,
-                                            positions=result.positions, labels=list(labeller.labels),
-                                            rays=result.rays))
+        self.publish("markers", MarkerFrame.derive(frame, positions=result.positions, labels=list(labeller.labels),
+                                                   rays=result.rays))
         if len(labeller.labels) != before:
             self._apply_segments()
 

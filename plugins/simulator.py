@@ -9,14 +9,14 @@ from pydantic import Field
 from mocapflow.io.bvh import read_bvh
 from mocapflow.messages import MarkerFrame, SimTruth
 from mocapflow.mocap.simulator import Simulator, SimulatorConfig
-from mocapflow.runtime.node import Node, Output, Publish
+from mocapflow.runtime.node import Node, Output
 
 
 class SimulatorNodeConfig(SimulatorConfig):
     frames: int | None = Field(default=None, ge=1, description="stop after this many frames; none: run until stopped")
 
 
-class SimulatorNode(Node):
+class SimulatorNode(Node[SimulatorNodeConfig]):
     """Simulated tracker publishing marker frames at the configured rate, plus ground truth for evaluation."""
 
     Config = SimulatorNodeConfig
@@ -26,11 +26,9 @@ class SimulatorNode(Node):
         "truth": Output(SimTruth, doc="identities, true positions and joint centres of each frame"),
     }
 
-    def __init__(self, config: SimulatorNodeConfig, publish: Publish, name: str = "simulator") -> None:
-        super().__init__(config, publish, name)
-        sim_config = SimulatorConfig.model_validate(config.model_dump(exclude={"frames"}))
-        self.sim = Simulator(sim_config, read_bvh(config.bvh) if config.bvh else None)
-        self.rate = config.rate
+    def setup(self) -> None:
+        self.sim = Simulator(self.config, read_bvh(self.config.bvh) if self.config.bvh else None)
+        self.rate = self.config.rate
         self.labels = list(self.sim.rig.marker_labels)
 
     def emit(self, index: int) -> bool:

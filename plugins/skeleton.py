@@ -9,7 +9,7 @@ from mocapflow.io.skeleton import read_skeleton
 from mocapflow.messages import MarkerFrame, Pose, Skeleton
 from mocapflow.mocap.model import SkeletonModel
 from mocapflow.mocap.solve import solve
-from mocapflow.runtime.node import Input, Node, Output, Publish
+from mocapflow.runtime.node import Input, Node, Output
 
 
 class SkeletonConfig(BaseModel):
@@ -18,7 +18,7 @@ class SkeletonConfig(BaseModel):
     skeleton: str | None = Field(default=None, description="SKELETON.json to use until a model arrives")
 
 
-class SkeletonPublisher(Node):
+class SkeletonPublisher(Node[SkeletonConfig]):
     """Fits the rigid skeleton to each frame, root first (Schoenauer 2007, 3.8.2). Fed with filled markers, joint
     centres stay available through occlusions."""
 
@@ -29,9 +29,8 @@ class SkeletonPublisher(Node):
     }
     outputs = {"pose": Output(Pose, doc="joint centres and segment rotations")}
 
-    def __init__(self, config: SkeletonConfig, publish: Publish, name: str = "skeleton") -> None:
-        super().__init__(config, publish, name)
-        self.model: SkeletonModel | None = read_skeleton(config.skeleton) if config.skeleton else None
+    def setup(self) -> None:
+        self.model: SkeletonModel | None = read_skeleton(self.config.skeleton) if self.config.skeleton else None
 
     def process(self, port: str, message: MarkerFrame | Skeleton) -> None:
         self.process_batch(port, [message])
@@ -39,18 +38,23 @@ class SkeletonPublisher(Node):
     def process_batch(self, port: str, messages: list[MarkerFrame | Skeleton]) -> None:
         """Frames that queued up are solved together: the solver is vectorised over frames."""
         if port == "skeleton":
-            self.model = messages[-1].skeleton
+            last = messages[-1]
+            assert isinstance(last, Skeleton)
+            self.model = last.skeleton
             return
-        labels = messages[0].labels
+        self._solve([m for m in messages if isinstance(m, MarkerFrame)])
+
+    def _solve(self, frames: list[MarkerFrame]) -> None:
+        labels = frames[0].labels
         if self.model is None or labels is None:
             return
-        if any(m.labels != labels for m in messages):  # the marker set changed inside the batch: split it
-            cut = next(i for i, m in enumerate(messages) if m.labels != labels)
-            self.process_batch(port, messages[:cut])
-            self.process_batch(port, messages[cut:])
+        if any(m.labels != labels for m in frames):  # the marker set changed inside the batch: split it
+            cut = next(i for i, m in enumerate(frames) if m.labels != labels)
+            self._solve(frames[:cut])
+            self._solve(frames[cut:])
             return
-        pose = solve(self.model, np.stack([m.positions for m in messages]).astype(np.float64), labels)
-        for i, m in enumerate(messages):
-            self.publish("pose", Pose(frame=m.frame, capture_ns=m.capture_ns, joint_names=pose.joint_names,
-                                      joint_centres=pose.joint_centres[i], segment_names=pose.segment_names,
-                                      rotations=pose.rotations[i], translations=pose.translations[i]))
+        pose = solve(self.model, np.stack([m.positions for m in frames]).astype(np.float64), labels)
+        for i, m in enumerate(frames):
+            self.publish("pose", Pose.derive(m, joint_names=pose.joint_names, joint_centres=pose.joint_centres[i],
+                                             segment_names=pose.segment_names, rotations=pose.rotations[i],
+                                             translations=pose.translations[i]))

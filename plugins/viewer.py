@@ -10,7 +10,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from mocapflow.messages import MarkerFrame, Pose, Skeleton
-from mocapflow.runtime.node import Input, Node, Publish
+from mocapflow.runtime.node import Input, Node
 
 
 class ViewerConfig(BaseModel):
@@ -21,7 +21,7 @@ class ViewerConfig(BaseModel):
     size_mm: float = Field(default=2500.0, gt=0, description="side of the cube shown around the markers")
 
 
-class Viewer(Node):
+class Viewer(Node[ViewerConfig]):
     """Shows the latest frame at up to ``fps``, skipping frames so that drawing never holds the stream back."""
 
     Config = ViewerConfig
@@ -31,13 +31,12 @@ class Viewer(Node):
         "skeleton": Input(Skeleton, required=False, state=True, doc="joint tree for the bones"),
     }
 
-    def __init__(self, config: ViewerConfig, publish: Publish, name: str = "viewer") -> None:
-        super().__init__(config, publish, name)
+    def setup(self) -> None:
         try:
             import matplotlib
         except ImportError:
             raise RuntimeError("the viewer needs matplotlib: pip install 'mocapflow[viewer]'") from None
-        if config.path or not os.environ.get("DISPLAY"):
+        if self.config.path or not os.environ.get("DISPLAY"):
             matplotlib.use("Agg")
         import matplotlib.pyplot as plt
 
@@ -48,7 +47,7 @@ class Viewer(Node):
         if self.interactive:
             plt.ion()
             plt.show(block=False)
-        elif not config.path:
+        elif not self.config.path:
             self.log.warning("no display: nothing will be shown; set path to write PNG snapshots")
         self.markers: MarkerFrame | None = None
         self.pose: Pose | None = None
@@ -75,12 +74,13 @@ class Viewer(Node):
 
     def draw(self) -> None:
         ax, frame = self.axes, self.markers
+        if frame is None:
+            return
         ax.cla()
         points = frame.positions[~np.isnan(frame.positions).any(axis=1)]
         centre = np.median(points, axis=0) if len(points) else np.zeros(3)
         half = self.config.size_mm / 2
-        estimated = frame.flags is not None
-        if estimated:
+        if frame.flags is not None:
             seen = frame.flags[~np.isnan(frame.positions).any(axis=1)] == 1
             ax.scatter(*points[seen].T, s=8, c="tab:blue", label="observed")
             ax.scatter(*points[~seen].T, s=14, c="tab:orange", label="estimated")

@@ -67,6 +67,8 @@ def _bare_zenoh(markers: int, rate: float, seconds: float) -> list[float]:
     latencies: list[float] = []
     with open_router([endpoint]), open_client([endpoint]) as pub_s, open_client([endpoint]) as sub_s:
         def on_sample(sample: zenoh.Sample) -> None:
+            if sample.attachment is None:
+                return
             sent = int.from_bytes(sample.attachment.to_bytes(), "little")
             latencies.append((time.time_ns() - sent) / 1e6)
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -37,7 +38,7 @@ def run(args: argparse.Namespace) -> int:
     rec = simulate(config, args.frames, read_bvh(config.bvh) if config.bvh else None)
     out = Path(args.output)
     out.parent.mkdir(parents=True, exist_ok=True)
-    truth: dict[str, np.ndarray] = {
+    truth: dict[str, Any] = {
         "labels": np.array(rec.labels), "true_positions": rec.true_positions, "visible": rec.visible,
         "joint_names": np.array(rec.joint_names), "joint_centres": rec.joint_centres,
         "joint_parent": np.array(rec.joint_parent), "joint_child": np.array(rec.joint_child),
@@ -45,7 +46,7 @@ def run(args: argparse.Namespace) -> int:
     }
     if rec.rays is not None:  # a C3D file has no place for them
         truth["rays"] = rec.rays
-    if rec.points is not None:
+    if rec.points is not None and rec.identity is not None:
         width = max(len(p) for p in rec.points)
         positions = np.full((args.frames, width, 3), np.nan)
         identity = np.full((args.frames, width), -1, np.int32)

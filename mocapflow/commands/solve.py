@@ -27,7 +27,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 def _rows(values: np.ndarray) -> list:
     """(F, K, D) floats as nested lists with null for rows holding a NaN."""
     rounded = np.round(values, 4)
-    known = np.isfinite(rounded).all(-1)
+    known = np.asarray(np.isfinite(rounded).all(-1))
     return [[row.tolist() if ok else None for row, ok in zip(frame, oks, strict=True)]
             for frame, oks in zip(rounded, known, strict=True)]
 

@@ -123,7 +123,7 @@ def _clean(positions: np.ndarray, labels: Sequence[str]) -> tuple[np.ndarray, np
                                "varied motion")
     positions[~np.isfinite(positions).all(-1) | (positions == 0).all(-1)] = np.nan
     seen = np.isfinite(positions).all(-1).mean(0)
-    rare = [labels[i] for i in np.flatnonzero(seen < MIN_VISIBLE)]
+    rare = [labels[int(i)] for i in np.flatnonzero(seen < MIN_VISIBLE)]
     if rare:
         log.warning("left out markers seen in under %d %% of the frames: %s", round(100 * MIN_VISIBLE), ", ".join(rare))
     usable = np.flatnonzero(seen >= MIN_VISIBLE)
@@ -193,7 +193,7 @@ def build_skeleton(positions: np.ndarray, labels: Sequence[str], rate: float, gr
         for parent, child in progress(edges, len(edges), "joints", enabled=show_progress):
             start = _start_track(positions, groups, poses, parent, child, chosen)
             if joint_method == "variance":
-                markers = positions[chosen][:, groups[parent] + groups[child]]
+                markers = positions[chosen][:, list(groups[parent]) + list(groups[child])]
                 start = fit_joint_variance(markers, start, max_iterations=30).centres
             tracks[parent, child] = start
 
@@ -220,30 +220,32 @@ def build_skeleton(positions: np.ndarray, labels: Sequence[str], rate: float, gr
                         "locate it", names[parent], names[child], motion[parent, child][0], MIN_ROTATION_DEG)
             tracks[parent, child] = _closest_track(positions[chosen], groups[parent], groups[child])
         fixed |= set(still)
-    estimates = {e: est for e, (_, est) in motion.items()}
+    estimates = {e: est for e, (_, est) in motion.items() if est is not None}
     # a hinge needs both segments' orientations (a segment of two markers is posed through its joints, unless they
     # all lie on a line)
-    oriented = {e for e in edges if not (shapes[e[0]].in_line or shapes[e[1]].in_line) and e not in fixed}
+    oriented = {e for e in edges if not (shapes[e[0]].in_line or shapes[e[1]].in_line) and e not in fixed
+                and e in estimates}
     located = [e for e in oriented if not estimates[e].is_hinge]  # joints whose data fix a point
     joints = []
     for parent, child in edges:
-        est = estimates[parent, child]
+        est = estimates.get((parent, child))
         around = [e for e in located if e != (parent, child)]
         p_near, c_near = [e for e in around if parent in e], [e for e in around if child in e]
-        hinge = (parent, child) in oriented and (est.is_hinge or bool(p_near and c_near and _level_fits(
-            est, [_offset(estimates[e], e, parent) for e in p_near],
-            [_offset(estimates[e], e, child) for e in c_near])))
+        hinge = est is not None and (parent, child) in oriented and (est.is_hinge or bool(
+            p_near and c_near and _level_fits(est, [_offset(estimates[e], e, parent) for e in p_near],
+                                              [_offset(estimates[e], e, child) for e in c_near])))
         p_off, c_off = offsets[parent, (parent, child)], offsets[child, (parent, child)]
-        if hinge and hinge_placement == "neighbours":
+        axis = est.axis if hinge and est is not None else None
+        if est is not None and hinge and hinge_placement == "neighbours":
             p_off, c_off = place_on_axis(p_off, c_off, est.axis, est.child_axis, [offsets[parent, e] for e in p_near],
                                          [offsets[child, e] for e in c_near])
         pp, pc = shapes[parent].pose, shapes[child].pose
         track = joint_track(pp.matrices(), pp.translations, pc.matrices(), pc.translations, p_off, c_off)
-        _, mean, sd = distance_stats(track, positions[chosen][:, groups[parent] + groups[child]], ALPHA)
+        _, mean, sd = distance_stats(track, positions[chosen][:, list(groups[parent]) + list(groups[child])], ALPHA)
         joints.append(Joint(
             name=f"{names[parent]}-{names[child]}", parent=names[parent], child=names[child],
             kind="hinge" if hinge else "ball", parent_offset=_vec(p_off), child_offset=_vec(c_off),
-            axis=_vec(est.axis) if hinge else None, cost=float(costs[parent, child]), distance_mean=mean,
+            axis=_vec(axis) if axis is not None else None, cost=float(costs[parent, child]), distance_mean=mean,
             distance_sd=sd, rotation_deg=float(motion[parent, child][0])))
     spread = distance_spread(positions, pair_frames(rate))
     segments_out = [Segment(name=names[s], markers=[labels[m] for m in g],
@@ -352,15 +354,16 @@ def _sequential_tracks(positions: np.ndarray, groups: Sequence[Sequence[int]], p
         mp, mc = positions[:, list(groups[parent])], positions[:, list(groups[child])]
         together = pp is not None and pc is not None and int(
             (np.isfinite(pp.rotations).all(1) & np.isfinite(pc.rotations).all(1)).sum()) >= MIN_TOGETHER
-        if together:
+        track: np.ndarray | None = None
+        if together and pp is not None and pc is not None:
             est = _closed_form(pp, pc)
             track = joint_track(pp.matrices(), pp.translations, pc.matrices(), pc.translations, est.parent_offset,
                                 est.child_offset)
         elif pp is not None or pc is not None:  # the better posed of the two carries the other's spheres
-            if pc is None or (pp is not None and np.isfinite(pp.rotations).all(1).sum() >=
-                              np.isfinite(pc.rotations).all(1).sum()):
+            if pp is not None and (pc is None or np.isfinite(pp.rotations).all(1).sum() >=
+                                   np.isfinite(pc.rotations).all(1).sum()):
                 track = _sphere_track(pp, mp, mc)
-            else:
+            elif pc is not None:
                 track = _sphere_track(pc, mc, mp)
         else:  # neither posed (a chain of two-marker segments under one in a line)
             track = None
@@ -416,9 +419,12 @@ def _pair_costs(positions: np.ndarray, groups: Sequence[Sequence[int]], poses: S
     starts = {}
     all_pairs = [(a, b) for a in range(n) for b in range(a + 1, n)]
     for a, b in progress(all_pairs, len(all_pairs), "joint costs", enabled=show_progress):
+        pa, pb = poses[a], poses[b]
         if joint_method == "closed-form":
-            both = np.isfinite(poses[a].rotations).all(1) & np.isfinite(poses[b].rotations).all(1)
-            cost = _closed_form(poses[a], poses[b]).residual if both.sum() >= MIN_TOGETHER else np.inf
+            both = (np.isfinite(pa.rotations).all(1) & np.isfinite(pb.rotations).all(1) if pa is not None
+                    and pb is not None else np.zeros(0, bool))
+            cost = _closed_form(pa, pb).residual if pa is not None and pb is not None and (
+                both.sum() >= MIN_TOGETHER) else np.inf
         else:
             starts[a, b] = _start_track(positions, groups, poses, a, b, frames)
             both = poses[a] is not None and poses[b] is not None

@@ -97,7 +97,7 @@ def _human() -> Rig:
     """Adult of about 1.75 m: 15 segments, 52 markers placed like a skin marker set with limb clusters."""
     hip, shoulder = ((-15, 35), (-80, 20), (-30, 30)), ((5, 100), (-100, 40), (-50, 50))
     ankle, wrist = ((-20, 20), (-30, 30), (-20, 20)), ((-25, 25), (-50, 50), (-40, 40))
-    left = {
+    left: dict[str, dict[str, tuple[float, float, float]]] = {
         "upper_arm": {"LUA1": (-20, 65, -90), "LUA2": (-55, 50, -200), "LUA3": (30, 60, -230)},
         "forearm": {"LFA1": (-45, 40, -60), "LFA2": (40, 45, -150), "LFA3": (-30, 50, -220)},
         "hand": {"LHN1": (30, 45, -40), "LHN2": (-35, 40, -70), "LHN3": (5, 45, -120)},

@@ -228,7 +228,7 @@ class _BvhMotion:
         local = glob.copy()
         local[:, 1:] = np.swapaxes(glob[:, rig.parents[1:]], -1, -2) @ glob[:, 1:]
         quat = Rotation.from_matrix(local.reshape(-1, 3, 3)).as_quat().reshape(len(local), -1, 4)
-        for s in np.flatnonzero(np.array(rig.joint_kinds) == "hinge"):
+        for s in np.flatnonzero(np.array(rig.joint_kinds) == "hinge").tolist():
             angle = 2 * np.arctan2(quat[:, s, :3] @ rig.hinge_axes[s], quat[:, s, 3])
             angle = (angle + np.pi) % (2 * np.pi) - np.pi
             quat[:, s] = Rotation.from_rotvec(angle[:, None] * rig.hinge_axes[s]).as_quat()
@@ -318,8 +318,8 @@ class Simulator:
         self.joint_names = list(rig.joint_names[1:])
         self.labels = list(rig.marker_labels)
         n = len(rig.marker_labels)
-        self._motion = _SyntheticMotion(rig, config.seed)
-        if bvh is not None:
+        self._motion: _SyntheticMotion | _BvhMotion = _SyntheticMotion(rig, config.seed)
+        if bvh is not None and config.bvh is not None:
             self._motion = _BvhMotion(rig, bvh, config.bvh)
         self._skin = _skin_matrix(rig, config.seed) * config.skin_mm if config.skin_mm > 0 else None
         block = max(1, round(_BLOCK_S * config.rate))
@@ -489,7 +489,7 @@ def simulate(config: SimulatorConfig, frames: int, bvh: Bvh | None = None) -> Si
         if points is not None and identity is not None:
             points.append(f.points)
             identity.append(f.identity)
-        if rays is not None:
+        if rays is not None and f.rays is not None:
             rays[i, f.identity[marker]] = f.rays[marker]
     return SimRecording(
         rate=config.rate, labels=list(rig.marker_labels), positions=positions, true_positions=true, visible=visible,

@@ -62,7 +62,9 @@ def _observed(segment: Segment, positions: np.ndarray, column: dict[str, int]) -
     return np.asarray(segment.marker_offsets, dtype=np.float64), observed
 
 
-def _place(matrices: np.ndarray, translations: np.ndarray, offset: Sequence[float]) -> np.ndarray:
+def _place(matrices: np.ndarray, translations: np.ndarray, offset: Sequence[float] | None) -> np.ndarray:
+    if offset is None:
+        raise ValueError("a joint without offsets: calibrate the skeleton first")
     return np.einsum("fab,b->fa", matrices, np.asarray(offset, dtype=np.float64)) + translations
 
 
@@ -156,8 +158,8 @@ def solve(skeleton: SkeletonModel, positions: np.ndarray, labels: Sequence[str],
             err = np.where(seen, ((fitted - observed) ** 2).sum(-1), 0.0)
             residual[:, s] = np.where(seen.any(1), np.sqrt(err.sum(1) / np.maximum(seen.sum(1), 1)), np.nan)
             distances.append(np.sqrt(err[seen & np.isfinite(err)]))
-        distances = np.concatenate(distances) if distances else np.zeros(0)
-        return rotations, translations, residual, determined, float(distances.mean()) if len(distances) else np.nan
+        every = np.concatenate(distances) if distances else np.zeros(0)
+        return rotations, translations, residual, determined, float(every.mean()) if len(every) else np.nan
 
     def centres_of(rotations: np.ndarray, translations: np.ndarray) -> np.ndarray:
         matrices = quaternion_matrices(rotations)

@@ -10,7 +10,7 @@ from __future__ import annotations
 import logging
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, ClassVar
+from typing import Any, ClassVar, Generic, TypeVar
 
 from pydantic import BaseModel, ConfigDict
 
@@ -22,6 +22,9 @@ Publish = Callable[[str, Message], None]
 
 class NoConfig(BaseModel):
     model_config = ConfigDict(extra="forbid")
+
+
+ConfigT = TypeVar("ConfigT", bound=BaseModel)
 
 
 @dataclass(frozen=True)
@@ -45,12 +48,14 @@ class Output:
     doc: str = ""
 
 
-class Node:
+class Node(Generic[ConfigT]):
     """Base class of every stage.
 
-    Subclasses set ``Config`` (a pydantic model), ``inputs`` and ``outputs``, and implement ``process`` for each
-    input message. A node with no inputs is a source: it sets ``rate`` in ``__init__`` and implements ``emit``, which
-    the runtime calls once per frame index at that rate, in order, starting from ``first_index``.
+    Subclasses set ``Config`` (a pydantic model; ``class MyNode(Node[MyConfig])`` types ``self.config`` as it),
+    ``inputs`` and ``outputs``, build their algorithm objects in ``setup`` and implement ``process`` for each input
+    message. A node with no inputs is a source: it sets ``rate`` in ``setup`` and implements ``emit``, which the
+    runtime calls once per frame index at that rate, in order, starting from ``first_index``. The runtime validates
+    the config once, against ``Config``, before it constructs the node.
     """
 
     Config: ClassVar[type[BaseModel]] = NoConfig
@@ -59,11 +64,16 @@ class Node:
 
     rate: float = 0.0
 
-    def __init__(self, config: Any, publish: Publish, name: str = "node") -> None:
-        self.config = config
+    def __init__(self, config: ConfigT, publish: Publish, name: str = "node") -> None:
+        self.config: ConfigT = config
         self.name = name
         self._publish = publish
         self.log = logging.getLogger(f"mocapflow.{name}")
+        self.setup()
+
+    def setup(self) -> None:
+        """Build the node's state from ``self.config``; called once, at the end of construction. Override this
+        rather than ``__init__``."""
 
     @classmethod
     def is_source(cls) -> bool:
@@ -73,11 +83,12 @@ class Node:
         """Send ``message`` on one of this node's declared outputs."""
         self._publish(output, message)
 
-    def process(self, port: str, message: Message) -> None:
-        """Handle one message from input ``port``. Exceptions are logged and counted; the stream goes on."""
+    def process(self, port: str, message: Any) -> None:
+        """Handle one message from input ``port``, of the type that input declares (so an override may name it).
+        Exceptions are logged and counted; the stream goes on."""
         raise NotImplementedError(f"{type(self).__name__} declares inputs but does not implement process()")
 
-    def process_batch(self, port: str, messages: list[Message]) -> None:
+    def process_batch(self, port: str, messages: list[Any]) -> None:
         """Handle several messages that queued up on one input while the node was busy, oldest first. Override it
         when a batch is cheaper than one call per message (vectorised work); by default the runtime calls
         ``process`` for each message instead, so a failing one costs only itself."""

@@ -140,6 +140,8 @@ class Agents:
         for reply in replies:
             if reply.err is not None:
                 raise AgentError(reply.err.payload.to_string())
+            if reply.ok is None:
+                continue
             self.deployed.add(machine)
             for status in STATUS_LIST.validate_json(reply.ok.payload.to_bytes()):
                 if status.node in self.nodes:

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import os
 import tempfile
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any, Literal
@@ -178,7 +178,7 @@ class SecuritySettings(BaseModel):
             yield path
 
 
-def _messages(actions: list[str], flow: str) -> list[str]:
+def _messages(actions: Sequence[str], flow: str) -> list[str]:
     """Zenoh messages that ``actions`` involve on ``flow``, each once."""
     chosen = list(ACTION_MESSAGES) if "all" in actions else actions
     return list(dict.fromkeys(m for a in chosen for m, f in ACTION_MESSAGES[a] if f == flow))

@@ -115,7 +115,7 @@ class Worker:
         self.stats = Stats()
         self.state = "starting"
         self.stop_event = threading.Event()
-        self.inbox: queue.Queue[tuple[str, zenoh.Sample | None]] = queue.Queue(QUEUE_CAPACITY)
+        self.inbox: queue.Queue[tuple[str, zenoh.Sample]] = queue.Queue(QUEUE_CAPACITY)
         self._publishers: dict[str, Any] = {}
         self._last_frame: dict[str, int] = {}
         self._last_capture_ns: int | None = None

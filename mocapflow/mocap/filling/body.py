@@ -73,7 +73,7 @@ class Body:
             self.neighbours[c].append((len(self.joints) - 1, p))
         kinds = [j.kind for j in skeleton.joints]
         for k, links in enumerate(self.neighbours):  # the steadiest reference first: a hinge, then the parent
-            links.sort(key=lambda link: (kinds[link[0]] != "hinge", self.joints[link[0]].child != k))
+            links.sort(key=lambda link: (kinds[link[0]] != "hinge", self.joint(link[0]).child != k))
         # per segment: (joint, neighbour, centre in this segment's frame, centre in the neighbour's frame)
         self.links = [[(j, other, self.joint_offset(j, k), self.joint_offset(j, other)) for j, other in links]
                       for k, links in enumerate(self.neighbours)]
@@ -90,10 +90,15 @@ class Body:
         self._fits: dict[bytes, SegmentFit] = {}
         self._layouts: dict[bytes, Layout] = {}
 
+    def joint(self, index: int) -> BodyJoint:
+        """A joint this body can use (one named by a segment's ``links``)."""
+        jt = self.joints[index]
+        assert jt is not None, f"joint {index} is not usable"
+        return jt
+
     def joint_offset(self, joint: int, segment: int) -> np.ndarray:
         """The centre of ``joint`` in ``segment``'s local frame."""
-        jt = self.joints[joint]
-        assert jt is not None
+        jt = self.joint(joint)
         return jt.parent_offset if jt.parent == segment else jt.child_offset
 
     def fit_for(self, use: np.ndarray, segments: np.ndarray) -> SegmentFit:

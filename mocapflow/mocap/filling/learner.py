@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 from scipy.sparse.csgraph import minimum_spanning_tree
@@ -60,7 +61,8 @@ class SkeletonLearner:
             self.given_joints = list(given.joints) if given.joints else None
         else:
             stride = config.learn_stride
-            options = {"threshold_mm": config.rigid_tolerance} if config.cluster_method == "distance-threshold" else {}
+            options: dict[str, Any] = (
+                {"threshold_mm": config.rigid_tolerance} if config.cluster_method == "distance-threshold" else {})
             self.tracker = SegmentTracker(
                 labels, window=max(2, round(config.learn_window_s * rate / stride)),
                 warmup=max(1, round(config.learn_warmup_s * rate / stride)),

@@ -319,8 +319,8 @@ class Labeller:
             history.append((int(track), frames[:-1], pos[:-1]))
         keep = np.ones(len(self._thits), bool)
         keep[ready[done]] = False
-        self._tpos, self._tvel, self._tlast, self._thits = (
-            a[keep] for a in (self._tpos, self._tvel, self._tlast, self._thits))
+        self._tpos, self._tvel = self._tpos[keep], self._tvel[keep]
+        self._tlast, self._thits = self._tlast[keep], self._thits[keep]
         self._thist = [h for h, k in zip(self._thist, keep, strict=True) if k]
         return history
 
