@@ -38,7 +38,7 @@ def row(name: str, positions: object, labels: list[str], rate: float) -> None:
     cells = []
     for method in METHODS:
         try:
-            skeleton, seconds = timed(calibrate, positions, labels, rate, joint_method=method, show_progress=False)
+            skeleton, seconds = timed(calibrate, positions, labels, rate, joint_method=method)
         except Exception as exc:  # a method that does not apply is a result
             cells.append(f"- ({type(exc).__name__})")
             continue

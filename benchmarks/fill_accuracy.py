@@ -106,7 +106,7 @@ def real(file: str, groups: dict[str, list[str]], learn_from_s: float | None) ->
     data = read_markers(path)
     index = {label: i for i, label in enumerate(data.labels)}
     skeleton = build_skeleton(data.positions, data.labels, data.rate,
-                              [[index[m] for m in g] for g in groups.values()], "closed-form", show_progress=False)
+                              [[index[m] for m in g] for g in groups.values()], "closed-form")
     names = dict(zip([s.name for s in skeleton.segments], groups, strict=True))
     skeleton = skeleton.model_copy(update={
         "segments": [s.model_copy(update={"name": names[s.name]}) for s in skeleton.segments],

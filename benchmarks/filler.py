@@ -79,7 +79,7 @@ def main() -> None:
         for m in rng.choice(data.n_markers, 6, replace=False):  # six 3 s gaps on top of the real ones
             start = int(rng.integers(0, max(data.n_frames - 3 * data.rate, 1)))
             x[start:start + round(3 * data.rate), m] = np.nan
-        calibrated = calibrate(data.positions, data.labels, data.rate, joint_method="variance", show_progress=False)
+        calibrated = calibrate(data.positions, data.labels, data.rate, joint_method="variance")
         show(f"{file}, 3 s gaps, calibrated skeleton", x, data.labels, data.rate, FillerConfig(), calibrated)
         show(f"{file}, 3 s gaps, learning", x, data.labels, data.rate, FillerConfig(), None)
 

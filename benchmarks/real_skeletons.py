@@ -108,7 +108,7 @@ def main() -> None:
         data = read_markers(path)
         start = time.perf_counter()
         try:
-            skeleton = calibrate(data.positions, data.labels, data.rate, show_progress=False)
+            skeleton = calibrate(data.positions, data.labels, data.rate)
         except Exception as exc:  # a failure is a row of the table
             print(f"| {Path(path).name} | error: {re.sub(r'[|]', '/', str(exc))} |")
             continue

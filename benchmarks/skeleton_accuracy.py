@@ -140,8 +140,7 @@ def simulated(frames: int) -> None:
         labels = rec.labels[:28] if "28" in name else rec.labels
         positions = rec.positions[:, : len(labels)]
         for method in METHODS:
-            skeleton, seconds = timed(calibrate, positions, labels, rec.rate, joint_method=method,
-                                      show_progress=False)
+            skeleton, seconds = timed(calibrate, positions, labels, rec.rate, joint_method=method)
             s = score_simulated(rec, rig, skeleton, labels)
             rod = "-"
             if rig == "rods":
@@ -320,9 +319,9 @@ def hinge_rules(frames: int, lower_body: tuple[SkeletonModel, SkeletonModel, Low
 
     for rig in ("human", "quadruped"):
         rec = simulate(SimulatorConfig(rig=rig, rate=120, noise_mm=0.5, seed=0), frames)
-        skeleton = calibrate(rec.positions, rec.labels, rec.rate, joint_method="closed-form", show_progress=False)
+        skeleton = calibrate(rec.positions, rec.labels, rec.rate, joint_method="closed-form")
         estimator = calibrate(rec.positions, rec.labels, rec.rate, joint_method="closed-form",
-                              hinge_placement="estimator", show_progress=False)
+                              hinge_placement="estimator")
         pose = solve(skeleton, rec.positions, rec.labels)
         of = dict(zip(rec.labels, rec.marker_segment, strict=True))
         seg = {s.name: of[s.markers[0]] for s in skeleton.segments}
@@ -357,8 +356,7 @@ def cmu() -> None:
         data = read_markers(DATA / name)
         for method in METHODS:
             try:
-                skeleton, seconds = timed(calibrate, data.positions, data.labels, data.rate, joint_method=method,
-                                          show_progress=False)
+                skeleton, seconds = timed(calibrate, data.positions, data.labels, data.rate, joint_method=method)
             except Exception as exc:  # the error is the result
                 print(f"| {name} | {method} | error: {exc} | | | | |")
                 continue
@@ -390,10 +388,10 @@ def main() -> None:
         skeletons, times = {}, {}
         for method in METHODS:
             skeletons[method], times[method] = timed(calibrate, body.data.positions, body.data.labels,
-                                                     body.data.rate, joint_method=method, show_progress=False)
+                                                     body.data.rate, joint_method=method)
         real_lower_body(skeletons, times, body)
         estimator = calibrate(body.data.positions, body.data.labels, body.data.rate, joint_method="closed-form",
-                              hinge_placement="estimator", show_progress=False)
+                              hinge_placement="estimator")
         lower_body = (skeletons["closed-form"], estimator, body)
     else:
         print(f"\n{DATA} is absent: no real-data figures")

@@ -104,7 +104,7 @@ def draw(path: Path, title: str, skeleton: SkeletonModel, positions: np.ndarray,
 def simulated_human() -> None:
     """The simulated human in its most upright frame, with the simulator's true joint centres."""
     rec = simulate(SimulatorConfig(rig="human", rate=120, noise_mm=0.5, seed=0), 2000)
-    skeleton = calibrate(rec.positions, rec.labels, rec.rate, show_progress=False)
+    skeleton = calibrate(rec.positions, rec.labels, rec.rate)
     height = np.nanmax(rec.positions[..., 2], 1) - np.nanmin(rec.positions[..., 2], 1)
     f = int(np.argmax(height))  # the most upright pose
     draw(OUT / "skeleton-simulated-human.png", "Simulated human: 52 markers, 15 segments and 14 joints found",
@@ -120,7 +120,7 @@ def lower_body() -> None:
     data = read_markers(path)
     positions = data.positions.astype(float)
     positions[(positions == 0).all(-1)] = np.nan
-    skeleton = calibrate(positions, data.labels, data.rate, show_progress=False)
+    skeleton = calibrate(positions, data.labels, data.rate)
 
     def at(label: str) -> np.ndarray:
         return positions[:, data.labels.index(label)]
@@ -153,7 +153,7 @@ def real_full_body() -> None:
     fig, axes = plt.subplots(2, 3, figsize=(13, 10), dpi=90)
     for ax, path in zip(axes.ravel(), files, strict=False):
         data = read_markers(path)
-        skeleton = calibrate(data.positions, data.labels, data.rate, show_progress=False)
+        skeleton = calibrate(data.positions, data.labels, data.rate)
         extent = np.nanmax(data.positions, 1) - np.nanmin(data.positions, 1)  # (F, 3)
         up = int(np.argmax(np.nanmedian(extent, 0)))  # z in the C3D files, y in the TRC
         f = int(np.nanargmax(np.where(np.isfinite(data.positions).all((1, 2)), extent[:, up], np.nan)))

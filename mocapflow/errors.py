@@ -15,3 +15,7 @@ class CalibrationError(MocapflowError):
 
 class GraphError(MocapflowError):
     """A graph file is malformed or inconsistent; the message names the node and the field."""
+
+
+class MotionError(MocapflowError):
+    """A motion (a BVH recording) cannot drive the rig it is given to."""

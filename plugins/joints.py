@@ -74,7 +74,7 @@ class VarianceJoints(Node[JointsConfig]):
         groups = [[index[m] for m in s.markers if m in index] for s in self.segments.segments]
         try:
             skeleton = build_skeleton(np.stack(self.frames), self.labels, message.rate, [g for g in groups if g],
-                                      self.joint_method, show_progress=False)
+                                      self.joint_method)
         except CalibrationError as exc:
             self.log.warning("no skeleton yet: %s", exc)
             return

@@ -27,7 +27,7 @@ def _recording(rig: str, frames: int = 2000, **options: float) -> SimRecording:
 @cache
 def _skeleton(rig: str, joint_method: str) -> SkeletonModel:
     rec = _recording(rig)
-    return calibrate(rec.positions, rec.labels, rec.rate, joint_method=joint_method, show_progress=False)
+    return calibrate(rec.positions, rec.labels, rec.rate, joint_method=joint_method)
 
 
 def _true_segment(rec: SimRecording, skeleton: SkeletonModel) -> dict[str, str]:
@@ -110,7 +110,7 @@ def _rig_parent_rotation(rec: SimRecording, rig: object, child: int) -> np.ndarr
 def test_calibration_and_solver_work_through_gaps() -> None:
     gappy = _recording("human", dropout_rate=0.5, long_gaps=4.0)
     assert np.isnan(gappy.positions).mean() > 0.05
-    skeleton = calibrate(gappy.positions, gappy.labels, gappy.rate, joint_method="closed-form", show_progress=False)
+    skeleton = calibrate(gappy.positions, gappy.labels, gappy.rate, joint_method="closed-form")
     of = dict(zip(gappy.labels, gappy.marker_segment, strict=True))
     seg = _true_segment(gappy, skeleton)
     assert {frozenset((seg[j.parent], seg[j.child])) for j in skeleton.joints} == {
@@ -186,7 +186,7 @@ def test_a_near_hinge_is_placed_level_with_its_neighbours() -> None:
     axis = thigh.apply([1.0, 0.0, 0.0])
     along = {}
     for placement in ("neighbours", "estimator"):
-        skeleton = build_skeleton(positions, labels, 100.0, groups, hinge_placement=placement, show_progress=False)
+        skeleton = build_skeleton(positions, labels, 100.0, groups, hinge_placement=placement)
         assert {(j.parent, j.child): j.kind for j in skeleton.joints} == {
             ("THI", "PEL"): "ball", ("THI", "SHK"): "hinge", ("SHK", "FT"): "ball"}
         pose = solve(skeleton, positions, labels)
@@ -201,7 +201,7 @@ def test_real_lower_body_gives_the_expert_segments_and_tree(data_dir: Path) -> N
     from mocapflow.io.markers import read_markers
 
     data = read_markers(data_dir / "lowerbody_clusters_knee_0401.c3d")
-    skeleton = calibrate(data.positions, data.labels, data.rate, show_progress=False)
+    skeleton = calibrate(data.positions, data.labels, data.rate)
     part = {label: s.name for s in skeleton.segments for label in s.markers}
     pelvis, trunk = part["LASI"], part["CLAV"]
     assert sorted(m for m in part if part[m] == pelvis) == sorted(["LASI", "RASI", "LPSI", "RPSI"])
@@ -236,13 +236,13 @@ def test_an_unlabelled_recording_is_an_error_saying_to_label_it_first() -> None:
     for f, p in enumerate(rec.points):
         points[f, : len(p)] = p
     with pytest.raises(CalibrationError, match="looks unlabelled.*mocapflow label"):
-        calibrate(points, [f"point{i}" for i in range(width)], rec.rate, show_progress=False)
+        calibrate(points, [f"point{i}" for i in range(width)], rec.rate)
 
 
 def test_too_few_frames_is_an_error() -> None:
     rec = _recording("rods")
     with pytest.raises(CalibrationError, match="frames"):
-        calibrate(rec.positions[:20], rec.labels, rec.rate, show_progress=False)
+        calibrate(rec.positions[:20], rec.labels, rec.rate)
 
 
 def test_a_segment_of_one_marker_is_left_out_naming_it(caplog: pytest.LogCaptureFixture) -> None:
@@ -250,7 +250,7 @@ def test_a_segment_of_one_marker_is_left_out_naming_it(caplog: pytest.LogCapture
     groups = [[i for i, s in enumerate(rec.marker_segment) if s == seg] for seg in ("rod1", "rod2", "rod3")]
     lone = groups[2].pop()  # rod3 keeps its other markers; the one taken off is a segment of its own
     with caplog.at_level("WARNING"):
-        skeleton = build_skeleton(rec.positions, rec.labels, rec.rate, [*groups, [lone]], show_progress=False)
+        skeleton = build_skeleton(rec.positions, rec.labels, rec.rate, [*groups, [lone]])
     assert [r.getMessage() for r in caplog.records if rec.labels[lone] in r.getMessage()]
     assert len(skeleton.segments) == 3 and rec.labels[lone] not in {m for s in skeleton.segments for m in s.markers}
     assert {frozenset((j.parent, j.child)) for j in skeleton.joints} == {
@@ -268,7 +268,7 @@ def test_a_segment_never_seen_whole_is_still_measured() -> None:
         gappy[frames, thigh[k]] = np.nan
     assert not np.isfinite(gappy[:, thigh]).all((1, 2)).any()
     complete = _skeleton("human", "closed-form")
-    skeleton = calibrate(gappy, rec.labels, rec.rate, joint_method="closed-form", show_progress=False)
+    skeleton = calibrate(gappy, rec.labels, rec.rate, joint_method="closed-form")
     assert sorted(sorted(s.markers) for s in skeleton.segments) == sorted(sorted(s.markers) for s in complete.segments)
     lengths, truth = bone_lengths(skeleton), bone_lengths(complete)
     assert lengths.keys() == truth.keys()
@@ -280,9 +280,9 @@ def test_closed_form_needs_three_markers_per_segment() -> None:
     groups = [[i for i, s in enumerate(rec.marker_segment) if s == seg] for seg in ("rod1", "rod2", "rod3")]
     groups[2] = groups[2][:2]
     with pytest.raises(CalibrationError, match="fewer than 3 markers"):
-        build_skeleton(rec.positions, rec.labels, rec.rate, groups, "closed-form", show_progress=False)
+        build_skeleton(rec.positions, rec.labels, rec.rate, groups, "closed-form")
     # the default falls back to the distance-variance cost, which needs no segment orientation
-    skeleton = build_skeleton(rec.positions, rec.labels, rec.rate, groups, show_progress=False)
+    skeleton = build_skeleton(rec.positions, rec.labels, rec.rate, groups)
     assert {frozenset((j.parent, j.child)) for j in skeleton.joints} == {
         frozenset((skeleton.segments[0].name, skeleton.segments[1].name)),
         frozenset((skeleton.segments[1].name, skeleton.segments[2].name))}
@@ -304,7 +304,7 @@ def test_a_joint_with_too_little_motion_is_reported_and_placed_between_the_segme
         positions[f, idx["rod3"]] = (turn * wobble[f]).apply(local3) + centre[f]
     groups = list(idx.values())
     with caplog.at_level("WARNING"):
-        skeleton = build_skeleton(positions, rec.labels, rec.rate, groups, show_progress=False)
+        skeleton = build_skeleton(positions, rec.labels, rec.rate, groups)
     names = [s.name for s in skeleton.segments]
     assert [r.getMessage() for r in caplog.records if f"joint {names[1]}-{names[2]}" in r.getMessage()
             and "deg" in r.getMessage()]

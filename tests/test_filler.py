@@ -333,7 +333,7 @@ def test_real_recordings(data_dir: Path, file: str, groups: dict[str, list[str]]
     data = read_markers(data_dir / file)
     positions = data.positions[:1500]
     skeleton = build_skeleton(positions, data.labels, data.rate, [[data.labels.index(m) for m in g]
-                                                                  for g in groups.values()], show_progress=False)
+                                                                  for g in groups.values()])
     gap = slice(1000, 1000 + round(3 * data.rate)) if len(positions) > 1300 else slice(300, 300 + round(3 * data.rate))
     for names, bound in zip(hidden, bound_mm, strict=True):
         idx = [data.labels.index(m) for m in names]

@@ -28,7 +28,7 @@ from mocapflow.mocap.solve import solve  # noqa: E402
 @pytest.mark.parametrize("name", FILES)
 def test_real_recording_gives_an_anatomical_skeleton(name: str, real_file: Callable[[str], Path]) -> None:
     data = read_markers(real_file(name))
-    skeleton = calibrate(data.positions, data.labels, data.rate, show_progress=False)
+    skeleton = calibrate(data.positions, data.labels, data.rate)
     checks = check(skeleton, data.positions, data.labels)
     assert not checks.mixed, f"segments mixing limbs, or a leg and the trunk: {checks.mixed}"
     assert not checks.not_chains, f"limbs that are not one chain hanging from the body: {checks.not_chains}"
@@ -101,7 +101,7 @@ def _cmu_like(seed: int = 3, hidden: float = 0.2) -> tuple[np.ndarray, list[str]
 def test_simulated_markers_on_joints_two_per_segment_and_occluded() -> None:
     """The hard case of real marker sets, where the truth is known: segments, tree and joint centres."""
     positions, labels, segment_of, rec = _cmu_like()
-    skeleton = calibrate(positions, labels, rec.rate, show_progress=False)
+    skeleton = calibrate(positions, labels, rec.rate)
     truth = sorted(sorted(m for m in labels if segment_of[m] == s) for s in set(segment_of.values()))
     assert sorted(sorted(s.markers) for s in skeleton.segments) == truth
     seg = {s.name: segment_of[s.markers[0]] for s in skeleton.segments}
@@ -147,7 +147,7 @@ def test_symmetric_squats_keep_left_and_right_legs_apart() -> None:
     which people squat unevenly, far above the noise, tell them apart. Arms held still stay with the trunk, which is
     what the data say."""
     positions, labels, segment_of = _squats()
-    skeleton = calibrate(positions, labels, 120.0, show_progress=False)
+    skeleton = calibrate(positions, labels, 120.0)
     side = {m: "left" if s.startswith("left") else "right" if s.startswith("right") else "" for m, s in
             zip(labels, segment_of, strict=True)}
     leg = {m: any(part in s for part in ("thigh", "shank", "foot")) for m, s in zip(labels, segment_of, strict=True)}

@@ -56,6 +56,7 @@ def run(args: argparse.Namespace) -> int:
     from mocapflow.io.markers import join_trials
     from mocapflow.io.skeleton import write_skeleton
     from mocapflow.mocap.calibration import calibrate
+    from mocapflow.progress import Reporter
 
     if args.segments is not None and args.segments < 2:
         raise MocapflowError("--segments must be at least 2")
@@ -63,7 +64,7 @@ def run(args: argparse.Namespace) -> int:
     data = join_trials([read_chosen(path, args) for path in args.inputs])
     start = time.perf_counter()
     skeleton = calibrate(data.positions, data.labels, data.rate, segments=args.segments, method=args.method,
-                         joint_method=args.joints, name=args.name or Path(args.inputs[0]).stem)
+                         joint_method=args.joints, name=args.name or Path(args.inputs[0]).stem, progress=Reporter())
     elapsed = time.perf_counter() - start
     out.parent.mkdir(parents=True, exist_ok=True)
     write_skeleton(out, skeleton)

@@ -28,14 +28,19 @@ def truth_path(path: Path) -> Path:
 
 def run(args: argparse.Namespace) -> int:
 
+    from mocapflow.errors import MocapFileError, MotionError
     from mocapflow.io.bvh import read_bvh
     from mocapflow.io.markers import MarkerData, write_markers
     from mocapflow.mocap.simulator import SimulatorConfig, simulate
+    from mocapflow.progress import Reporter
 
     config = settings(SimulatorConfig, args.overrides)
     if args.frames < 1:
         raise MocapflowError("--frames must be at least 1")
-    rec = simulate(config, args.frames, read_bvh(config.bvh) if config.bvh else None)
+    try:
+        rec = simulate(config, args.frames, read_bvh(config.bvh) if config.bvh else None, progress=Reporter())
+    except MotionError as exc:
+        raise MocapFileError(f"{config.bvh}: {exc}") from None
     out = Path(args.output)
     out.parent.mkdir(parents=True, exist_ok=True)
     truth: dict[str, Any] = {

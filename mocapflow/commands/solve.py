@@ -39,6 +39,7 @@ def run(args: argparse.Namespace) -> int:
     from mocapflow.io.markers import MarkerData, write_markers
     from mocapflow.io.skeleton import read_skeleton
     from mocapflow.mocap.solve import solve
+    from mocapflow.progress import Reporter
 
     out = distinct_output(args.output, args.input, args.skeleton)
     if out.suffix.lower() not in (".c3d", ".trc", ".json", ".bvh"):
@@ -49,7 +50,7 @@ def run(args: argparse.Namespace) -> int:
     if len(missing) == sum(len(s.markers) for s in skeleton.segments):
         raise MocapflowError(f"{args.input}: none of the skeleton's markers is in the file")
     try:
-        pose = solve(skeleton, data.positions, data.labels, show_progress=True)
+        pose = solve(skeleton, data.positions, data.labels, progress=Reporter())
     except ValueError as exc:
         raise MocapflowError(f"{args.skeleton}: {exc}") from None
     out.parent.mkdir(parents=True, exist_ok=True)

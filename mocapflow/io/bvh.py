@@ -1,8 +1,9 @@
 """Biovision Hierarchy (BVH) skeletal animation: a joint tree with per-frame local rotations and translations.
 
-The ``Bvh`` object keeps everything a writer needs to reproduce the file's layout: joint order, offsets, each joint's
-channel list (which fixes its Euler order) and end sites. Rotations are stored as matrices: Euler channels applied
-in the order listed, i.e. ``R = R_c1 @ R_c2 @ R_c3`` (intrinsic), as in every BVH exporter.
+The ``Bvh`` object (``mocapflow.mocap.motion``) keeps everything a writer needs to reproduce the file's layout:
+joint order, offsets, each joint's channel list (which fixes its Euler order) and end sites. Rotations are stored as
+matrices: Euler channels applied in the order listed, i.e. ``R = R_c1 @ R_c2 @ R_c3`` (intrinsic), as in every BVH
+exporter.
 
 ``skeleton_bvh`` turns a solved skeleton (``SkeletonModel`` + ``SkeletonPose``) into a ``Bvh``: the root joint sits at
 the root segment's origin (the centroid of its markers in the reference pose) with position channels; every skeleton
@@ -14,7 +15,6 @@ units stay the data's (mm, usually z up), so forward kinematics gives back the j
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -22,6 +22,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from mocapflow.errors import MocapFileError
+from mocapflow.mocap.motion import Bvh
 
 if TYPE_CHECKING:
     from mocapflow.mocap.model import SkeletonModel
@@ -29,61 +30,6 @@ if TYPE_CHECKING:
 
 _POSITION = ("xposition", "yposition", "zposition")
 _ROTATION = ("xrotation", "yrotation", "zrotation")
-
-
-@dataclass
-class Bvh:
-    """A BVH skeleton and its motion, in the file's units and axes (usually y up)."""
-
-    names: list[str]  # J joints, parents first (file order)
-    parents: np.ndarray  # (J,) parent index, -1 for the root
-    offsets: np.ndarray  # (J, 3) joint origin in its parent's frame at rest
-    channels: list[tuple[str, ...]]  # per joint, as in the file, e.g. ("Xposition", ..., "Zrotation")
-    end_sites: dict[int, np.ndarray]  # joint index -> offset of its End Site
-    frame_time: float  # s
-    translations: np.ndarray  # (F, J, 3) local translation: the offset, or the position channels where present
-    rotations: np.ndarray  # (F, J, 3, 3) local rotations (identity for joints without rotation channels)
-
-    @property
-    def frames(self) -> int:
-        return len(self.rotations)
-
-    @property
-    def rate(self) -> float:
-        return 1.0 / self.frame_time
-
-    @property
-    def root_translation(self) -> np.ndarray:
-        """(F, 3) root position per frame."""
-        return self.translations[:, 0]
-
-    def index(self, name: str) -> int:
-        """Index of a joint by name, ignoring case."""
-        lowered = [n.lower() for n in self.names]
-        try:
-            return lowered.index(name.lower())
-        except ValueError:
-            raise KeyError(name) from None
-
-    def local_rotations(self, joint: int) -> Rotation:
-        """The (F,) local rotations of one joint as a scipy Rotation."""
-        return Rotation.from_matrix(self.rotations[:, joint])
-
-    def world_transforms(self) -> tuple[np.ndarray, np.ndarray]:
-        """World rotations (F, J, 3, 3) and positions (F, J, 3) of every joint."""
-        rot = np.empty_like(self.rotations)
-        pos = np.empty_like(self.translations)
-        for j, p in enumerate(self.parents):
-            if p < 0:
-                rot[:, j], pos[:, j] = self.rotations[:, j], self.translations[:, j]
-            else:
-                rot[:, j] = rot[:, p] @ self.rotations[:, j]
-                pos[:, j] = np.einsum("fij,fj->fi", rot[:, p], self.translations[:, j]) + pos[:, p]
-        return rot, pos
-
-    def forward_kinematics(self) -> np.ndarray:
-        """(F, J, 3) world positions of the joints."""
-        return self.world_transforms()[1]
 
 
 class _Tokens:

@@ -47,9 +47,9 @@ from mocapflow.mocap.joints import (
     spanning_tree,
 )
 from mocapflow.mocap.model import Joint, Segment, SkeletonModel
+from mocapflow.mocap.report import Progress, steps
 from mocapflow.mocap.rigid import fit_shape
 from mocapflow.mocap.rigidfit import PoseFit
-from mocapflow.progress import progress
 
 log = logging.getLogger(__name__)
 
@@ -92,7 +92,7 @@ def sample_frames(frames: int, rate: float, every_s: float = 0.5, jitter_s: floa
 def calibrate(positions: np.ndarray, labels: Sequence[str], rate: float, segments: int | None = None,
               method: Literal["rigidity", "spectral", "distance-threshold"] = "rigidity",
               joint_method: JointMethod = "auto", *, hinge_placement: Literal["neighbours", "estimator"] =
-              "neighbours", name: str = "skeleton", show_progress: bool = True, **cluster_options: object,
+              "neighbours", name: str = "skeleton", progress: Progress | None = None, **cluster_options: object,
               ) -> SkeletonModel:
     """Segments, topology, joints and rigid parameters of an articulated body from (F, N, 3) labelled trajectories.
 
@@ -110,7 +110,7 @@ def calibrate(positions: np.ndarray, labels: Sequence[str], rate: float, segment
     groups = PARTITIONERS[method](spread, segments, **cluster_options)
     groups = [[int(usable[i]) for i in group] for group in groups]
     return build_skeleton(positions, labels, rate, groups, joint_method, hinge_placement=hinge_placement, name=name,
-                          show_progress=show_progress)
+                          progress=progress)
 
 
 def _clean(positions: np.ndarray, labels: Sequence[str]) -> tuple[np.ndarray, np.ndarray]:
@@ -135,7 +135,7 @@ def _clean(positions: np.ndarray, labels: Sequence[str]) -> tuple[np.ndarray, np
 def build_skeleton(positions: np.ndarray, labels: Sequence[str], rate: float, groups: Sequence[Sequence[int]],
                    joint_method: JointMethod = "auto", *,
                    hinge_placement: Literal["neighbours", "estimator"] = "neighbours", name: str = "skeleton",
-                   show_progress: bool = True) -> SkeletonModel:
+                   progress: Progress | None = None) -> SkeletonModel:
     """Topology, joints and rigid parameters for a given partition of the markers (indices per segment)."""
     if joint_method not in ("auto", "variance", "closed-form"):
         raise ValueError(f"unknown joint method {joint_method!r}; choose auto, variance or closed-form")
@@ -169,7 +169,7 @@ def build_skeleton(positions: np.ndarray, labels: Sequence[str], rate: float, gr
         if joint_method == "auto" and flat:
             log.info("no segment has 3 markers: joints by the distance-variance cost")
         joint_method = ("variance" if flat else "closed-form") if joint_method == "auto" else joint_method
-        costs = _pair_costs(positions, groups, poses, sample_frames(frames, rate), joint_method, show_progress)
+        costs = _pair_costs(positions, groups, poses, sample_frames(frames, rate), joint_method, progress)
     parts, part = connected_components(np.isfinite(costs) & ~np.eye(len(groups), dtype=bool), directed=False)
     if parts > 1:  # segments never seen with the others: keep the body that holds the most markers
         body = max(range(parts), key=lambda c: sum(len(g) for g, p in zip(groups, part, strict=True) if p == c))
@@ -178,7 +178,7 @@ def build_skeleton(positions: np.ndarray, labels: Sequence[str], rate: float, gr
                 log.warning("left out %s: never seen long enough together with the rest of the body to join it",
                             ", ".join(labels[m] for m in g))
         return build_skeleton(positions, labels, rate, [g for g, p in zip(groups, part, strict=True) if p == body],
-                              requested, hinge_placement=hinge_placement, name=name, show_progress=show_progress)
+                              requested, hinge_placement=hinge_placement, name=name, progress=progress)
     root, edges = spanning_tree(costs)
 
     fixed: set[tuple[int, int]] = set()  # joints too still to locate, placed between the closest markers
@@ -187,10 +187,10 @@ def build_skeleton(positions: np.ndarray, labels: Sequence[str], rate: float, gr
     if sequential:
         root, edges = _root_oriented(root, edges, poses)
         tracks = _sequential_tracks(positions[chosen], groups, [p and p.subset(chosen) for p in poses], edges, ref,
-                                    show_progress)
+                                    progress)
     else:
         tracks = {}
-        for parent, child in progress(edges, len(edges), "joints", enabled=show_progress):
+        for parent, child in steps(edges, len(edges), "joints", progress):
             start = _start_track(positions, groups, poses, parent, child, chosen)
             if joint_method == "variance":
                 markers = positions[chosen][:, list(groups[parent]) + list(groups[child])]
@@ -207,7 +207,7 @@ def build_skeleton(positions: np.ndarray, labels: Sequence[str], rate: float, gr
             except ValueError as exc:
                 log.warning("left out %s (segment %s): %s", ", ".join(labels[m] for m in group), names[s], exc)
                 return build_skeleton(positions, labels, rate, [g for g in groups if g is not group], requested,
-                                      hinge_placement=hinge_placement, name=name, show_progress=show_progress)
+                                      hinge_placement=hinge_placement, name=name, progress=progress)
             shapes.append(shape)
             offsets.update({(s, e): shape.extra_offsets[j] for j, e in enumerate(attached)})
         motion = {e: _relative_motion(shapes[e[0]].pose, shapes[e[1]].pose) for e in edges}
@@ -341,7 +341,7 @@ def _sphere_track(pose: PoseFit, own: np.ndarray, other: np.ndarray) -> np.ndarr
 
 
 def _sequential_tracks(positions: np.ndarray, groups: Sequence[Sequence[int]], poses: Sequence[PoseFit | None],
-                       edges: Sequence[tuple[int, int]], reference: int, show_progress: bool
+                       edges: Sequence[tuple[int, int]], reference: int, progress: Progress | None
                        ) -> dict[tuple[int, int], np.ndarray]:
     """Joint centres (F, 3) down the tree from an oriented root (Aristidou's sequential centres of rotation,
     extended to segments of two markers). Between two posed segments: the closed-form centre of rotation. Between a
@@ -349,7 +349,7 @@ def _sequential_tracks(positions: np.ndarray, groups: Sequence[Sequence[int]], p
     run on in the posed segment's frame; that joint and its two markers then pose it for its own children."""
     posed = list(poses)
     tracks = {}
-    for parent, child in progress(edges, len(edges), "joints", enabled=show_progress):
+    for parent, child in steps(edges, len(edges), "joints", progress):
         pp, pc = posed[parent], posed[child]
         mp, mc = positions[:, list(groups[parent])], positions[:, list(groups[child])]
         together = pp is not None and pc is not None and int(
@@ -412,13 +412,13 @@ def _closed_form(parent: PoseFit, child: PoseFit) -> CoREstimate:
 
 
 def _pair_costs(positions: np.ndarray, groups: Sequence[Sequence[int]], poses: Sequence[PoseFit | None],
-                frames: np.ndarray, joint_method: JointMethod, show_progress: bool) -> np.ndarray:
+                frames: np.ndarray, joint_method: JointMethod, progress: Progress | None) -> np.ndarray:
     """Symmetric joint-cost matrix of every segment pair (``frames``: where the variance cost is evaluated)."""
     n = len(groups)
     costs = np.full((n, n), np.inf)
     starts = {}
     all_pairs = [(a, b) for a in range(n) for b in range(a + 1, n)]
-    for a, b in progress(all_pairs, len(all_pairs), "joint costs", enabled=show_progress):
+    for a, b in steps(all_pairs, len(all_pairs), "joint costs", progress):
         pa, pb = poses[a], poses[b]
         if joint_method == "closed-form":
             both = (np.isfinite(pa.rotations).all(1) & np.isfinite(pb.rotations).all(1) if pa is not None
@@ -436,7 +436,7 @@ def _pair_costs(positions: np.ndarray, groups: Sequence[Sequence[int]], poses: S
         for s in range(n):
             partners = np.argsort(costs[s])[: CANDIDATES if poses[s] is not None else n]
             shortlist |= {(min(s, int(o)), max(s, int(o))) for o in partners if o != s}
-        for a, b in progress(sorted(shortlist), len(shortlist), "joint optimisation", enabled=show_progress):
+        for a, b in steps(sorted(shortlist), len(shortlist), "joint optimisation", progress):
             markers = positions[frames][:, list(groups[a]) + list(groups[b])]
             costs[a, b] = costs[b, a] = fit_joint_variance(markers, starts[a, b], max_iterations=8).cost
     return costs

@@ -25,19 +25,16 @@ restarted simulator resumes exactly where it stopped.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 from scipy.spatial.transform import Rotation
 
-from mocapflow.errors import MocapFileError
+from mocapflow.errors import MotionError
 from mocapflow.mocap.model import Joint, Segment, SkeletonModel
+from mocapflow.mocap.motion import Bvh
+from mocapflow.mocap.report import Progress, steps
 from mocapflow.mocap.rigs import RIG_NAMES, Rig, make_rig
-from mocapflow.progress import progress
-
-if TYPE_CHECKING:
-    from mocapflow.io.bvh import Bvh
 
 # Random streams: the second entropy word of each generator, so streams never share draws.
 _FRAME, _DROPOUT, _LONG_GAP, _HIDDEN, _MOTION, _SKIN = range(6)
@@ -211,8 +208,8 @@ class _BvhMotion:
     world orientation (corrected for the difference between the two rest poses); hinges keep the rotation about
     their axis. The clip plays forwards then backwards, so motion stays continuous however long the run."""
 
-    def __init__(self, rig: Rig, bvh: Bvh, source: str) -> None:
-        joint = [self._find(bvh, seg, source) for seg in rig.segments]
+    def __init__(self, rig: Rig, bvh: Bvh) -> None:
+        joint = [self._find(bvh, seg) for seg in rig.segments]
         world, position = bvh.world_transforms()
         rest = np.zeros_like(bvh.offsets)
         for j, p in enumerate(bvh.parents):
@@ -247,7 +244,7 @@ class _BvhMotion:
         self.step = step.as_rotvec().reshape(len(quat) - 1, -1, 3)
 
     @staticmethod
-    def _find(bvh: Bvh, segment: str, source: str) -> int:
+    def _find(bvh: Bvh, segment: str) -> int:
         side = segment.split("_", 1)[0] if segment.startswith(("left_", "right_")) else ""
         key = segment.replace(side, "{side}", 1) if side else segment
         candidates = [n.format(Side=side.capitalize(), s=side[:1]) for n in _BVH_JOINTS[key]]
@@ -256,7 +253,7 @@ class _BvhMotion:
                 return bvh.index(name)
             except KeyError:
                 continue
-        raise MocapFileError(f"{source}: no BVH joint for the rig's {segment} (looked for {', '.join(candidates)})")
+        raise MotionError(f"no BVH joint for the rig's {segment} (looked for {', '.join(candidates)})")
 
     def __call__(self, t: float) -> tuple[np.ndarray, np.ndarray]:
         """Root position (3,) and local rotation vectors (S, 3) at time t."""
@@ -319,8 +316,8 @@ class Simulator:
         self.labels = list(rig.marker_labels)
         n = len(rig.marker_labels)
         self._motion: _SyntheticMotion | _BvhMotion = _SyntheticMotion(rig, config.seed)
-        if bvh is not None and config.bvh is not None:
-            self._motion = _BvhMotion(rig, bvh, config.bvh)
+        if bvh is not None:
+            self._motion = _BvhMotion(rig, bvh)
         self._skin = _skin_matrix(rig, config.seed) * config.skin_mm if config.skin_mm > 0 else None
         block = max(1, round(_BLOCK_S * config.rate))
         rate = config.rate
@@ -469,7 +466,8 @@ def _skin_matrix(rig: Rig, seed: int) -> np.ndarray:
     return out.reshape(n * 3, s * 3)
 
 
-def simulate(config: SimulatorConfig, frames: int, bvh: Bvh | None = None) -> SimRecording:
+def simulate(config: SimulatorConfig, frames: int, bvh: Bvh | None = None, *,
+             progress: Progress | None = None) -> SimRecording:
     """Run the simulator over frames 0..frames-1 and gather the batch form."""
     sim = Simulator(config, bvh)
     rig = sim.rig
@@ -481,7 +479,7 @@ def simulate(config: SimulatorConfig, frames: int, bvh: Bvh | None = None) -> Si
     points: list[np.ndarray] | None = [] if config.unlabelled else None
     identity: list[np.ndarray] | None = [] if config.unlabelled else None
     rays = np.full((frames, n, 6), np.nan) if config.cameras else None
-    for i in progress(range(frames), frames, "simulate"):
+    for i in steps(range(frames), frames, "simulate", progress):
         f = sim.frame(i)
         true[i], visible[i], centres[i] = f.true_positions, f.visible, f.joint_centres
         marker = f.identity >= 0

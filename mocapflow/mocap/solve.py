@@ -21,8 +21,8 @@ from scipy.spatial.transform import Rotation
 
 from mocapflow.mocap.cor import joint_track
 from mocapflow.mocap.model import Segment, SkeletonModel
+from mocapflow.mocap.report import Progress, steps
 from mocapflow.mocap.rigidfit import fit_pose, quaternion_matrices
-from mocapflow.progress import progress
 
 
 @dataclass
@@ -103,7 +103,7 @@ def _trilaterate_joint(skeleton: SkeletonModel, k: int, data: list[tuple[np.ndar
 
 
 def solve(skeleton: SkeletonModel, positions: np.ndarray, labels: Sequence[str], *,
-          show_progress: bool = False) -> SkeletonPose:
+          progress: Progress | None = None) -> SkeletonPose:
     """Pose the rigid ``skeleton`` in every frame of (F, N, 3) labelled trajectories (NaN gaps).
 
     Each segment is fitted to its visible markers plus, like Schoenauer's implementation, the joints it shares with
@@ -137,7 +137,7 @@ def solve(skeleton: SkeletonModel, positions: np.ndarray, labels: Sequence[str],
         translations = np.full((frames, len(names), 3), np.nan)
         residual = np.full((frames, len(names)), np.nan)
         determined = np.zeros((frames, len(names)), bool)
-        for s in progress(order, len(order), "solve", enabled=show_progress):
+        for s in steps(order, len(order), "solve", progress):
             local, observed = data[s]
             outer = [k for k, j in enumerate(skeleton.joints) if j.parent == names[s]]
             extra_local = np.array([skeleton.joints[k].parent_offset for k in outer]).reshape(-1, 3)
