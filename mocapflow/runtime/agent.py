@@ -26,16 +26,13 @@ import signal
 import sys
 import threading
 import time
-from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import IO, Any, Literal
+from typing import IO, Any
 
 import zenoh
-from pydantic import BaseModel, Field, ValidationError
+from pydantic import ValidationError
 
-from mocapflow.errors import MocapflowError
-from mocapflow.messages import DecodeError, NodeStats, decode
 from mocapflow.runtime.keys import (
     agent_key,
     deploy_key,
@@ -45,60 +42,14 @@ from mocapflow.runtime.keys import (
     stop_key,
 )
 from mocapflow.runtime.plugins import PluginNotFound, load
+from mocapflow.runtime.protocol import Deployment, ProcStatus, keep_clock_origin
 from mocapflow.runtime.session import open_client
 from mocapflow.runtime.supervisor import Proc, Supervisor
-from mocapflow.runtime.worker import WorkerSpec
 
 STATUS_PERIOD_S = 1.0
 LAUNCHER_GRACE_S = 5.0
 
 log = logging.getLogger("mocapflow.agent")
-
-
-class AgentError(MocapflowError):
-    """Agents needed by a graph are missing, refuse a deployment, or were lost for good."""
-
-
-class Placement(BaseModel):
-    """One node an agent is asked to run, with the restart policy its supervisor applies."""
-
-    spec: WorkerSpec
-    source: bool
-    restart: Literal["on-failure", "never"] = "on-failure"
-    max_restarts: int = 5
-
-
-class Deployment(BaseModel):
-    """The nodes of one run that a launcher places on one agent."""
-
-    run: str = Field(description="id of the launcher's run; its liveliness token is {prefix}/_launcher/{run}")
-    prefix: str
-    nodes: list[Placement]
-
-
-class ProcStatus(BaseModel):
-    """What an agent knows of one of its nodes: the supervisor's view, not the node's own statistics."""
-
-    run: str
-    node: str
-    machine: str
-    state: str
-    pid: int | None = None
-    restarts: int = 0
-    exit_code: int | None = None
-
-
-def keep_clock_origin(specs: Mapping[str, WorkerSpec], sample: zenoh.Sample) -> NodeStats | None:
-    """Decode a node's statistics and remember a source's clock origin in its spec, so that a restart, here or on
-    another agent, resumes on the source's clock with increasing frame numbers."""
-    try:
-        stats = decode(sample.payload.to_bytes(), NodeStats)
-    except DecodeError:
-        return None
-    spec = specs.get(stats.node)
-    if spec is not None and stats.clock_origin_ns is not None:
-        spec.clock_origin_ns = stats.clock_origin_ns
-    return stats
 
 
 @dataclass

@@ -27,12 +27,12 @@ import zenoh
 from mocapflow.errors import GraphError
 from mocapflow.messages import MESSAGE_TYPES, NodeStats, json_schema
 from mocapflow.runtime import keys
-from mocapflow.runtime.agent import (
+from mocapflow.runtime.graph import NAME, Graph, end_inputs
+from mocapflow.runtime.node import Node
+from mocapflow.runtime.protocol import (
     Placement,
     keep_clock_origin,
 )
-from mocapflow.runtime.graph import NAME, Graph, end_inputs
-from mocapflow.runtime.node import Node
 from mocapflow.runtime.remote import Agents, RemoteNode
 from mocapflow.runtime.security import security_path
 from mocapflow.runtime.session import DEFAULT_ENDPOINT, open_client, open_router

@@ -14,8 +14,8 @@ from typing import Any, Self
 import zenoh
 from pydantic import TypeAdapter, ValidationError
 
-from mocapflow.runtime.agent import AgentError, Deployment, Placement, ProcStatus
 from mocapflow.runtime.keys import agent_key, deploy_key, launcher_key, log_key, procs_key, stop_key
+from mocapflow.runtime.protocol import AgentError, Deployment, Placement, ProcStatus
 from mocapflow.runtime.supervisor import DRAIN_S, TERM_S
 from mocapflow.runtime.worker import WorkerSpec
 
