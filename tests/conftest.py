@@ -1,14 +1,25 @@
-"""Shared fixtures: free loopback endpoints for real Zenoh routers, and the shared data folder."""
+"""Shared fixtures and helpers: free loopback endpoints for real Zenoh routers, the shared data folder, and the
+command line run as a subprocess."""
 
 from __future__ import annotations
 
 import socket
+import subprocess
+import sys
 from collections.abc import Callable
 from pathlib import Path
 
 import pytest
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+
+CLI = [sys.executable, "-m", "mocapflow.cli"]
+"""``mocapflow`` as a subprocess runs it."""
+
+
+def run_cli(*args: str | Path, timeout: float = 120) -> subprocess.CompletedProcess[str]:
+    """Run ``mocapflow ARGS`` to its end, its output captured as text (the caller checks the exit code)."""
+    return subprocess.run([*CLI, *map(str, args)], capture_output=True, text=True, timeout=timeout, check=False)
 
 
 def free_port() -> int:

@@ -3,18 +3,20 @@ the occlusion filler puts those markers on their rays, and the recording equals 
 
 from __future__ import annotations
 
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 import yaml
+from conftest import run_cli
 
 from mocapflow.io.markers import MarkerData, read_markers
 from mocapflow.io.skeleton import write_skeleton
 from mocapflow.mocap.filling import FillCase, FillerConfig, GapFiller
 from mocapflow.mocap.rigs import make_rig
 from mocapflow.mocap.simulator import SimulatorConfig, simulate, truth_skeleton
+
+pytestmark = pytest.mark.integration  # every test here starts processes and Zenoh sessions
 
 FRAMES = 360
 
@@ -27,8 +29,7 @@ def run_graph(tmp_path: Path, endpoint: str, nodes: dict[str, dict]) -> MarkerDa
     graph = {"name": name, "prefix": f"mocapflow/{name}", "zenoh": {"listen": [endpoint]},
              "nodes": {**nodes, "recorder": recorder}}
     (tmp_path / "graph.yaml").write_text(yaml.safe_dump(graph, sort_keys=False))
-    run = subprocess.run([sys.executable, "-m", "mocapflow.cli", "run", str(tmp_path / "graph.yaml"), "--duration",
-                          "60"], capture_output=True, text=True, timeout=120, check=False)
+    run = run_cli("run", tmp_path / "graph.yaml", "--duration", "60")
     assert run.returncode == 0 and "all nodes finished" in run.stdout + run.stderr, run.stdout + run.stderr
     return read_markers(tmp_path / "live.c3d")
 
@@ -61,9 +62,7 @@ def test_rays_from_the_simulated_cameras_reach_the_filler(tmp_path: Path, free_e
 
 def test_simulate_command_keeps_the_rays_beside_the_file(tmp_path: Path) -> None:
     out = tmp_path / "cams.c3d"
-    done = subprocess.run([sys.executable, "-m", "mocapflow.cli", "simulate", "-o", str(out), "--frames", "60",
-                           "--set", "cameras=3", "--set", "rate=120"], capture_output=True, text=True, timeout=120,
-                          check=False)
+    done = run_cli("simulate", "-o", out, "--frames", "60", "--set", "cameras=3", "--set", "rate=120")
     assert done.returncode == 0, done.stderr
     rays = np.load(out.with_suffix(".truth.npz"))["rays"]
     expected = simulate(SimulatorConfig(cameras=3, rate=120), 60)
@@ -78,17 +77,13 @@ def test_fill_command_takes_the_rays(tmp_path: Path) -> None:
     """`mocapflow fill --rays` puts the single-camera markers of a simulated file on their rays, closer to the truth
     than filling without them; a rays file that does not fit the recording is refused in one line."""
     source = tmp_path / "cams.c3d"
-    cli = [sys.executable, "-m", "mocapflow.cli"]
-
-    def run(*args: str | Path) -> subprocess.CompletedProcess[str]:
-        return subprocess.run([*cli, *map(str, args)], capture_output=True, text=True, timeout=120, check=False)
-
-    assert run("simulate", "-o", source, "--frames", "1200", "--set", "cameras=3", "--set", "rate=120").returncode == 0
+    made = run_cli("simulate", "-o", source, "--frames", "1200", "--set", "cameras=3", "--set", "rate=120")
+    assert made.returncode == 0
     truth = np.load(source.with_suffix(".truth.npz"))
     ray = np.isfinite(truth["rays"]).all(-1)
     errors = []
     for extra in (["--rays", source.with_suffix(".truth.npz")], []):
-        done = run("fill", source, "-o", tmp_path / "filled.c3d", *extra)
+        done = run_cli("fill", source, "-o", tmp_path / "filled.c3d", *extra)
         assert done.returncode == 0, done.stderr
         filled = read_markers(tmp_path / "filled.c3d")
         assert filled.flags is not None
@@ -101,7 +96,7 @@ def test_fill_command_takes_the_rays(tmp_path: Path) -> None:
     assert errors[0] < 0.5 * errors[1], errors
     np.savez(tmp_path / "short.npz", rays=truth["rays"][:10])
     for bad, reason in ((tmp_path / "short.npz", "rays are 10 x 52 x 6"), (source, "not an .npz file")):
-        done = run("fill", source, "-o", tmp_path / "x.c3d", "--rays", bad)
+        done = run_cli("fill", source, "-o", tmp_path / "x.c3d", "--rays", bad)
         assert done.returncode == 2 and reason in done.stderr and len(done.stderr.strip().splitlines()) == 1, (
             done.stderr)
 

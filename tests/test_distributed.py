@@ -10,7 +10,6 @@ import json
 import os
 import signal
 import subprocess
-import sys
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -20,6 +19,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import zenoh
+from conftest import CLI
 
 from mocapflow.errors import GraphError
 from mocapflow.io.markers import read_markers
@@ -37,7 +37,7 @@ DEPLOYMENT = Path(__file__).resolve().parents[1] / "deployments" / "distributed-
 def cli(args: list[str], log: Path, cwd: Path) -> subprocess.Popen[bytes]:
     """A ``mocapflow`` process whose output goes to ``log`` (a pipe nobody reads could fill and block it)."""
     with log.open("wb") as out:
-        return subprocess.Popen([sys.executable, "-m", "mocapflow.cli", *args], cwd=cwd, stdout=out,
+        return subprocess.Popen([*CLI, *args], cwd=cwd, stdout=out,
                                 stderr=subprocess.STDOUT)
 
 
@@ -158,6 +158,7 @@ class FrameWatch:
         self.session.close()
 
 
+@pytest.mark.integration
 def test_nodes_run_under_their_agents_and_every_frame_crosses_the_router(lab: Lab) -> None:
     frames = 3 * RATE + 1
     prefix = "mocapflow/lab"
@@ -183,6 +184,7 @@ def test_nodes_run_under_their_agents_and_every_frame_crosses_the_router(lab: La
     assert all("stopped mocapflow/lab\n" in lab.log(f"agent-{m}") for m in MACHINES)
 
 
+@pytest.mark.integration
 def test_node_crash_router_restart_and_agent_loss(lab: Lab) -> None:
     prefix = "mocapflow/lab2"
     watch = FrameWatch(lab.endpoint, f"{prefix}/hub/markers")
@@ -231,6 +233,7 @@ def test_node_crash_router_restart_and_agent_loss(lab: Lab) -> None:
     wait_for("every worker of the run to end", lambda: not workers_of(prefix))  # the agents stop theirs too
 
 
+@pytest.mark.integration
 def test_missing_agents_are_named(tmp_path: Path, free_endpoint: str) -> None:
     lab = Lab(tmp_path, free_endpoint)
     lab.start_router()

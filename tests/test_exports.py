@@ -3,8 +3,6 @@ by the ``c3d`` package, TRC by a plain text parse. Joint positions are checked a
 
 from __future__ import annotations
 
-import subprocess
-import sys
 import warnings
 from pathlib import Path
 
@@ -13,6 +11,7 @@ import c3d as c3d_package
 import ezc3d
 import numpy as np
 import pytest
+from conftest import run_cli
 
 from mocapflow.io.bvh import Bvh, read_bvh, skeleton_bvh, write_bvh
 from mocapflow.io.markers import FLAG_ESTIMATED, FLAG_OBSERVED, read_markers
@@ -21,7 +20,6 @@ from mocapflow.mocap.rigs import make_rig
 from mocapflow.mocap.simulator import SimRecording, SimulatorConfig, simulate, truth_skeleton
 from mocapflow.mocap.solve import SkeletonPose, solve
 
-CLI = [sys.executable, "-m", "mocapflow.cli"]
 RATE = 120.0
 
 
@@ -140,7 +138,7 @@ def test_bvh_writer_rejects_what_a_bvh_file_cannot_hold(tmp_path: Path) -> None:
 
 
 def cli(*args: str | Path) -> str:
-    done = subprocess.run([*CLI, *map(str, args)], check=False, capture_output=True, text=True, timeout=120)
+    done = run_cli(*args)
     assert done.returncode == 0, done.stderr
     return done.stdout
 
@@ -168,6 +166,7 @@ def read_with_c3d_package(path: Path) -> tuple[np.ndarray, list[str]]:
     return points, labels
 
 
+@pytest.mark.integration
 def test_filled_c3d_flags_read_the_same_in_ezc3d_and_the_c3d_package(exported: Path) -> None:
     sim = read_markers(exported / "sim.c3d")
     filled = read_markers(exported / "filled.c3d")
@@ -191,6 +190,7 @@ def test_filled_c3d_flags_read_the_same_in_ezc3d_and_the_c3d_package(exported: P
     np.testing.assert_array_equal(filled.positions[observed], sim.positions[observed])
 
 
+@pytest.mark.integration
 def test_solved_c3d_holds_joint_centres_that_match_the_bvh(exported: Path) -> None:
     skeleton = SkeletonModel.model_validate_json((exported / "skeleton.json").read_text())
     joints = [j.name for j in skeleton.joints]
@@ -223,6 +223,7 @@ def parse_trc(path: Path) -> tuple[list[str], np.ndarray]:
     return names, np.array(rows).reshape(len(rows), len(names), 3)
 
 
+@pytest.mark.integration
 def test_trc_export_matches_the_c3d_export(exported: Path) -> None:
     c3d = read_markers(exported / "solved.c3d")
     names, values = parse_trc(exported / "solved.trc")

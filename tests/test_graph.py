@@ -2,11 +2,10 @@
 
 from __future__ import annotations
 
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
+from conftest import run_cli
 
 from mocapflow.errors import GraphError
 from mocapflow.runtime.graph import load_graph
@@ -87,13 +86,12 @@ def test_bad_override(tmp_path: Path) -> None:
         load_graph(write(tmp_path, GOOD), ["tracker"])
 
 
+@pytest.mark.integration
 def test_validate_command_exit_codes(tmp_path: Path) -> None:
-    good = subprocess.run([sys.executable, "-m", "mocapflow.cli", "validate", str(write(tmp_path, GOOD))],
-                          capture_output=True, text=True)
+    good = run_cli("validate", write(tmp_path, GOOD))
     assert good.returncode == 0 and "ok (2 nodes" in good.stdout
     bad = tmp_path / "bad.yaml"
     bad.write_text(GOOD.replace("rate: 120", "rate: fast"))
-    result = subprocess.run([sys.executable, "-m", "mocapflow.cli", "validate", str(bad)], capture_output=True,
-                            text=True, check=False)
+    result = run_cli("validate", bad)
     assert result.returncode == 2
     assert "nodes.tracker.config.rate" in result.stderr and len(result.stderr.strip().splitlines()) == 1

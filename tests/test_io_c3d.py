@@ -352,6 +352,7 @@ print(" ".join(outcomes))
 """
 
 
+@pytest.mark.integration
 def test_corrupted_files_are_read_or_refused_never_crash(tmp_path: Path, real_file: Callable[[str], Path]) -> None:
     """Random byte damage: every file is read or refused with MocapFileError; the process neither crashes nor hangs."""
     source = real_file("cmu_85_02.c3d")

@@ -119,6 +119,7 @@ FOREIGN_READER = textwrap.dedent(
 )
 
 
+@pytest.mark.integration
 def test_a_client_without_mocapflow_decodes_a_frame(tmp_path: Path, free_endpoint: str) -> None:
     from mocapflow.runtime.session import open_router
 

@@ -3,18 +3,19 @@
 from __future__ import annotations
 
 import subprocess
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import CLI
 
 from mocapflow.errors import MocapFileError
 from mocapflow.io.recording import RecordedSample, RecordingWriter, read_recording
 from mocapflow.runtime.session import open_router
 
-CLI = [sys.executable, "-m", "mocapflow.cli"]
+pytestmark = pytest.mark.integration  # every test here starts processes and Zenoh sessions
+
 
 
 def wait_for_line(proc: subprocess.Popen[str], text: str) -> None:

@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import json
 import subprocess
-import sys
 import warnings
 from pathlib import Path
 
@@ -14,14 +13,15 @@ import c3d as c3d_package
 import numpy as np
 import pytest
 import yaml
-from conftest import free_port
+from conftest import CLI, free_port, run_cli
 
 from mocapflow.io.markers import MarkerData, read_markers, write_markers
 from mocapflow.mocap.model import Segment, SkeletonModel
 
+pytestmark = pytest.mark.integration  # every test here starts processes and Zenoh sessions
+
 ROOT = Path(__file__).resolve().parents[1]
 DEPLOYMENT = ROOT / "deployments" / "c3d-replay.yaml"
-CLI = [sys.executable, "-m", "mocapflow.cli"]
 
 
 def deployment(tmp_path: Path, endpoint: str, tag: str) -> tuple[Path, str]:
@@ -47,12 +47,8 @@ def finish(run: subprocess.Popen[str]) -> str:
     return out
 
 
-def cli(*args: str | Path) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([*CLI, *map(str, args)], check=False, capture_output=True, text=True, timeout=120)
-
-
 def offline(*args: str | Path) -> None:
-    done = cli(*args)
+    done = run_cli(*args)
     assert done.returncode == 0, done.stderr
 
 
@@ -191,7 +187,7 @@ def test_offline_commands_refuse_unreadable_files_in_one_line(command: str, tmp_
                                       joints=[], root="a").model_dump_json())
     extra = ["--skeleton", skeleton] if command == "solve" else []
     for path, reason in unreadable_files(tmp_path).values():
-        done = cli(command, path, "-o", tmp_path / "out.c3d", *extra)
+        done = run_cli(command, path, "-o", tmp_path / "out.c3d", *extra)
         assert done.returncode == 2, (path, done.stderr)
         assert done.stderr.startswith(f"mocapflow {command}: error: {path}: "), done.stderr
         assert reason in done.stderr and done.stderr.count("\n") == 1, done.stderr

@@ -5,7 +5,6 @@ from __future__ import annotations
 import os
 import signal
 import subprocess
-import sys
 import threading
 import time
 from pathlib import Path
@@ -13,10 +12,14 @@ from pathlib import Path
 import ezc3d
 import numpy as np
 import orjson
+import pytest
 import zenoh
+from conftest import CLI
 
 from mocapflow.mocap.simulator import Simulator, SimulatorConfig
 from mocapflow.runtime.session import open_client
+
+pytestmark = pytest.mark.integration  # every test here starts processes and Zenoh sessions
 
 RATE = 240
 
@@ -36,7 +39,7 @@ nodes:
 
 
 def start(args: list[str], cwd: Path) -> subprocess.Popen[str]:
-    return subprocess.Popen([sys.executable, "-m", "mocapflow.cli", *args], cwd=cwd, stdout=subprocess.PIPE,
+    return subprocess.Popen([*CLI, *args], cwd=cwd, stdout=subprocess.PIPE,
                             stderr=subprocess.STDOUT, text=True)
 
 
@@ -179,7 +182,7 @@ def test_introspection_commands_see_a_live_run(tmp_path: Path, free_endpoint: st
     try:
         worker_pid(prefix, "recorder")
         time.sleep(2)
-        cli = [sys.executable, "-m", "mocapflow.cli"]
+        cli = CLI
         nodes = subprocess.run([*cli, "nodes", "--connect", free_endpoint, "--prefix", prefix],
                                capture_output=True, text=True, timeout=30)
         assert f"{prefix}/tracker" in nodes.stdout and f"{prefix}/recorder" in nodes.stdout, nodes.stdout

@@ -7,7 +7,6 @@ import json
 import shutil
 import signal
 import subprocess
-import sys
 import threading
 import time
 from collections.abc import Iterator
@@ -17,6 +16,7 @@ import numpy as np
 import pytest
 import yaml
 import zenoh
+from conftest import CLI
 
 from mocapflow.io.markers import read_markers
 from mocapflow.runtime.security import SecurityError, SecuritySettings, access_control, load_security
@@ -123,7 +123,7 @@ def secured(tmp_path: Path, free_endpoint: str) -> Iterator[tuple[str, Path]]:
     endpoint = free_endpoint.replace("tcp/", "tls/")
     log = tmp_path / "router.log"
     with log.open("wb") as out:
-        router = subprocess.Popen([sys.executable, "-m", "mocapflow.cli", "router", "--listen", endpoint, "--config",
+        router = subprocess.Popen([*CLI, "router", "--listen", endpoint, "--config",
                                    str(tmp_path / "router.yaml")], stdout=out, stderr=subprocess.STDOUT)
     try:
         deadline = time.monotonic() + 20
@@ -160,6 +160,7 @@ def deliveries(publisher: zenoh.Session, subscriber: zenoh.Session, key: str = "
     return len(got)
 
 
+@pytest.mark.integration
 def test_clients_without_credentials_can_neither_subscribe_nor_publish(secured: tuple[str, Path]) -> None:
     endpoint, folder = secured
     lab, viewer, guest = (try_open(endpoint, folder / f"{u}.yaml") for u in ("lab", "viewer", "guest"))
@@ -184,6 +185,7 @@ def test_clients_without_credentials_can_neither_subscribe_nor_publish(secured: 
             session.close()
 
 
+@pytest.mark.integration
 def test_a_deployment_runs_through_the_secured_router(secured: tuple[str, Path]) -> None:
     endpoint, folder = secured
     frames = 2 * 240 + 1
@@ -193,7 +195,7 @@ nodes:
   tracker: {{plugin: simulator, config: {{rig: human, rate: 240, frames: {frames}}}, machine: cam}}
   recorder: {{plugin: recorder, inputs: {{markers: tracker/markers}}, config: {{path: {folder / 'out.c3d'}}}}}
 """)
-    cli = [sys.executable, "-m", "mocapflow.cli"]
+    cli = CLI
     lab = str(folder / "lab.yaml")
     with (folder / "agent.log").open("wb") as out:
         agent = subprocess.Popen([*cli, "agent", "--name", "cam", "--connect", endpoint, "--security", lab],
