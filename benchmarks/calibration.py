@@ -7,30 +7,19 @@ on 4 cores; the target is under 3 s on one core. Accuracy is in benchmarks/skele
 
 from __future__ import annotations
 
-import os
+import argparse
 
-for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
-    os.environ.setdefault(_var, "1")
+import _common
 
-import argparse  # noqa: E402
-import time  # noqa: E402
-from collections.abc import Callable  # noqa: E402
-from pathlib import Path  # noqa: E402
+from mocapflow.io.markers import read_markers
+from mocapflow.mocap.calibration import calibrate
+from mocapflow.mocap.clustering import SegmentTracker, partition_spectral
+from mocapflow.mocap.simulator import SimulatorConfig, simulate
+from mocapflow.mocap.solve import solve
 
-from mocapflow.io.markers import read_markers  # noqa: E402
-from mocapflow.mocap.calibration import calibrate  # noqa: E402
-from mocapflow.mocap.clustering import SegmentTracker, partition_spectral  # noqa: E402
-from mocapflow.mocap.simulator import SimulatorConfig, simulate  # noqa: E402
-from mocapflow.mocap.solve import solve  # noqa: E402
-
-DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 METHODS = ("auto", "closed-form", "variance")
 
 
-def timed(fn: Callable, *args: object, **kwargs: object) -> tuple[object, float]:
-    start = time.process_time()
-    out = fn(*args, **kwargs)
-    return out, time.process_time() - start
 
 
 def row(name: str, positions: object, labels: list[str], rate: float) -> None:
@@ -38,11 +27,11 @@ def row(name: str, positions: object, labels: list[str], rate: float) -> None:
     cells = []
     for method in METHODS:
         try:
-            skeleton, seconds = timed(calibrate, positions, labels, rate, joint_method=method)
+            skeleton, seconds = _common.timed(calibrate, positions, labels, rate, joint_method=method)
         except Exception as exc:  # a method that does not apply is a result
             cells.append(f"- ({type(exc).__name__})")
             continue
-        _, solve_s = timed(solve, skeleton, positions, labels)
+        _, solve_s = _common.timed(solve, skeleton, positions, labels)
         cells.append(f"{seconds:.2f} / {solve_s:.2f}")
     print(f"| {name} | {markers} | {frames} | " + " | ".join(cells) + " |")
 
@@ -60,14 +49,14 @@ def main() -> None:
         row(name, rec.positions[:, : len(labels)], labels, rec.rate)
     for file in ("lowerbody_clusters_knee_0401.c3d", "cmu_85_02.c3d", "cmu_85_12_breakdance.c3d", "hamner_run200.trc",
                  "sprinter_JA1Gait35.c3d"):
-        if (DATA / file).is_file():
-            data = read_markers(DATA / file)
+        if (_common.DATA / file).is_file():
+            data = read_markers(_common.DATA / file)
             row(file, data.positions, data.labels, data.rate)
 
     rec = simulate(SimulatorConfig(rig="human", rate=120, noise_mm=0.5, seed=1), args.frames)
     tracker = SegmentTracker(rec.labels, window=600, every=10 ** 9)
-    _, seconds = timed(lambda: [tracker.update(f) for f in rec.positions])
-    _, once = timed(partition_spectral, tracker.stats.spread())
+    _, seconds = _common.timed(lambda: [tracker.update(f) for f in rec.positions])
+    _, once = _common.timed(partition_spectral, tracker.stats.spread())
     print(f"\nSegmentTracker, {len(rec.labels)} markers: {1e6 * seconds / args.frames:.0f} us per frame (statistics), "
           f"{1e3 * once:.1f} ms per spectral re-clustering")
 

@@ -10,8 +10,8 @@ more; a ray: one camera; missing: none).
 from __future__ import annotations
 
 import argparse
-from pathlib import Path
 
+import _common
 import matplotlib
 
 matplotlib.use("Agg")
@@ -21,9 +21,8 @@ import numpy as np  # noqa: E402
 from mocapflow.io.bvh import read_bvh  # noqa: E402
 from mocapflow.mocap.simulator import SimFrame, Simulator, SimulatorConfig  # noqa: E402
 
-ROOT = Path(__file__).resolve().parents[1]
-BVH = ROOT.parent / "shared" / "data" / "cmu_131_01.bvh"
-OUT = ROOT / "docs" / "img" / "simulator-cameras.png"
+BVH = _common.DATA / "cmu_131_01.bvh"
+OUT = _common.ROOT / "docs" / "img" / "simulator-cameras.png"
 KINDS = (("point (2+ cameras)", "tab:green"), ("ray (1 camera)", "tab:orange"), ("missing (no camera)", "tab:red"))
 
 

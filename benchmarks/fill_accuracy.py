@@ -20,29 +20,23 @@ missing 19.45 (CoR 12.1), one-camera 0.59 (CoR 1.3).
 
 from __future__ import annotations
 
-import os
+import argparse
+from collections.abc import Callable
+from dataclasses import dataclass
 
-for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
-    os.environ.setdefault(_var, "1")
+import _common
+import numpy as np
+from scipy.interpolate import CubicSpline
 
-import argparse  # noqa: E402
-from collections.abc import Callable  # noqa: E402
-from dataclasses import dataclass  # noqa: E402
-from pathlib import Path  # noqa: E402
+from mocapflow.io.bvh import read_bvh
+from mocapflow.io.markers import read_markers
+from mocapflow.mocap.calibration import build_skeleton
+from mocapflow.mocap.filling import FillerConfig, GapFiller
+from mocapflow.mocap.model import SkeletonModel
+from mocapflow.mocap.rigidfit import kabsch
+from mocapflow.mocap.rigs import make_rig
+from mocapflow.mocap.simulator import SimulatorConfig, camera_ring, simulate, truth_skeleton
 
-import numpy as np  # noqa: E402
-from scipy.interpolate import CubicSpline  # noqa: E402
-
-from mocapflow.io.bvh import read_bvh  # noqa: E402
-from mocapflow.io.markers import read_markers  # noqa: E402
-from mocapflow.mocap.calibration import build_skeleton  # noqa: E402
-from mocapflow.mocap.filling import FillerConfig, GapFiller  # noqa: E402
-from mocapflow.mocap.model import SkeletonModel  # noqa: E402
-from mocapflow.mocap.rigidfit import kabsch  # noqa: E402
-from mocapflow.mocap.rigs import make_rig  # noqa: E402
-from mocapflow.mocap.simulator import SimulatorConfig, camera_ring, simulate, truth_skeleton  # noqa: E402
-
-DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 GAP_S = 3.0
 RING = camera_ring(8, 4000.0, 2500.0)  # the simulator's camera placement, about the recording's centre
 CASES = ("one missing", "two missing", "all missing", "one on each of two segments", "one-camera, one on each")
@@ -87,7 +81,7 @@ def joint_centres(skeleton: SkeletonModel, labels: list[str], positions: np.ndar
 
 
 def simulated(frames: int) -> Dataset:
-    bvh_path = DATA / "cmu_131_01.bvh"
+    bvh_path = _common.DATA / "cmu_131_01.bvh"
     bvh = read_bvh(bvh_path) if bvh_path.is_file() else None
     config = SimulatorConfig(rig="human", rate=120, noise_mm=0.5, skin_mm=2.0, seed=1,
                              bvh=str(bvh_path) if bvh is not None else None)
@@ -100,7 +94,7 @@ def simulated(frames: int) -> Dataset:
 
 
 def real(file: str, groups: dict[str, list[str]], learn_from_s: float | None) -> Dataset | None:
-    path = DATA / file
+    path = _common.DATA / file
     if not path.is_file():
         return None
     data = read_markers(path)
@@ -251,7 +245,7 @@ def table(ds: Dataset, runs: int, seed: int, cases: tuple[str, ...]) -> None:
 def camera_table(frames: int) -> None:
     """The simulator's camera model on a simulated human: markers seen by one camera arrive as rays, markers seen by
     none are missing, as the body occludes them. Error (mm) of the filled markers against the truth, per kind."""
-    bvh_path = DATA / "cmu_131_01.bvh"
+    bvh_path = _common.DATA / "cmu_131_01.bvh"
     bvh = read_bvh(bvh_path) if bvh_path.is_file() else None
     print(f"\nsimulated human, camera model ({'CMU 131_01 BVH' if bvh else 'synthetic'} motion, 0.5 mm noise, 2 mm "
           f"skin artefact), {frames} frames at 120 Hz; mean error (mm) of single-camera / unseen markers")
@@ -297,7 +291,7 @@ def main() -> None:
             continue
         ds = load()
         if ds is None:
-            print(f"\n(real data folder {DATA} absent: {name} skipped)")
+            print(f"\n(real data folder {_common.DATA} absent: {name} skipped)")
             continue
         table(ds, args.runs, args.seed, cases)
 

@@ -10,17 +10,14 @@ distance of each estimate from the truth on a log scale.
 from __future__ import annotations
 
 import argparse
-import sys
 from pathlib import Path
 
 import matplotlib
 
 matplotlib.use("Agg")
+import fill_accuracy as fa  # noqa: E402
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
-
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-import fill_accuracy as fa  # noqa: E402
 
 from mocapflow.mocap.filling import FillerConfig  # noqa: E402
 

@@ -8,25 +8,18 @@ markers because one batched predict and update serve them all.
 
 from __future__ import annotations
 
-import os
+import time
 
-for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
-    os.environ.setdefault(_var, "1")
+import _common
+import numpy as np
 
-import time  # noqa: E402
-from pathlib import Path  # noqa: E402
-
-import numpy as np  # noqa: E402
-
-from mocapflow.io.markers import read_markers  # noqa: E402
-from mocapflow.mocap.calibration import calibrate  # noqa: E402
-from mocapflow.mocap.filling import FillerConfig, GapFiller  # noqa: E402
-from mocapflow.mocap.kalman import ConstantVelocityBank  # noqa: E402
-from mocapflow.mocap.model import SkeletonModel  # noqa: E402
-from mocapflow.mocap.rigs import make_rig  # noqa: E402
-from mocapflow.mocap.simulator import SimulatorConfig, simulate, truth_skeleton  # noqa: E402
-
-DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+from mocapflow.io.markers import read_markers
+from mocapflow.mocap.calibration import calibrate
+from mocapflow.mocap.filling import FillerConfig, GapFiller
+from mocapflow.mocap.kalman import ConstantVelocityBank
+from mocapflow.mocap.model import SkeletonModel
+from mocapflow.mocap.rigs import make_rig
+from mocapflow.mocap.simulator import SimulatorConfig, simulate, truth_skeleton
 
 
 def measure(positions: np.ndarray, labels: list[str], rate: float, config: FillerConfig,
@@ -69,7 +62,7 @@ def main() -> None:
     show("simulated human, dropouts + long gaps + hidden, Kalman only", gappy.positions, gappy.labels, gappy.rate,
          FillerConfig(learn=False), None)
     for file in ("lowerbody_clusters_knee_0401.c3d", "cmu_85_02.c3d"):
-        path = DATA / file
+        path = _common.DATA / file
         if not path.is_file():
             print(f"({path} absent: skipped)")
             continue

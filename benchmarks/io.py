@@ -10,13 +10,13 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
+import _common
 import numpy as np
 
 from mocapflow.io.c3d import read_c3d, write_c3d
 from mocapflow.io.markers import MarkerData
 from mocapflow.io.trc import read_trc, write_trc
 
-DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 REAL = ["cmu_85_02.c3d", "lowerbody_clusters_knee_0401.c3d", "cmu_85_12_breakdance.c3d"]
 REPEATS = 5
 
@@ -39,7 +39,8 @@ def long_synthetic() -> MarkerData:
 
 
 def main() -> None:
-    recordings = [(name, DATA / name, read_c3d(DATA / name)) for name in REAL if (DATA / name).is_file()]
+    paths = [_common.DATA / name for name in REAL]
+    recordings = [(path.name, path, read_c3d(path)) for path in paths if path.is_file()]
     print(f"{'recording':34} {'frames':>7} {'markers':>7} {'read c3d':>9} {'write c3d':>9} {'write trc':>9} "
           f"{'read trc':>9}  (s, best of {REPEATS})")
     with tempfile.TemporaryDirectory() as folder:

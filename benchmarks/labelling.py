@@ -17,6 +17,7 @@ import argparse
 import time
 from pathlib import Path
 
+import _common
 import numpy as np
 
 from mocapflow.mocap.evaluation import score_labelling, unlabel
@@ -27,7 +28,6 @@ from mocapflow.mocap.labelling import (
 )
 from mocapflow.mocap.simulator import SimulatorConfig, simulate
 
-DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 # damage levels: simulator settings, and unlabel() settings (occlusions per marker per second, ghosts per frame)
 LEVELS = {
     "moderate": ({"dropout_rate": 0.2, "long_gaps": 2.0, "ghosts": 2.0}, (0.05, 1.0)),
@@ -81,7 +81,7 @@ def _stream(points: list[np.ndarray], rate: float) -> tuple[np.ndarray, np.ndarr
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--frames", type=int, default=4800, help="simulated frames per case (default 4800)")
-    parser.add_argument("--data", type=Path, default=DATA, help="folder of the real captures")
+    parser.add_argument("--data", type=Path, default=_common.DATA, help="folder of the real captures")
     args = parser.parse_args()
     for name, points, identity, rate, markers in _scenarios(args.frames, args.data):
         seen = np.mean([np.isfinite(np.asarray(p)).all(axis=1).sum() for p in points])

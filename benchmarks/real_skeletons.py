@@ -16,6 +16,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
+import _common
 import numpy as np
 
 from mocapflow.io.markers import read_markers
@@ -23,7 +24,6 @@ from mocapflow.mocap.calibration import calibrate
 from mocapflow.mocap.model import SkeletonModel
 from mocapflow.mocap.solve import solve
 
-DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 FILES = ("cmu_85_02.c3d", "cmu_85_12_breakdance.c3d", "cmu_02_05.c3d", "cmu_dribble_shoot_basketball.c3d",
          "hamner_run200.trc", "sprinter_JA1Gait35.c3d", "lowerbody_clusters_knee_0401.c3d")
 
@@ -98,7 +98,7 @@ def check(skeleton: SkeletonModel, positions: np.ndarray, labels: Sequence[str])
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("files", nargs="*", default=[str(DATA / f) for f in FILES])
+    parser.add_argument("files", nargs="*", default=[str(_common.DATA / f) for f in FILES])
     parser.add_argument("-v", "--verbose", action="store_true", help="print each skeleton's segments and joints")
     args = parser.parse_args()
     print("| file | segments | joints | mixed segments | limbs not one chain | legs under 3 segments | fit mm "

@@ -17,13 +17,12 @@ import tempfile
 import time
 from pathlib import Path
 
+import _common
 import numpy as np
 import yaml
 
 from mocapflow.io.markers import read_markers
 
-ROOT = Path(__file__).resolve().parents[1]
-DATA = ROOT.parent / "shared" / "data"
 FILES = ["cmu_85_02.c3d", "lowerbody_clusters_knee_0401.c3d", "cmu_85_12_breakdance.c3d"]
 
 
@@ -36,7 +35,7 @@ def free_endpoint() -> str:
 
 def replay(source: Path, work: Path) -> tuple[str, float, int]:
     """Run the deployment on ``source`` with its own router and key prefix: the launcher's output, wall time, exit."""
-    graph = yaml.safe_load((ROOT / "deployments" / "c3d-replay.yaml").read_text())
+    graph = yaml.safe_load((_common.ROOT / "deployments" / "c3d-replay.yaml").read_text())
     endpoint = free_endpoint()
     graph["name"] = f"bench{endpoint.rsplit(':', 1)[1]}"
     graph["prefix"] = f"mocapflow/{graph['name']}"
@@ -53,9 +52,9 @@ def replay(source: Path, work: Path) -> tuple[str, float, int]:
 
 def main() -> None:
     for name in FILES:
-        source = DATA / name
+        source = _common.DATA / name
         if not source.is_file():
-            print(f"{name}: absent from {DATA}, skipped")
+            print(f"{name}: absent from {_common.DATA}, skipped")
             continue
         data = read_markers(source)
         with tempfile.TemporaryDirectory() as tmp:

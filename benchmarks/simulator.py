@@ -3,14 +3,14 @@
 from __future__ import annotations
 
 import time
-from pathlib import Path
 
+import _common
 import numpy as np
 
 from mocapflow.io.bvh import read_bvh
 from mocapflow.mocap.simulator import Simulator, SimulatorConfig
 
-BVH = Path(__file__).resolve().parents[2] / "shared" / "data" / "cmu_131_01.bvh"
+BVH = _common.DATA / "cmu_131_01.bvh"
 
 
 def cost(sim: Simulator, batches: int = 10, n: int = 300) -> tuple[float, float]:

@@ -13,31 +13,24 @@ the pelvis markers (itself about 5 mm per axis off MRI hip centres).
 
 from __future__ import annotations
 
-import os
+import argparse
+from collections.abc import Callable
+from dataclasses import dataclass
 
-for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
-    os.environ.setdefault(_var, "1")
+import _common
+import numpy as np
+from scipy.optimize import minimize_scalar
 
-import argparse  # noqa: E402
-import time  # noqa: E402
-from collections.abc import Callable  # noqa: E402
-from dataclasses import dataclass  # noqa: E402
-from pathlib import Path  # noqa: E402
+from mocapflow.io.markers import MarkerData, read_markers
+from mocapflow.mocap.calibration import calibrate
+from mocapflow.mocap.clustering import distance_spread, partition_threshold
+from mocapflow.mocap.model import Joint, SkeletonModel
+from mocapflow.mocap.rigid import bone_lengths
+from mocapflow.mocap.rigidfit import quaternion_matrices
+from mocapflow.mocap.rigs import make_rig
+from mocapflow.mocap.simulator import SimRecording, SimulatorConfig, simulate
+from mocapflow.mocap.solve import SkeletonPose, solve
 
-import numpy as np  # noqa: E402
-from scipy.optimize import minimize_scalar  # noqa: E402
-
-from mocapflow.io.markers import MarkerData, read_markers  # noqa: E402
-from mocapflow.mocap.calibration import calibrate  # noqa: E402
-from mocapflow.mocap.clustering import distance_spread, partition_threshold  # noqa: E402
-from mocapflow.mocap.model import Joint, SkeletonModel  # noqa: E402
-from mocapflow.mocap.rigid import bone_lengths  # noqa: E402
-from mocapflow.mocap.rigidfit import quaternion_matrices  # noqa: E402
-from mocapflow.mocap.rigs import make_rig  # noqa: E402
-from mocapflow.mocap.simulator import SimRecording, SimulatorConfig, simulate  # noqa: E402
-from mocapflow.mocap.solve import SkeletonPose, solve  # noqa: E402
-
-DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 LOWER_BODY = "lowerbody_clusters_knee_0401.c3d"
 METHODS = ("closed-form", "variance")
 CASES = [("human", {}), ("rods", {}), ("quadruped", {}), ("quadruped, first 28 markers", {}),
@@ -61,11 +54,6 @@ EXPERT_CMU = {  # the CMU 41-marker set by bone; joint markers go with the bone 
 }
 
 
-def timed(fn: Callable, *args: object, **kwargs: object) -> tuple[object, float]:
-    """The result of ``fn`` and the CPU seconds it took."""
-    start = time.process_time()
-    out = fn(*args, **kwargs)
-    return out, time.process_time() - start
 
 
 def same_partition(skeleton: SkeletonModel, expected: list[list[str]]) -> bool:
@@ -106,7 +94,7 @@ def score_simulated(rec: SimRecording, rig: str, skeleton: SkeletonModel, labels
     tree = set(edges) == {e for e in truth if e <= present}
     true_kind = dict(zip(make_rig(rig).segments, make_rig(rig).joint_kinds, strict=True))
     index = [rec.labels.index(m) for m in labels]
-    pose, solve_s = timed(solve, skeleton, rec.positions[:, index], labels)
+    pose, solve_s = _common.timed(solve, skeleton, rec.positions[:, index], labels)
     out = SimScore(groups, tree, True, [], [], [], [], solve_s)
     for j, (joint, edge) in enumerate(zip(skeleton.joints, edges, strict=True)):
         if edge not in truth:
@@ -140,7 +128,7 @@ def simulated(frames: int) -> None:
         labels = rec.labels[:28] if "28" in name else rec.labels
         positions = rec.positions[:, : len(labels)]
         for method in METHODS:
-            skeleton, seconds = timed(calibrate, positions, labels, rec.rate, joint_method=method)
+            skeleton, seconds = _common.timed(calibrate, positions, labels, rec.rate, joint_method=method)
             s = score_simulated(rec, rig, skeleton, labels)
             rod = "-"
             if rig == "rods":
@@ -351,12 +339,13 @@ def cmu() -> None:
     print("|---|---|---|---|---|---|---|")
     details = []
     for name in ("cmu_85_02.c3d", "cmu_85_12_breakdance.c3d"):
-        if not (DATA / name).is_file():
+        if not (_common.DATA / name).is_file():
             continue
-        data = read_markers(DATA / name)
+        data = read_markers(_common.DATA / name)
         for method in METHODS:
             try:
-                skeleton, seconds = timed(calibrate, data.positions, data.labels, data.rate, joint_method=method)
+                skeleton, seconds = _common.timed(calibrate, data.positions, data.labels, data.rate,
+                                                  joint_method=method)
             except Exception as exc:  # the error is the result
                 print(f"| {name} | {method} | error: {exc} | | | | |")
                 continue
@@ -383,18 +372,18 @@ def main() -> None:
     args = parser.parse_args()
     simulated(args.frames)
     lower_body = None
-    if (DATA / LOWER_BODY).is_file():
-        body = LowerBody(read_markers(DATA / LOWER_BODY))
+    if (_common.DATA / LOWER_BODY).is_file():
+        body = LowerBody(read_markers(_common.DATA / LOWER_BODY))
         skeletons, times = {}, {}
         for method in METHODS:
-            skeletons[method], times[method] = timed(calibrate, body.data.positions, body.data.labels,
+            skeletons[method], times[method] = _common.timed(calibrate, body.data.positions, body.data.labels,
                                                      body.data.rate, joint_method=method)
         real_lower_body(skeletons, times, body)
         estimator = calibrate(body.data.positions, body.data.labels, body.data.rate, joint_method="closed-form",
                               hinge_placement="estimator")
         lower_body = (skeletons["closed-form"], estimator, body)
     else:
-        print(f"\n{DATA} is absent: no real-data figures")
+        print(f"\n{_common.DATA} is absent: no real-data figures")
     hinge_rules(args.frames, lower_body)
     cmu()
 

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import _common
 import matplotlib
 
 matplotlib.use("Agg")
@@ -24,9 +25,7 @@ from mocapflow.mocap.rigidfit import quaternion_matrices  # noqa: E402
 from mocapflow.mocap.simulator import SimulatorConfig, simulate  # noqa: E402
 from mocapflow.mocap.solve import SkeletonPose, solve  # noqa: E402
 
-ROOT = Path(__file__).resolve().parents[1]
-DATA = ROOT.parent / "shared" / "data"
-OUT = ROOT / "docs" / "img"
+OUT = _common.ROOT / "docs" / "img"
 AXIS_MM = 60.0  # half length of a drawn hinge axis
 
 
@@ -113,7 +112,7 @@ def simulated_human() -> None:
 
 def lower_body() -> None:
     """The real lower-body file in the frame where a knee is bent most, with the clinical landmarks."""
-    path = DATA / "lowerbody_clusters_knee_0401.c3d"
+    path = _common.DATA / "lowerbody_clusters_knee_0401.c3d"
     if not path.is_file():
         print(f"{path} is absent: no real-data picture")
         return
@@ -146,9 +145,9 @@ FULL_BODY = ("cmu_85_02.c3d", "cmu_85_12_breakdance.c3d", "cmu_02_05.c3d", "cmu_
 def real_full_body() -> None:
     """Every real full-body file calibrated with no option, one panel each from the front, in its most upright
     frame: markers coloured by segment, bones, joint centres."""
-    files = [DATA / name for name in FULL_BODY if (DATA / name).is_file()]
+    files = [_common.DATA / name for name in FULL_BODY if (_common.DATA / name).is_file()]
     if not files:
-        print(f"{DATA} holds no full-body file: no picture")
+        print(f"{_common.DATA} holds no full-body file: no picture")
         return
     fig, axes = plt.subplots(2, 3, figsize=(13, 10), dpi=90)
     for ax, path in zip(axes.ravel(), files, strict=False):
