@@ -27,15 +27,25 @@ class ZenohSettings(BaseModel):
     listen: list[str] = Field(default_factory=list, description="endpoints of the embedded router")
 
 
-class NodeSpec(BaseModel):
+Restart = Literal["on-failure", "never"]
+
+
+class RestartPolicy(BaseModel):
+    """What happens when a node's process ends with a failure (a configuration error is never retried): it starts
+    again with backoff up to ``max_restarts`` times, or never. Declared per node in a graph, carried to the agent
+    that runs it and applied by its supervisor."""
+
+    restart: Restart = "on-failure"
+    max_restarts: int = Field(default=5, ge=0)
+
+
+class NodeSpec(RestartPolicy):
     model_config = ConfigDict(extra="forbid")
 
     plugin: str
     config: dict[str, Any] = Field(default_factory=dict)
     inputs: dict[str, str] = Field(default_factory=dict, description="input port -> 'node/output'")
     machine: str | None = Field(default=None, description="agent that runs this node; none: the launcher's machine")
-    restart: Literal["on-failure", "never"] = "on-failure"
-    max_restarts: int = Field(default=5, ge=0)
 
 
 class Graph(BaseModel):

@@ -5,13 +5,13 @@ side reports."""
 from __future__ import annotations
 
 from collections.abc import Mapping
-from typing import Literal
 
 import zenoh
 from pydantic import BaseModel, Field
 
 from mocapflow.errors import MocapflowError
 from mocapflow.messages import DecodeError, NodeStats, decode
+from mocapflow.runtime.graph import RestartPolicy
 from mocapflow.runtime.worker import WorkerSpec
 
 
@@ -19,13 +19,11 @@ class AgentError(MocapflowError):
     """Agents needed by a graph are missing, refuse a deployment, or were lost for good."""
 
 
-class Placement(BaseModel):
+class Placement(RestartPolicy):
     """One node an agent is asked to run, with the restart policy its supervisor applies."""
 
     spec: WorkerSpec
     source: bool
-    restart: Literal["on-failure", "never"] = "on-failure"
-    max_restarts: int = 5
 
 
 class Deployment(BaseModel):

@@ -15,6 +15,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import IO, Literal
 
+from mocapflow.runtime.graph import Restart, RestartPolicy
 from mocapflow.runtime.worker import EXIT_CONFIG, WorkerSpec
 
 DRAIN_S = 10.0
@@ -30,8 +31,8 @@ class Proc:
 
     spec: WorkerSpec
     source: bool
-    restart: Literal["on-failure", "never"] = "on-failure"
-    max_restarts: int = 5
+    restart: Restart = "on-failure"  # the node's RestartPolicy
+    max_restarts: int = RestartPolicy.model_fields["max_restarts"].default
     popen: subprocess.Popen[bytes] | None = None
     state: State = "starting"
     restarts: int = 0
