@@ -53,8 +53,8 @@ def run(args: argparse.Namespace) -> int:
 
     from mocapflow.io.markers import MarkerData, write_markers
     from mocapflow.io.skeleton import read_skeleton
-    from mocapflow.mocap.filling import FillCase, FillerConfig, GapFiller
-    from mocapflow.progress import progress
+    from mocapflow.mocap.filling import FillCase, FillerConfig, fill_recording
+    from mocapflow.progress import Reporter
 
     out = distinct_output(args.output, args.input)
     if out.suffix.lower() not in (".c3d", ".trc"):
@@ -69,18 +69,9 @@ def run(args: argparse.Namespace) -> int:
 
     rays = read_rays(args.rays, data.positions.shape[:2]) if args.rays else None
 
-    filler = GapFiller(data.labels, data.rate, config, skeleton)
-    positions = np.full(data.positions.shape, np.nan)
-    flags = np.zeros(data.positions.shape[:2], dtype=np.uint8)
     joints = [j.name for j in skeleton.joints] if args.joints and skeleton is not None else []
-    centres = {name: np.full((data.n_frames, 3), np.nan) for name in joints}
-    for f in progress(range(data.n_frames), data.n_frames, "fill"):
-        result = filler.update(data.positions[f], None if rays is None else rays[f])
-        positions[f], flags[f] = result.positions, result.flags
-        if joints and result.joint_centres is not None:  # by name: learned joint offsets change the body
-            for name, centre in zip(filler.joint_names, result.joint_centres, strict=True):
-                if name in centres:
-                    centres[name][f] = centre
+    positions, flags, centres = fill_recording(data.positions, data.labels, data.rate, config, skeleton, rays=rays,
+                                               joints=joints, progress=Reporter())
 
     extra = dict(data.extra)
     for name, track in centres.items():

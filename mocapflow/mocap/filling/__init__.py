@@ -42,9 +42,10 @@ recording frame by frame (``fill_sequence``) gives exactly what a live stream wo
 
 
 from mocapflow.mocap.filling.config import FillCase, FillerConfig, FillResult
-from mocapflow.mocap.filling.filter import GapFiller, fill_sequence
+from mocapflow.mocap.filling.filter import GapFiller
 from mocapflow.mocap.filling.geometry import nearest_on_circle, project_on_rays
 from mocapflow.mocap.filling.learner import is_complete
+from mocapflow.mocap.filling.offline import FilledRecording, fill_recording, fill_sequence
 
-__all__ = ["FillCase", "FillResult", "FillerConfig", "GapFiller", "fill_sequence", "is_complete", "nearest_on_circle",
-           "project_on_rays"]
+__all__ = ["FillCase", "FillResult", "FilledRecording", "FillerConfig", "GapFiller", "fill_recording", "fill_sequence",
+           "is_complete", "nearest_on_circle", "project_on_rays"]

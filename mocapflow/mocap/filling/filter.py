@@ -418,18 +418,3 @@ class GapFiller:
             return last
         step = Rotation.from_matrix(last @ self._pose_r[1, k].T)  # R_{k-1} R_{k-2}^T, re-orthonormalised
         return (step * Rotation.from_matrix(last)).as_matrix()
-
-
-def fill_sequence(
-    positions: np.ndarray, labels: list[str], rate: float, config: FillerConfig | None = None,
-    skeleton: SkeletonModel | None = None,
-) -> tuple[np.ndarray, np.ndarray]:
-    """Fill a whole recording (F, N, 3) frame by frame, exactly as a live stream would; returns positions and flags."""
-    positions = np.asarray(positions, dtype=float)
-    filler = GapFiller(labels, rate, config, skeleton)
-    out = np.full(positions.shape, np.nan)
-    flags = np.zeros(positions.shape[:2], dtype=np.uint8)
-    for f in range(len(positions)):
-        result = filler.update(positions[f])
-        out[f], flags[f] = result.positions, result.flags
-    return out, flags
