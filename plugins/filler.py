@@ -8,6 +8,7 @@ from pydantic import Field
 from mocapflow.io.skeleton import read_skeleton
 from mocapflow.messages import MarkerFrame, Skeleton
 from mocapflow.mocap.filling import FillerConfig, GapFiller
+from mocapflow.mocap.markerset import added
 from mocapflow.mocap.model import SkeletonModel
 from mocapflow.runtime.node import Input, Node, Output
 
@@ -42,8 +43,9 @@ class Filler(Node[FillerNodeConfig]):
             return
         if message.labels is None:
             raise ValueError("the filler needs labelled markers: link it after a labeller")
-        if self.filler is None or self.filler.labels != message.labels:
-            # new markers confirmed upstream: a filler for the new marker set
+        if self.filler is not None and added(self.filler.labels, message.labels):
+            self.filler.grow(message.labels)  # new markers confirmed upstream: everything known is kept
+        elif self.filler is None or self.filler.labels != message.labels:  # another marker set
             self.filler = GapFiller(message.labels, message.rate, self.config, self.model)
         result = self.filler.update(message.positions.astype(np.float64), message.rays)
         self.publish("markers", MarkerFrame.derive(message, positions=result.positions, labels=message.labels,

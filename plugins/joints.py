@@ -12,6 +12,7 @@ from mocapflow.errors import CalibrationError
 from mocapflow.io.skeleton import read_skeleton
 from mocapflow.messages import MarkerFrame, Segments, Skeleton
 from mocapflow.mocap.calibration import build_skeleton
+from mocapflow.mocap.markerset import added
 from mocapflow.runtime.node import Input, Node, Output
 
 
@@ -54,9 +55,9 @@ class VarianceJoints(Node[JointsConfig]):
         if not self.config.refine or message.labels is None:
             return
         if message.labels != self.labels:
-            old = self.labels or []
-            if message.labels[:len(old)] == old:  # new markers confirmed upstream: the frames so far still count
-                pad = np.full((len(message.labels) - len(old), 3), np.nan)
+            new = added(self.labels or [], message.labels)
+            if new is not None:  # new markers confirmed upstream: the frames so far still count
+                pad = np.full((len(new), 3), np.nan)
                 self.frames = deque(np.vstack([f, pad]) for f in self.frames)
             else:
                 self.frames.clear()

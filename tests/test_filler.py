@@ -384,3 +384,31 @@ def test_rays_from_simulated_cameras() -> None:
     with_rays, without = errors
     assert with_rays < 2.2
     assert with_rays < 0.7 * without
+
+
+def test_a_filler_taking_on_new_markers_keeps_what_it_holds(rec: SimRecording, skeleton: SkeletonModel) -> None:
+    """The marker set only grows: a filler that takes on a marker confirmed late fills the others as a filler that had
+    that marker's row (empty) from the start (to rounding: the arrays differ in length), and fills the late marker from
+    its first sight on; a filler started afresh at that moment would have lost the gap it was filling."""
+    late = markers(skeleton, "left_shank")[0]
+    labels = [m for m in rec.labels if m != late]
+    order = [rec.labels.index(m) for m in [*labels, late]]
+    positions = rec.positions[:, order].copy()
+    hidden = [labels.index(m) for m in markers(skeleton, "left_thigh")[:2]]
+    positions[GAP, hidden] = np.nan  # a gap across the moment the marker set grows
+    start = GAP.start + 100
+    positions[:start, -1] = np.nan  # the late marker is unseen until it is confirmed
+    whole = GapFiller([*labels, late], RATE, None, skeleton)
+    grown = GapFiller(labels, RATE, None, skeleton)
+    for f in range(len(positions)):
+        if f == start:
+            grown.grow([*labels, late])
+            assert grown.labels == whole.labels
+        expected = whole.update(positions[f])
+        got = grown.update(positions[f] if f >= start else positions[f, :-1])
+        width = len(got.positions)
+        np.testing.assert_allclose(got.positions, expected.positions[:width], rtol=0, atol=1e-9)
+        np.testing.assert_array_equal(got.flags, expected.flags[:width])
+    assert (got.flags[-1] >= FillCase.OBSERVED) and np.isfinite(got.positions[-1]).all()
+    with pytest.raises(ValueError, match="do not extend"):
+        grown.grow(labels[::-1])

@@ -34,6 +34,14 @@ class ConstantVelocityBank:
         self.started = np.zeros(n, dtype=bool)
         self.all_started = n == 0  # every filter has started: no first sight left to check for
 
+    def grow(self, extra: int) -> None:
+        """Add ``extra`` filters, started at their markers' first sight like the others."""
+        self.pos = np.vstack([self.pos, np.full((extra, 3), np.nan)])
+        self.vel = np.vstack([self.vel, np.full((extra, 3), np.nan)])
+        self.p00, self.p01, self.p11 = (np.append(p, np.zeros(extra)) for p in (self.p00, self.p01, self.p11))
+        self.started = np.append(self.started, np.zeros(extra, dtype=bool))
+        self.all_started = self.all_started and extra == 0
+
     @property
     def position(self) -> np.ndarray:
         """(N, 3) current position estimates; NaN for markers never seen."""

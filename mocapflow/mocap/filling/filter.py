@@ -22,6 +22,7 @@ from mocapflow.mocap.filling.config import (
 from mocapflow.mocap.filling.geometry import nearest_on_circle, project_on_rays, swing, unit
 from mocapflow.mocap.filling.learner import SkeletonLearner, is_complete
 from mocapflow.mocap.kalman import ConstantVelocityBank
+from mocapflow.mocap.markerset import added
 from mocapflow.mocap.model import SkeletonModel
 from mocapflow.mocap.rigidfit import fit_one
 
@@ -74,6 +75,7 @@ class GapFiller:
         self._pending: SkeletonModel | None = None  # learned, taken up at the next frame
         self._holds: dict[int, Hold] = {}
         self._held: set[int] = set()  # segments whose hold was used this frame
+        self._given: SkeletonModel | None = None  # the model given from outside, if any
         if skeleton is not None:
             self.set_skeleton(skeleton)
         elif cfg.learn:
@@ -84,10 +86,32 @@ class GapFiller:
         """Adopt a new body model mid-stream. What it leaves open (segments without marker offsets, joints without
         offsets) is learned from then on when ``config.learn``; poses restart from the last two filled frames."""
         complete = is_complete(skeleton)
+        self._given = skeleton
         self._learner = None if complete or not self.config.learn else SkeletonLearner(
             self.labels, self.rate, self.config, skeleton)
         self._pending = None
         self._adopt(skeleton)
+
+    def grow(self, labels: list[str]) -> None:
+        """Take on the markers appended to the label order (``markerset``: the marker set only grows), keeping every
+        marker's filter and the body model in use. Learning starts again over the larger set (the model learned so
+        far stays in use until it gives a new one); a given model keeps its segments and joints."""
+        new = added(self.labels, labels)
+        if new is None:
+            raise ValueError("the labels do not extend the filler's: a new marker set needs a new filler")
+        if not new:
+            return
+        extra = len(new)
+        self.labels = list(labels)
+        self.kf.grow(extra)
+        self._unmeasured = np.append(self._unmeasured, np.zeros(extra, dtype=np.int64))
+        self._extrapolated = np.append(self._extrapolated, np.zeros(extra, dtype=bool))
+        self._last = np.concatenate([self._last, np.full((2, extra, 3), np.nan)], axis=1)
+        if self._learner is not None:
+            self._learner = SkeletonLearner(self.labels, self.rate, self.config, self._given)
+            self._pending = None
+        if self._model is not None:
+            self._adopt(self._model)
 
     @property
     def skeleton(self) -> SkeletonModel | None:
