@@ -9,6 +9,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from mocapflow.io.skeleton import read_skeleton
 from mocapflow.messages import MarkerFrame, Segments
 from mocapflow.mocap.clustering import SegmentTracker
+from mocapflow.mocap.markerset import added
 from mocapflow.runtime.node import Input, Node, Output
 
 
@@ -48,8 +49,9 @@ class SpectralClusterer(Node[ClustererConfig]):
         if self.seed is not None:  # a calibrated subject: its segments from the first frame, no warm-up
             self.publish("segments", Segments.derive(message, segments=self.seed))
             self.seed = None
-        if self.tracker is None or self.tracker.labels != message.labels:
-            # new markers were confirmed upstream: start the statistics again over the new set
+        if self.tracker is not None and added(self.tracker.labels, message.labels):
+            self.tracker.grow(message.labels)  # new markers confirmed upstream: the statistics so far still count
+        elif self.tracker is None or self.tracker.labels != message.labels:  # another marker set
             window = max(2, round(self.config.window_s * message.rate))
             self.tracker = SegmentTracker(message.labels, window=window,
                                           every=max(1, round(self.config.every_s * message.rate)),

@@ -142,3 +142,29 @@ def test_pair_statistics_survive_adding_and_removing_many_frames() -> None:
         stats.add(d, -1.0)
     stats.add(stats.distances(frames[:1000]))
     assert np.allclose(stats.spread(), distance_spread(frames[:1000]), atol=1e-9)
+
+
+def test_a_tracker_taking_on_new_markers_keeps_its_window() -> None:
+    """The marker set only grows: a tracker that takes on a marker confirmed late holds the very distance statistics
+    of one that had that marker (unseen) from the start, so its window is not thrown away, and places the marker."""
+    rec = _recording("rods", 600)
+    late = len(rec.labels) - 1
+    positions = rec.positions.copy()
+    start = 250
+    positions[:start, late] = np.nan
+    whole = SegmentTracker(rec.labels, window=200, warmup=100, every=20)
+    grown = SegmentTracker(rec.labels[:late], window=200, warmup=100, every=20)
+    models = []
+    for f, frame in enumerate(positions):
+        if f == start:
+            grown.grow(rec.labels)
+        whole.update(frame)
+        models.append(grown.update(frame if f >= start else frame[:late]))
+        if f >= start:
+            for name in ("count", "total", "squares", "shift"):
+                np.testing.assert_array_equal(getattr(grown.stats, name), getattr(whole.stats, name))
+            np.testing.assert_array_equal(grown.stats.spread(), whole.stats.spread())
+    placed = [m for m in models[start:] if m is not None]
+    assert placed and any(rec.labels[late] in s.markers and len(s.markers) > 1 for s in placed[-1].segments)
+    with pytest.raises(ValueError, match="do not extend"):
+        grown.grow(rec.labels[::-1])

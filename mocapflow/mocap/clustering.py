@@ -29,6 +29,7 @@ from scipy.cluster.hierarchy import linkage as hierarchy
 from scipy.cluster.vq import kmeans2
 from scipy.spatial.distance import squareform
 
+from mocapflow.mocap.markerset import added
 from mocapflow.mocap.model import Segment, SegmentModel
 
 MIN_PAIR_FRAMES = 10
@@ -50,6 +51,20 @@ class PairStatistics:
         self.total = np.zeros(pairs)
         self.squares = np.zeros(pairs)
         self.shift = np.full(pairs, np.nan)
+
+    def grow(self, markers: int) -> np.ndarray:
+        """Take on markers appended to the ``markers`` known, keeping every pair's sums; returns where the old pairs
+        sit among the new ones (the new pairs start unseen)."""
+        rows, cols = np.triu_indices(markers, 1)
+        index = np.full((markers, markers), -1)
+        index[rows, cols] = np.arange(len(rows))
+        old = index[self.rows, self.cols]
+        for name, empty in (("count", 0.0), ("total", 0.0), ("squares", 0.0), ("shift", np.nan)):
+            grown = np.full(len(rows), empty)
+            grown[old] = getattr(self, name)
+            setattr(self, name, grown)
+        self.markers, self.rows, self.cols = markers, rows, cols
+        return old
 
     def distances(self, positions: np.ndarray) -> np.ndarray:
         """(B, P) pairwise distances of (B, N, 3) frames, NaN where a marker is missing."""
@@ -373,6 +388,25 @@ class SegmentTracker:
         self.history: deque[np.ndarray] = deque()
         self.frames = 0
         self.current: list[list[int]] | None = None
+
+    def grow(self, labels: Sequence[str]) -> None:
+        """Take on the markers appended to the labels (``markerset``), keeping the window of distances seen so far;
+        the next clustering places them."""
+        new = added(self.labels, labels)
+        if new is None:
+            raise ValueError("the labels do not extend the tracker's: a new marker set needs a new tracker")
+        if not new:
+            return
+        old = self.stats.grow(len(labels))
+        pairs = len(self.stats.rows)
+
+        def widen(d: np.ndarray) -> np.ndarray:
+            out = np.full((len(d), pairs), np.nan)
+            out[:, old] = d
+            return out
+
+        self.history = deque(widen(d) for d in self.history)
+        self.labels = list(labels)
 
     def update(self, frame_positions: np.ndarray) -> SegmentModel | None:
         """Add one (N, 3) frame (NaN for missing markers)."""
