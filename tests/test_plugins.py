@@ -81,3 +81,50 @@ def test_an_unknown_plugin_is_one_line(capsys: pytest.CaptureFixture) -> None:
     assert main(["plugins", "nosuch"]) == 2
     err = capsys.readouterr().err
     assert "unknown plugin 'nosuch'" in err and "Traceback" not in err and len(err.strip().splitlines()) == 1
+
+
+def test_nodes_written_against_either_api_run_and_derive_their_messages() -> None:
+    """A node that builds itself in ``setup()`` and one that overrides ``__init__`` (the older way) both run; a message
+    derived from a frame carries its frame number, capture time and rate."""
+    from pydantic import BaseModel
+
+    from mocapflow.runtime.node import Input, Node, Output, Publish
+
+    class Gain(BaseModel):
+        factor: float = 2.0
+
+    class NewStyle(Node[Gain]):
+        Config = Gain
+        inputs = {"markers": Input(MarkerFrame)}
+        outputs = {"markers": Output(MarkerFrame)}
+
+        def setup(self) -> None:
+            self.factor = self.config.factor
+
+        def process(self, port: str, message: MarkerFrame) -> None:
+            self.publish("markers", MarkerFrame.derive(message, positions=message.positions * self.factor))
+
+    class OldStyle(Node):
+        Config = Gain
+        inputs = {"markers": Input(MarkerFrame)}
+        outputs = {"markers": Output(MarkerFrame)}
+
+        def __init__(self, config: Gain, publish: Publish, name: str = "old") -> None:
+            super().__init__(config, publish, name)
+            self.factor = -config.factor
+
+        def process(self, port: str, message: MarkerFrame) -> None:
+            self.publish("markers", MarkerFrame(frame=message.frame, capture_ns=message.capture_ns, rate=message.rate,
+                                                positions=message.positions * self.factor))
+
+    frame = MarkerFrame(frame=7, capture_ns=123, rate=240.0, positions=np.ones((2, 3)), labels=["a", "b"])
+    for cls, factor in ((NewStyle, 3.0), (OldStyle, -3.0)):
+        sent: list[tuple[str, MarkerFrame]] = []
+        node = cls(Gain(factor=3.0), lambda port, message, out=sent: out.append((port, message)), "n")
+        node.process("markers", frame)
+        (port, out), = sent
+        assert port == "markers" and (out.frame, out.capture_ns, out.rate) == (7, 123, 240.0)
+        np.testing.assert_array_equal(out.positions, factor * np.ones((2, 3)))
+    derived = Skeleton.derive(frame, skeleton=truth_skeleton(make_rig("rods"), simulate(
+        SimulatorConfig(rig="rods", rate=120, noise_mm=0), 1).true_positions[0]))
+    assert (derived.frame, derived.capture_ns) == (7, 123) and "rate" not in Skeleton.model_fields
