@@ -9,7 +9,7 @@ from scipy.spatial.distance import cdist
 from mocapflow.mocap.labelling.assignment import assign, gated_cost, match, norm, rigid_signature, screened
 from mocapflow.mocap.labelling.config import UNGATED_MM, LabellerConfig, LabelResult
 from mocapflow.mocap.labelling.placement import place_marker
-from mocapflow.mocap.labelling.tracks import Tracks
+from mocapflow.mocap.labelling.tracks import Tentatives, Tracks
 
 
 class Labeller:
@@ -25,11 +25,7 @@ class Labeller:
         self._time = -np.inf
         self._tracks = Tracks(config, self.rate)
         # tentative tracks and the points they have collected
-        self._tpos = np.empty((0, 3))
-        self._tvel = np.empty((0, 3))
-        self._tlast = np.empty(0)
-        self._thits = np.empty(0, np.int64)
-        self._thist: list[list[tuple[int, np.ndarray]]] = []
+        self._tentative = Tentatives()
 
     def set_segments(self, segments: list[list[int]]) -> None:
         """Declare groups of track indices that move rigidly: a track's segment mates become its neighbours.
@@ -223,9 +219,9 @@ class Labeller:
         tol = self.config.rigid_tolerance_mm
         mean, sd = self._tracks.rigid(lost, lost)
         np.fill_diagonal(mean, np.nan)
-        broken, partners, _ = self._signature(lost, cur, self._tpos)
+        broken, partners, _ = self._signature(lost, cur, self._tentative.pos)
         possible = (partners == 0) | (broken < 1.0)
-        d = cdist(z, self._tpos)
+        d = cdist(z, self._tentative.pos)
         error = np.abs(d[None, None] - mean[..., None, None]) / (tol + 3.0 * sd[..., None, None])
         best = np.where(possible[None, :, None], error, np.inf).min(axis=3, initial=np.inf)
         fits = best < 1.0
@@ -238,18 +234,19 @@ class Labeller:
         the tentative tracks now old enough to confirm and their rows in ``z``.
         """
         cfg = self.config
+        tent = self._tentative
         free = np.flatnonzero(taken < 0)
-        if len(free) == 0 and len(self._tpos) == 0:
+        if len(free) == 0 and len(tent.pos) == 0:
             return free, free
-        pred = self._tpos + self._tvel * (time - self._tlast)[:, None]
+        pred = tent.pos + tent.vel * (time - tent.last)[:, None]
         # a point seen once has no velocity yet: its first step may be as long as the fastest marker moves
-        gate = cfg.gate_mm + np.where(self._thits == 1, cfg.max_speed_mm_s * (time - self._tlast), 0.0)
+        gate = cfg.gate_mm + np.where(tent.hits == 1, cfg.max_speed_mm_s * (time - tent.last), 0.0)
         ui, pi = assign(pred, gate, z[free])
         zu = z[free[pi]]
-        measured = (zu - self._tpos[ui]) / (time - self._tlast[ui])[:, None]
-        smooth = self._tvel[ui] + cfg.velocity_smoothing * (measured - self._tvel[ui])
-        vel = np.where((self._thits[ui] >= 2)[:, None], smooth, measured)
-        kept = [self._thist[u] for u in ui]
+        measured = (zu - tent.pos[ui]) / (time - tent.last[ui])[:, None]
+        smooth = tent.vel[ui] + cfg.velocity_smoothing * (measured - tent.vel[ui])
+        vel = np.where((tent.hits[ui] >= 2)[:, None], smooth, measured)
+        kept = [tent.points[u] for u in ui]
         for points, p in zip(kept, zu, strict=True):
             points.append((self.frame, p))
             if len(points) > self.rate:  # only a tentative track held back by expected_markers grows this long
@@ -258,12 +255,12 @@ class Labeller:
         unclaimed[pi] = False
         fresh = np.flatnonzero(unclaimed)
         rows = np.concatenate([free[pi], free[fresh]])
-        self._tpos = z[rows]
-        self._tvel = np.concatenate([vel, np.zeros((len(fresh), 3))])
-        self._tlast = np.full(len(rows), time)
-        self._thits = np.concatenate([self._thits[ui] + 1, np.ones(len(fresh), np.int64)])
-        self._thist = kept + [[(self.frame, p)] for p in z[free[fresh]]]
-        ready = np.flatnonzero(self._thits >= cfg.confirm_frames)
+        tent.pos = z[rows]
+        tent.vel = np.concatenate([vel, np.zeros((len(fresh), 3))])
+        tent.last = np.full(len(rows), time)
+        tent.hits = np.concatenate([tent.hits[ui] + 1, np.ones(len(fresh), np.int64)])
+        tent.points = kept + [[(self.frame, p)] for p in z[free[fresh]]]
+        ready = np.flatnonzero(tent.hits >= cfg.confirm_frames)
         return ready, rows[ready]
 
     def _owners(self, z: np.ndarray, cur: np.ndarray, lost: np.ndarray, pred: np.ndarray,
@@ -309,19 +306,18 @@ class Labeller:
     def _adopt(self, ready: np.ndarray, owners: np.ndarray) -> list[tuple[int, np.ndarray, np.ndarray]]:
         """Hand confirmed tentative tracks to their owners and return their earlier, so far unlabelled, points."""
         history = []
+        tent = self._tentative
         done = owners >= 0
         for u, track in zip(ready[done], owners[done], strict=True):
-            frames = np.array([f for f, _ in self._thist[u]])
-            pos = np.array([p for _, p in self._thist[u]])
+            frames = np.array([f for f, _ in tent.points[u]])
+            pos = np.array([p for _, p in tent.points[u]])
             tracks = self._tracks
-            tracks.pos[track], tracks.vel[track], tracks.last[track] = self._tpos[u], self._tvel[u], self._tlast[u]
-            tracks.streak[track] = self._thits[u]
+            tracks.pos[track], tracks.vel[track], tracks.last[track] = tent.pos[u], tent.vel[u], tent.last[u]
+            tracks.streak[track] = tent.hits[u]
             history.append((int(track), frames[:-1], pos[:-1]))
-        keep = np.ones(len(self._thits), bool)
+        keep = np.ones(len(tent.hits), bool)
         keep[ready[done]] = False
-        self._tpos, self._tvel = self._tpos[keep], self._tvel[keep]
-        self._tlast, self._thits = self._tlast[keep], self._thits[keep]
-        self._thist = [h for h, k in zip(self._thist, keep, strict=True) if k]
+        tent.keep(keep)
         return history
 
     def _new_track(self) -> int:

@@ -1,7 +1,10 @@
-"""The confirmed tracks of the labeller and what they learn from labelled frames: kinematic state, running
-distance statistics between tracks, neighbour sets and snapshots of each track with its neighbours."""
+"""The tracks of the labeller: the confirmed ones and what they learn from labelled frames (kinematic state, running
+distance statistics between tracks, neighbour sets and snapshots of each track with its neighbours), and the
+tentative ones, points not yet believed to be markers."""
 
 from __future__ import annotations
+
+from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.spatial.distance import cdist
@@ -180,3 +183,20 @@ class Tracks:
         d = norm(x[due, 1:] - x[due, :1])
         self.span[tracks, :, 0] = np.fmin(self.span[tracks, :, 0], d)
         self.span[tracks, :, 1] = np.fmax(self.span[tracks, :, 1], d)
+
+
+@dataclass
+class Tentatives:
+    """Tentative tracks, in step with each other: last position, velocity, time and consecutive frames seen, and the
+    points each has collected so far as ``(frame, position)``."""
+
+    pos: np.ndarray = field(default_factory=lambda: np.empty((0, 3)))
+    vel: np.ndarray = field(default_factory=lambda: np.empty((0, 3)))
+    last: np.ndarray = field(default_factory=lambda: np.empty(0))
+    hits: np.ndarray = field(default_factory=lambda: np.empty(0, np.int64))
+    points: list[list[tuple[int, np.ndarray]]] = field(default_factory=list)
+
+    def keep(self, mask: np.ndarray) -> None:
+        """Keep the tentative tracks selected by ``mask`` (T,) bool, drop the others."""
+        self.pos, self.vel, self.last, self.hits = self.pos[mask], self.vel[mask], self.last[mask], self.hits[mask]
+        self.points = [h for h, k in zip(self.points, mask, strict=True) if k]
