@@ -10,6 +10,7 @@ clock, see ``mocapflow.trackers.live``). A lost connection is retried every ``re
 from __future__ import annotations
 
 import asyncio
+import logging
 import threading
 import time
 import xml.etree.ElementTree as ET
@@ -22,6 +23,7 @@ from mocapflow.runtime.node import Publish
 from mocapflow.trackers.live import LabelRows, LiveTracker
 
 UNIT_MM = {"mm": 1.0, "cm": 10.0, "m": 1000.0}
+logging.getLogger("qtm_rt").setLevel(logging.CRITICAL)  # the SDK logs each failure; this node reports them itself
 
 
 class QtmConfig(BaseModel):
@@ -59,16 +61,16 @@ class QtmTracker(LiveTracker):
         self.labels: list[str] = []
         self._loop = asyncio.new_event_loop()
         self._stop = asyncio.Event()
-        self._ready: asyncio.Future[None] = self._loop.create_future()
+        self._ready = threading.Event()
+        self._failure: Exception | None = None
         self._thread = threading.Thread(target=self._loop.run_until_complete, args=(self._run(),), daemon=True,
                                         name="qtm")
         self._thread.start()
-        try:
-            asyncio.run_coroutine_threadsafe(asyncio.wait_for(asyncio.shield(self._ready), config.timeout_s * 3),
-                                             self._loop).result()
-        except BaseException:
+        if not self._ready.wait(config.timeout_s * 3):
+            self._failure = ConnectionError(f"{self.where} did not answer within {config.timeout_s * 3:g} s")
+        if self._failure is not None:
             self.finish()
-            raise
+            raise self._failure
         self.log.info("QTM at %s:%d: %g Hz, %s, %d labels", config.host, config.port, self.rate, config.component,
                       len(self.labels))
 
@@ -102,15 +104,14 @@ class QtmTracker(LiveTracker):
                                           "file in QTM)") from None
             except Exception as exc:
                 if first:
-                    if not self._ready.done():
-                        self._ready.set_exception(exc if isinstance(exc, ConnectionError) else
-                                                  ConnectionError(f"{self.where}: {exc}"))
+                    self._failure = exc if isinstance(exc, ConnectionError) else ConnectionError(f"{self.where}: {exc}")
+                    self._ready.set()
                     return
                 self.log.warning("%s: %s; retrying in %g s", self.where, exc, self.config.retry_s)
                 await self._pause(self.config.retry_s)
                 continue
             if first:
-                self._ready.set_result(None)
+                self._ready.set()
                 first = False
             stop, dropped = asyncio.ensure_future(self._stop.wait()), asyncio.ensure_future(lost.wait())
             await asyncio.wait([stop, dropped], return_when=asyncio.FIRST_COMPLETED)
@@ -159,3 +160,5 @@ class QtmTracker(LiveTracker):
         if self._loop.is_running():
             self._loop.call_soon_threadsafe(self._stop.set)
         self._thread.join(timeout=5)
+        if not self._thread.is_alive():
+            self._loop.close()
