@@ -11,8 +11,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from scipy.optimize import linear_sum_assignment
 from conftest import free_port
+from scipy.optimize import linear_sum_assignment
 from trackers import CLI, Server, graph_file, run_graph
 
 from mocapflow.io.markers import MarkerData, read_markers, write_markers
@@ -141,7 +141,8 @@ def test_server_restarted_mid_stream_is_reconnected(protocol: str, tmp_path: Pat
     assert stats["errors"] == 0, stats  # never a frame number at or below the one before
     assert received.sum() + stats["drops"] == len(live.positions)
     tail = live.positions[-len(data.positions):]  # the replayed file, whole, at the end
-    np.testing.assert_allclose(tail, data.positions.astype(np.float32), rtol=0, atol=1e-3 if protocol == "natnet" else 0)
+    tolerance = 1e-3 if protocol == "natnet" else 0
+    np.testing.assert_allclose(tail, data.positions.astype(np.float32), rtol=0, atol=tolerance)
 
 
 @pytest.mark.parametrize("protocol", ["qtm", "natnet"])

@@ -104,7 +104,7 @@ class Recording:
 
 class NatNetServer(asyncio.DatagramProtocol):
     """Serves ``source`` (a marker file or a recording) on the command port; frames start with the first client.
-    ``on_sent(frame_index, time_ns)`` is called after each frame is sent (for latency measurements)."""
+    ``on_sent(frame_number, time_ns)`` is called after each frame is sent (for latency measurements)."""
 
     def __init__(self, source: MarkerData | Recording, name: str = "file", speed: float = 1.0, loop: bool = False,
                  data_port: int = 1511, on_sent: Callable[[int, int], None] | None = None) -> None:
@@ -158,19 +158,19 @@ class NatNetServer(asyncio.DatagramProtocol):
         async for due in Playback(self.source, self.speed, self.loop).frames():
             self._send(frame_of_data(due, self.name))
             if self.on_sent is not None:
-                self.on_sent(due.index, time.time_ns())
+                self.on_sent(due.frame, time.time_ns())
 
     async def _play_recording(self) -> None:
         assert isinstance(self.source, Recording)
         start = time.monotonic()
         while True:
-            for index, (at, payload) in enumerate(self.source.frames):
+            for at, payload in self.source.frames:
                 delay = start + at / self.speed - time.monotonic()
                 if delay > 0:
                     await asyncio.sleep(delay)
                 self._send(payload)
                 if self.on_sent is not None:
-                    self.on_sent(index, time.time_ns())
+                    self.on_sent(struct.unpack_from("<I", payload, 4)[0], time.time_ns())
             if not self.loop:
                 return
             start = time.monotonic() + 1 / 120

@@ -74,7 +74,7 @@ class Client:
 
 
 class QtmServer:
-    """``on_sent(frame, time_ns)`` is called after each frame is written (for latency measurements)."""
+    """``on_sent(frame_number, time_ns)`` is called after each frame is written (for latency measurements)."""
 
     def __init__(self, data: MarkerData, speed: float = 1.0, loop: bool = False,
                  on_sent: Callable[[int, int], None] | None = None) -> None:
