@@ -13,6 +13,7 @@ descriptions), so a restarted Motive or a dropped network resumes the stream.
 
 from __future__ import annotations
 
+import socket
 import threading
 import time
 from typing import Any, Literal
@@ -24,6 +25,9 @@ from mocapflow.runtime.node import Publish
 from mocapflow.trackers.live import RESUME_GAP_S, LabelRows, LiveTracker
 
 OCCLUDED = 0x01
+RECEIVE_BUFFER = 4 << 20
+"""Bytes of socket buffer for frames that arrive while the client's thread is held up (a busy machine): about two
+seconds of a 40-marker stream at 240 Hz, where the system default holds a few hundred milliseconds."""
 
 
 class NatNetConfig(BaseModel):
@@ -77,6 +81,7 @@ class NatNetTracker(LiveTracker):
                                   "Motive streaming, with this transmission type?)") from None
         except OSError as exc:
             raise ConnectionError(f"NatNet at {self.where}: {exc}") from None
+        self._enlarge_receive_buffers()
         self.client.request_modeldef()
         self.rate = config.rate or 0.0
         self.client.run_async()
@@ -90,6 +95,14 @@ class NatNetTracker(LiveTracker):
         info = self.client.server_info
         self.log.info("NatNet at %s: %s, NatNet %s, %g Hz, %s markers", self.where,
                       info.application_name if info else "?", self.client.protocol_version, self.rate, config.markers)
+
+    def _enlarge_receive_buffers(self) -> None:
+        """The client keeps its sockets private; frames come on the data socket (multicast) or the command socket
+        (unicast). The system caps the size at net.core.rmem_max."""
+        for kind in ("data", "command"):
+            sock = getattr(self.client, f"_NatNetClient__{kind}_socket", None)
+            if isinstance(sock, socket.socket):
+                sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, RECEIVE_BUFFER)
 
     @property
     def where(self) -> str:

@@ -158,3 +158,37 @@ def test_absent_server_fails_the_run_in_one_line(protocol: str, tmp_path: Path, 
     assert len(reasons) == 1 and f"127.0.0.1:{port}" in reasons.pop(), out
     assert "Traceback" not in out and "Errno" not in out, out
     assert stats["tracker"]["state"] == "failed" and stats["tracker"]["restarts"] == 0, stats
+
+
+@pytest.mark.parametrize("protocol", ["qtm", "natnet"])
+def test_labelled_point_cloud_equals_the_c3d_replay_graph(protocol: str, tmp_path: Path, free_endpoint: str,
+                                                          real_file) -> None:
+    """Unlabelled points from the tracker, labelled by the labeller: the same tracks as from c3d-replay's point
+    cloud of the same file (the point order differs, so tracks are matched by their trajectories)."""
+    path = real_file(SHORT)
+    port = free_port()
+    pipeline = {"labeller": {"plugin": "labeller", "inputs": {"markers": "tracker/markers"}},
+                "recorder": recorder(tmp_path / "live.c3d", "labeller/markers")}
+    live = graph_file(tmp_path, free_endpoint, f"lb{protocol[0]}",
+                      {"tracker": tracker(protocol, port, unlabelled=True), **pipeline})
+    with Server(protocol, path, port, "--speed", "2"):
+        code, out, _ = run_graph(live)
+    assert code == 0, out
+    pipeline["recorder"] = recorder(tmp_path / "replay.c3d", "labeller/markers")
+    replay = graph_file(tmp_path, f"tcp/127.0.0.1:{free_port()}", f"lr{protocol[0]}", {
+        "tracker": {"plugin": "c3d-replay", "config": {"path": str(path), "speed": 2, "unlabelled": True}},
+        **pipeline})
+    code, out, _ = run_graph(replay)
+    assert code == 0, out
+    got, expected = read_markers(tmp_path / "live.c3d"), read_markers(tmp_path / "replay.c3d")
+    assert got.first_frame == expected.first_frame and len(got.positions) == len(expected.positions)
+    assert len(got.labels) == len(expected.labels) >= 41
+    a, b = got.positions.transpose(1, 0, 2), expected.positions.transpose(1, 0, 2)  # tracks x frames x 3
+    both = np.isfinite(a[:, None, :, 0]) & np.isfinite(b[None, :, :, 0])
+    gap = np.where(both, np.linalg.norm(a[:, None] - b[None], axis=3), 0).sum(axis=2)
+    gap += (np.isfinite(a[:, None, :, 0]) != np.isfinite(b[None, :, :, 0])).sum(axis=2) * 1e6
+    rows, cols = linear_sum_assignment(gap)
+    for row, col in zip(rows, cols, strict=True):
+        np.testing.assert_array_equal(np.isfinite(a[row]), np.isfinite(b[col]))  # same frames in each track
+        seen = np.isfinite(a[row][:, 0])
+        np.testing.assert_allclose(a[row][seen], b[col][seen], rtol=0, atol=0.01)

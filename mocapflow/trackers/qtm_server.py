@@ -121,7 +121,10 @@ class QtmServer:
                 size, kind = struct.unpack("<II", await reader.readexactly(8))
                 payload = (await reader.readexactly(size - 8)).rstrip(b"\0").decode(errors="replace")
                 if kind == COMMAND:
-                    self._command(client, payload)
+                    try:
+                        self._command(client, payload)
+                    except (ValueError, IndexError):
+                        writer.write(text(ERROR, f"Parse error: {payload.strip()}"))
                 else:
                     writer.write(text(ERROR, "Command not supported"))
         except (asyncio.IncompleteReadError, ConnectionError):
