@@ -84,6 +84,7 @@ class QtmTracker(LiveTracker):
         first = True
         while not self._stop.is_set():
             lost = asyncio.Event()
+            connection = None
             try:
                 connection = await qtm_rt.connect(
                     self.config.host, self.config.port, timeout=self.config.timeout_s,
@@ -103,6 +104,8 @@ class QtmTracker(LiveTracker):
                     raise ConnectionError(f"{self.where} streams no frames (start a measurement or RT from "
                                           "file in QTM)") from None
             except Exception as exc:
+                if connection is not None and connection.has_transport():
+                    connection.disconnect()
                 if first:
                     self._failure = exc if isinstance(exc, ConnectionError) else ConnectionError(f"{self.where}: {exc}")
                     self._ready.set()
@@ -118,7 +121,7 @@ class QtmTracker(LiveTracker):
             stop.cancel()
             dropped.cancel()
             if self._stop.is_set():
-                if connection.has_transport():
+                if connection is not None and connection.has_transport():
                     await connection.stream_frames_stop()
                     connection.disconnect()
                 return
