@@ -30,6 +30,16 @@ RECEIVE_BUFFER = 4 << 20
 seconds of a 40-marker stream at 240 Hz, where the system default holds a few hundred milliseconds."""
 
 
+def enlarge_receive_buffers(client: Any) -> None:
+    """Room for frames that arrive while the client's thread is held up. The client keeps its sockets private;
+    frames come on the data socket (multicast) or the command socket (unicast). The system caps the size at
+    net.core.rmem_max."""
+    for kind in ("data", "command"):
+        sock = getattr(client, f"_NatNetClient__{kind}_socket", None)
+        if isinstance(sock, socket.socket):
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, RECEIVE_BUFFER)
+
+
 class NatNetConfig(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
@@ -81,7 +91,7 @@ class NatNetTracker(LiveTracker):
                                   "Motive streaming, with this transmission type?)") from None
         except OSError as exc:
             raise ConnectionError(f"NatNet at {self.where}: {exc}") from None
-        self._enlarge_receive_buffers()
+        enlarge_receive_buffers(self.client)
         self.client.request_modeldef()
         self.rate = config.rate or 0.0
         self.client.run_async()
@@ -95,14 +105,6 @@ class NatNetTracker(LiveTracker):
         info = self.client.server_info
         self.log.info("NatNet at %s: %s, NatNet %s, %g Hz, %s markers", self.where,
                       info.application_name if info else "?", self.client.protocol_version, self.rate, config.markers)
-
-    def _enlarge_receive_buffers(self) -> None:
-        """The client keeps its sockets private; frames come on the data socket (multicast) or the command socket
-        (unicast). The system caps the size at net.core.rmem_max."""
-        for kind in ("data", "command"):
-            sock = getattr(self.client, f"_NatNetClient__{kind}_socket", None)
-            if isinstance(sock, socket.socket):
-                sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, RECEIVE_BUFFER)
 
     @property
     def where(self) -> str:

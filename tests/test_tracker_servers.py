@@ -13,6 +13,7 @@ from conftest import free_port
 from trackers import Server
 
 from mocapflow.io.markers import read_markers
+from mocapflow.plugins.natnet import enlarge_receive_buffers
 
 pytestmark = pytest.mark.integration
 qtm_rt = pytest.importorskip("qtm_rt")
@@ -82,6 +83,7 @@ def test_natnet_client_reads_the_file_exactly(real_file) -> None:
         client.on_data_frame_received_event.handlers.append(frames.append)
         client.on_data_description_received_event.handlers.append(descriptions.append)
         with client:
+            enlarge_receive_buffers(client)  # as the adapter does: a busy machine must not overflow the socket
             assert str(client.server_info.nat_net_protocol_version) == "3.0.0.0"
             client.request_modeldef()
             client.run_async()
