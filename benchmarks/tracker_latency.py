@@ -89,6 +89,7 @@ def main() -> None:
     parser.add_argument("--seconds", type=float, default=6.0, help="length of file to play")
     args = parser.parse_args()
     logging.basicConfig(level=logging.WARNING)
+    logging.getLogger("asyncio").setLevel(logging.CRITICAL)  # the servers' tasks are cancelled at the end
     whole = read_markers(args.file)
     n = min(len(whole.positions), int(args.seconds * whole.rate))
     data = MarkerData(whole.positions[:n], whole.labels, whole.rate, whole.first_frame)
