@@ -34,7 +34,8 @@ class QtmConfig(BaseModel):
     component: Literal["3d", "3dnolabels"] = Field(
         default="3d", description="3d: labelled markers; 3dnolabels: the unlabelled point cloud (link a labeller)")
     units: Literal["mm", "cm", "m"] = Field(default="mm", description="unit of QTM's 3D positions (mm unless changed)")
-    divisor: int = Field(default=1, ge=1, description="stream every n-th captured frame (1: all frames)")
+    divisor: int = Field(default=1, ge=1, description="stream every n-th captured frame (1: all frames); frames are "
+                         "then numbered QTM's number // n")
     timeout_s: float = Field(default=5.0, gt=0, description="how long to wait for QTM to answer or stream")
     retry_s: float = Field(default=1.0, gt=0, description="pause between reconnection attempts")
     end_with_capture: bool = Field(
@@ -147,8 +148,9 @@ class QtmTracker(LiveTracker):
             positions = np.array([m[:3] for m in markers], dtype=float).reshape(-1, 3)
             positions = positions[np.isfinite(positions).all(axis=1)]
             labels = None
-        self.push(packet.framenumber, int(packet.timestamp) * 1000, positions * self.scale, labels,  # type: ignore
-                  arrival_ns)
+        # with a divisor, QTM's numbers step by it: number the streamed frames 1 apart, so no stage counts drops
+        self.push(packet.framenumber // self.config.divisor, int(packet.timestamp) * 1000,  # type: ignore
+                  positions * self.scale, labels, arrival_ns)
 
     def _on_event(self, event: object) -> None:
         import qtm_rt

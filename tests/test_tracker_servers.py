@@ -118,3 +118,24 @@ def test_serve_refuses_a_file_it_cannot_read_in_one_line(tmp_path: Path) -> None
                           timeout=60)
     assert done.returncode == 2 and done.stderr.count("\n") == 1, done.stderr
     assert done.stderr.startswith(f"mocapflow serve: error: {bad}"), done.stderr
+
+
+def test_qtm_adapter_decimates_with_consecutive_numbers(real_file) -> None:
+    """``divisor: 2``: QTM streams every other frame; the adapter numbers them one apart at half the rate."""
+    from mocapflow.plugins.qtm import QtmConfig, QtmTracker
+
+    path = real_file(SHORT)
+    data = read_markers(path)
+    port = free_port()
+    published: list = []
+    with Server("qtm", path, port, "--speed", "4"):
+        node = QtmTracker(QtmConfig(port=port, divisor=2, end_with_capture=True),
+                          lambda _port, message: published.append(message))
+        index = 0
+        while node.emit(index):
+            index += 1
+        node.finish()
+    assert node.rate == data.rate / 2 and all(m.rate == data.rate / 2 for m in published)
+    rows = [r for r in range(len(data.positions)) if r % 2 == 0]  # the stand-in sends frames 0, 2, 4... of the file
+    assert [m.frame for m in published] == [(data.first_frame + r) // 2 for r in rows]
+    np.testing.assert_array_equal(np.array([m.positions for m in published]), data.positions[rows].astype(np.float32))
