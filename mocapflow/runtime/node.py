@@ -63,6 +63,9 @@ class Node(Generic[ConfigT]):
     outputs: ClassVar[dict[str, Output]] = {}
 
     rate: float = 0.0
+    paced: ClassVar[bool] = True
+    """Sources: False when frames are pushed by a device (a live tracker), so the runtime calls ``emit`` again at
+    once instead of on the ``rate`` timetable, and ``emit`` itself waits for the next frame."""
 
     def __init__(self, config: ConfigT, publish: Publish, name: str = "node") -> None:
         self.config: ConfigT = config

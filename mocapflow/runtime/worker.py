@@ -232,13 +232,14 @@ class Worker:
         t0 = time.monotonic() - (time.time_ns() - origin_ns) / 1e9
         while not self.stop_event.is_set():
             delay = t0 + index * period - time.monotonic()
-            if delay > 0:
+            if delay > 0 and self.node.paced:
                 self.stop_event.wait(delay)
                 if self.stop_event.is_set():
                     break
+            sent = self.stats.frames_out
             if not self.node.emit(index):
                 break
-            if self._last_capture_ns is not None:
+            if self._last_capture_ns is not None and self.stats.frames_out > sent:
                 self.stats.frame_done(self._last_capture_ns)
             index += 1
         self._end_outputs()
