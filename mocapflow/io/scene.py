@@ -192,7 +192,7 @@ class Scene:
             [centres[n] for n in known], labels=known, colors=JOINT_COLOUR, radii=JOINT_RADIUS_MM))
         pairs = [(a, b) for a, b in self.bones if a in known and b in known]
         self.stream.log(f"{path}/bones", rr.LineStrips3D(
-            [[centres[a], centres[b]] for a, b in pairs], labels=[f"{a}-{b}" for a, b in pairs],
+            [[centres[a], centres[b]] for a, b in pairs], labels=[f"{a} → {b}" for a, b in pairs],
             colors=BONE_COLOUR, radii=BONE_RADIUS_MM))
 
     def stats(self, stats: NodeStats, received_ns: int) -> None:
