@@ -9,15 +9,22 @@ from a C3D or TRC file, its markers (and joint centres, with bones when ``--skel
 from __future__ import annotations
 
 import argparse
+import itertools
 import queue
 import signal
 import threading
 import time
+from collections.abc import Callable
+from functools import partial
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from mocapflow.io.scene import UP_AXES
 from mocapflow.runtime.session import DEFAULT_ENDPOINT
+
+if TYPE_CHECKING:
+    from mocapflow.io.markers import MarkerData
+    from mocapflow.mocap.model import SkeletonModel
 
 RECORDINGS = (".mcap", ".c3d", ".trc")
 GRAPHS = (".yaml", ".yml")
@@ -57,33 +64,34 @@ def _view(args: argparse.Namespace) -> int:
         raise MocapflowError("--rate must be 0 (every frame) or positive")
     if args.skeleton and suffix not in (".c3d", ".trc"):
         raise MocapflowError("--skeleton applies to a .c3d or .trc file")
-    prefix, connect, up_from = args.source.rstrip("/"), list(args.connect), None
-    if suffix in GRAPHS:
-        prefix, graph_connect, up_from = _graph(source)
-        connect = connect or graph_connect
+    stop = threading.Event()
+    # Read (and so check) the source before a viewer or file is opened.
+    draw: Callable[[Scene], int]
+    up_from: Path | None = None
+    if suffix == ".mcap":
+        draw = _recording(source)
     elif suffix in (".c3d", ".trc"):
-        up_from = source
+        draw, up_from = _marker_file(source, args.skeleton), source
+    else:
+        prefix, connect = args.source.rstrip("/"), list(args.connect)
+        if suffix in GRAPHS:
+            prefix, graph_connect, up_from = _graph(source)
+            connect = connect or graph_connect
+        draw = partial(_live, prefix=prefix, connect=connect, rate=args.rate, duration=args.duration, stop=stop)
     up = args.up or (up_axis_of_file(up_from) if up_from else None)
     if up is None:
-        print(f"up axis: +Z ({up_from or 'a live stream'} does not say; set --up otherwise)", flush=True)
+        print(f"up axis: +Z ({up_from or args.source} does not say; set --up otherwise)", flush=True)
         up = "+Z"
     try:
-        stream = open_stream(source.stem if suffix else prefix.replace("/", "-"),
+        stream = open_stream(source.stem if suffix else args.source,
                              spawn=args.spawn or not (args.viewer or args.serve or args.save), connect=args.viewer,
                              serve=args.serve, save=args.save, memory_limit=args.memory_limit,
                              grpc_port=args.grpc_port, web_port=args.web_port)
     except (RuntimeError, OSError) as exc:
         raise MocapflowError(f"cannot open the viewer: {exc}") from None
-    scene = Scene(stream, up=up)
-    stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
-    if suffix == ".mcap":
-        count = _from_recording(scene, source)
-    elif suffix in (".c3d", ".trc"):
-        count = _from_markers(scene, source, args.skeleton)
-    else:
-        count = _live(scene, prefix, connect, args.rate, args.duration, stop)
+    count = draw(Scene(stream, up=up))
     stream.flush()
     print(f"{count} marker frames drawn" + (f" to {args.save}" if args.save else ""), flush=True)
     if args.serve and suffix in RECORDINGS:
@@ -136,35 +144,46 @@ class _Streams:
         self.frames += type_name == "MarkerFrame"
 
 
-def _from_recording(scene: Any, path: Path) -> int:
+def _recording(path: Path) -> Callable[[Any], int]:
     from mocapflow.io.recording import read_recording
 
     samples = read_recording(path)
-    first = next(samples, None)
-    if first is None:
-        return 0
-    prefix = first.key.rsplit("/", 2)[0]  # a key is {prefix}/{node}/{output} or {prefix}/_stats/{node}
-    streams = _Streams(scene, prefix)
-    streams.handle(first.key, first.encoding, first.payload, first.delete, first.log_time_ns)
-    for s in samples:
-        streams.handle(s.key, s.encoding, s.payload, s.delete, s.log_time_ns)
-    return streams.frames
+    first = next(samples, None)  # a file that is not a recording fails here
+
+    def draw(scene: Any) -> int:
+        if first is None:
+            return 0
+        streams = _Streams(scene, first.key.rsplit("/", 2)[0])  # {prefix}/{node}/{output} or {prefix}/_stats/{node}
+        for s in itertools.chain([first], samples):
+            streams.handle(s.key, s.encoding, s.payload, s.delete, s.log_time_ns)
+        return streams.frames
+
+    return draw
 
 
-def _from_markers(scene: Any, path: Path, skeleton_path: str | None) -> int:
-    import numpy as np
-
+def _marker_file(path: Path, skeleton_path: str | None) -> Callable[[Any], int]:
+    """A C3D or TRC file's markers, flags and joint centres (its extra points) frame by frame; with a skeleton, the
+    segment colours and the bones between the joint centres it names."""
     from mocapflow.errors import MocapflowError
     from mocapflow.io.markers import read_markers
-    from mocapflow.messages import MarkerFrame, Pose, Skeleton
     from mocapflow.mocap.model import SkeletonModel
 
     data = read_markers(path)
+    model = None
     if skeleton_path:
         try:
             model = SkeletonModel.model_validate_json(Path(skeleton_path).read_text())
         except (OSError, ValueError) as exc:
             raise MocapflowError(f"{skeleton_path}: not a skeleton file: {str(exc).splitlines()[0]}") from None
+    return partial(_draw_markers, data=data, model=model)
+
+
+def _draw_markers(scene: Any, data: MarkerData, model: SkeletonModel | None) -> int:
+    import numpy as np
+
+    from mocapflow.messages import MarkerFrame, Pose, Skeleton
+
+    if model is not None:
         scene.skeleton(Skeleton(frame=data.first_frame, capture_ns=0, skeleton=model))
     joints = list(data.extra)
     centres = np.stack([data.extra[j] for j in joints], axis=1) if joints else None
@@ -181,7 +200,7 @@ def _from_markers(scene: Any, path: Path, skeleton_path: str | None) -> int:
     return data.n_frames
 
 
-def _live(scene: Any, prefix: str, connect: list[str], rate: float, duration: float | None,
+def _live(scene: Any, *, prefix: str, connect: list[str], rate: float, duration: float | None,
           stop: threading.Event) -> int:
     """Draw the graph's streams until Ctrl-C, ``duration``, or the end of every data stream seen. Live, only the
     latest message of each data key is drawn at each display tick, so a slow viewer skips frames, never lags."""

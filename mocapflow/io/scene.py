@@ -11,6 +11,7 @@ between the joint centres of a segment's two ends). Node health goes to ``health
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 from typing import TYPE_CHECKING, Final
 
@@ -226,7 +227,7 @@ def open_stream(name: str, *, spawn: bool = False, connect: str | None = None, s
 
     if not (spawn or connect or serve or save):
         raise ValueError("nowhere to show the scene: choose spawn, connect, serve or save")
-    stream = rr.RecordingStream(f"mocapflow/{name}")
+    stream = rr.RecordingStream("mocapflow-" + re.sub(r"[^A-Za-z0-9_-]+", "-", name))
     sinks: list[rr.sinks.LogSinkLike] = []
     if spawn:
         stream.spawn(port=grpc_port, connect=False, memory_limit=memory_limit)
