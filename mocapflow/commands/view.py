@@ -86,7 +86,8 @@ def _view(args: argparse.Namespace) -> int:
         stream = open_stream(source.stem if suffix else args.source,
                              spawn=args.spawn or not (args.viewer or args.serve or args.save), connect=args.viewer,
                              serve=args.serve, save=args.save, memory_limit=args.memory_limit,
-                             grpc_port=args.grpc_port, web_port=args.web_port)
+                             grpc_port=args.grpc_port, web_port=args.web_port,
+                             health=suffix not in (".c3d", ".trc"))
     except (RuntimeError, OSError) as exc:
         raise MocapflowError(f"cannot open the viewer: {exc}") from None
     for sig in (signal.SIGINT, signal.SIGTERM):

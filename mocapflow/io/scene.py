@@ -54,7 +54,7 @@ JOINT_RADIUS_MM: Final = 14.0
 BONE_RADIUS_MM: Final = 5.0
 RAY_RADIUS_MM: Final = 1.5
 JOINT_COLOUR: Final = (220, 40, 40)
-BONE_COLOUR: Final = (250, 250, 250)
+BONE_COLOUR: Final = (90, 90, 115)
 
 
 def marker_colours(flags: np.ndarray, segment_of: np.ndarray) -> np.ndarray:
@@ -190,10 +190,10 @@ class Scene:
         self._at(pose)
         known = [n for n in pose.joint_names if np.isfinite(centres[n]).all()]
         self.stream.log(f"{path}/joints", rr.Points3D(
-            [centres[n] for n in known], labels=known, colors=JOINT_COLOUR, radii=JOINT_RADIUS_MM))
+            [centres[n] for n in known], labels=known, show_labels=False, colors=JOINT_COLOUR, radii=JOINT_RADIUS_MM))
         pairs = [(a, b) for a, b in self.bones if a in known and b in known]
         self.stream.log(f"{path}/bones", rr.LineStrips3D(
-            [[centres[a], centres[b]] for a, b in pairs], labels=[f"{a} → {b}" for a, b in pairs],
+            [[centres[a], centres[b]] for a, b in pairs], labels=[f"{a} → {b}" for a, b in pairs], show_labels=False,
             colors=BONE_COLOUR, radii=BONE_RADIUS_MM))
 
     def stats(self, stats: NodeStats, received_ns: int) -> None:
@@ -206,23 +206,26 @@ class Scene:
                 self.stream.log(f"health/{name}/{stats.node}", self.rr.Scalars(value))
 
 
-def blueprint() -> rrb.Blueprint:
-    """The layout: the 3D scene, and node latency and rate as time series beside it."""
+def blueprint(health: bool) -> rrb.Blueprint:
+    """The layout: the 3D scene, with node latency and rate as time series beside it when ``health`` is shown."""
     import rerun.blueprint as rrb
 
+    scene = rrb.Spatial3DView(origin="world", name="capture")
+    if not health:
+        return rrb.Blueprint(scene, collapse_panels=True)
     return rrb.Blueprint(rrb.Horizontal(
-        rrb.Spatial3DView(origin="world", name="capture"),
-        rrb.Vertical(rrb.TimeSeriesView(origin="health/latency_p99_ms", name="latency p99 (ms)"),
-                     rrb.TimeSeriesView(origin="health/rate_hz", name="rate (Hz)")),
+        scene, rrb.Vertical(rrb.TimeSeriesView(origin="health/latency_p99_ms", name="latency p99 (ms)"),
+                            rrb.TimeSeriesView(origin="health/rate_hz", name="rate (Hz)")),
         column_shares=[3, 1]), collapse_panels=True)
 
 
 def open_stream(name: str, *, spawn: bool = False, connect: str | None = None, serve: bool = False,
                 save: str | None = None, memory_limit: str = "1GiB", grpc_port: int = 9876,
-                web_port: int = 9090) -> rr.RecordingStream:
+                web_port: int = 9090, health: bool = False) -> rr.RecordingStream:
     """A Rerun recording stream to any of: a viewer spawned here, a viewer at ``connect`` (its gRPC URL), a gRPC
     server on ``grpc_port`` with the web viewer on ``web_port``, an .rrd file. ``memory_limit`` bounds the spawned
-    viewer and the server: beyond it the oldest data is dropped, so a session of hours runs in bounded memory."""
+    viewer and the server: beyond it the oldest data is dropped, so a session of hours runs in bounded memory.
+    ``health``: lay out node latency and rate beside the scene."""
     import rerun as rr
 
     if not (spawn or connect or serve or save):
@@ -240,7 +243,7 @@ def open_stream(name: str, *, spawn: bool = False, connect: str | None = None, s
     if save:
         Path(save).parent.mkdir(parents=True, exist_ok=True)
         sinks.append(rr.FileSink(save))
-    stream.set_sinks(*sinks, default_blueprint=blueprint())
+    stream.set_sinks(*sinks, default_blueprint=blueprint(health))
     if serve:
         rr.serve_web_viewer(web_port=web_port, open_browser=False, connect_to=server.uri)
     return stream
