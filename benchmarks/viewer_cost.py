@@ -76,7 +76,7 @@ def main() -> None:
             for name, viewer in VARIANTS.items():
                 nodes = run(work, skeleton, viewer, args.seconds)
                 pose = nodes["skeleton"]
-                p50, p99 = (("-" if v is None else f"{v:.2f}") for v in (pose["latency_p50_ms"], pose["latency_p99_ms"]))
+                p50, p99 = ("-" if v is None else f"{v:.2f}" for v in (pose["latency_p50_ms"], pose["latency_p99_ms"]))
                 print(f"{name + f' #{round_ + 1}':<22}{p50:>12}{p99:>12}"
                       f"{pose['frames_out']:>8}{pose['drops']:>7}{pose['rate_hz']:>9.0f}"
                       f"{nodes.get('viewer', {}).get('frames_in', '-'):>10}", flush=True)
