@@ -35,7 +35,7 @@ UNASSIGNED: Final = (235, 235, 235)
 FLAG_COLOURS: Final[dict[int, tuple[int, int, int]]] = {
     FillCase.KALMAN: (255, 215, 0),
     FillCase.ONE_MISSING: (255, 140, 0),
-    FillCase.TWO_MISSING: (240, 70, 40),
+    FillCase.TWO_MISSING: (255, 100, 170),
     FillCase.VIA_JOINT: (230, 60, 200),
     FillCase.CONSTANT_ROTOR: (150, 90, 255),
     FillCase.RAY: (0, 225, 225),
@@ -57,20 +57,22 @@ JOINT_COLOUR: Final = (220, 40, 40)
 BONE_COLOUR: Final = (90, 90, 115)
 
 
+def _packed(rgb: np.ndarray) -> np.ndarray:
+    """RGB rows as Rerun's packed 0xRRGGBBAA colours (opaque)."""
+    rgb = np.asarray(rgb, dtype=np.uint32).reshape(-1, 3)
+    return rgb[:, 0] << 24 | rgb[:, 1] << 16 | rgb[:, 2] << 8 | 0xFF
+
+
+_BY_FLAG = _packed(np.array([LOST, UNASSIGNED] + [FLAG_COLOURS.get(f, OTHER_ESTIMATE) for f in range(2, 256)]))
+_BY_SEGMENT = _packed(np.array(SEGMENT_COLOURS))
+
+
 def marker_colours(flags: np.ndarray, segment_of: np.ndarray) -> np.ndarray:
-    """(N, 3) uint8 colours: observed samples by segment (``segment_of`` -1 = none), estimated ones by flag, missing
-    ones grey."""
-    colours = np.empty((len(flags), 3), dtype=np.uint8)
-    colours[:] = UNASSIGNED
-    observed = flags == FillCase.OBSERVED
-    known = observed & (segment_of >= 0)
-    palette = np.array(SEGMENT_COLOURS, dtype=np.uint8)
-    colours[known] = palette[segment_of[known] % len(palette)]
-    colours[flags == FillCase.MISSING] = LOST
-    estimated = flags >= FillCase.KALMAN
-    colours[estimated] = OTHER_ESTIMATE
-    for flag, colour in FLAG_COLOURS.items():
-        colours[flags == flag] = colour
+    """Packed colours (0xRRGGBBAA): observed samples by segment (``segment_of`` -1 = none), estimated ones by flag,
+    missing ones grey."""
+    colours = _BY_FLAG[flags]
+    known = (flags == FillCase.OBSERVED) & (segment_of >= 0)
+    colours[known] = _BY_SEGMENT[segment_of[known] % len(_BY_SEGMENT)]
     return colours
 
 
@@ -149,7 +151,7 @@ class Scene:
         positions: np.ndarray = frame.positions
         present = np.isfinite(positions).all(axis=1)
         flags = frame.flags if frame.flags is not None else present.astype(np.uint8)
-        flags = np.where(present, flags, FillCase.MISSING)
+        flags = np.where(present, flags, int(FillCase.MISSING))
         if frame.labels is not None:
             segment_of = np.array([self.segment_of.get(label, -1) for label in frame.labels], dtype=np.int64)
             # a labelled marker that is lost stays where it was last seen, greyed
