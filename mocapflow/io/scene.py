@@ -150,8 +150,8 @@ class Scene:
         rr = self.rr
         positions: np.ndarray = frame.positions
         present = np.isfinite(positions).all(axis=1)
-        flags = frame.flags if frame.flags is not None else present.astype(np.uint8)
-        flags = np.where(present, flags, int(FillCase.MISSING))
+        flags = np.array(frame.flags if frame.flags is not None else present, dtype=np.uint8)
+        flags[~present] = FillCase.MISSING
         if frame.labels is not None:
             segment_of = np.array([self.segment_of.get(label, -1) for label in frame.labels], dtype=np.int64)
             # a labelled marker that is lost stays where it was last seen, greyed
