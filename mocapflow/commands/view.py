@@ -109,7 +109,7 @@ def _graph(path: Path) -> tuple[str, list[str], Path | None]:
     graph = load_graph(path)
     connect = list(graph.zenoh.connect) or list(graph.zenoh.listen) or [DEFAULT_ENDPOINT]
     replayed = [Path(n.config["path"]) for n in graph.nodes.values() if n.plugin == "c3d-replay"]
-    replayed = [p if p.is_absolute() else path.parent / p for p in replayed]
+    replayed = [p if p.is_absolute() or p.is_file() else path.parent / p for p in replayed]
     return graph.key_prefix, connect, next((p for p in replayed if p.is_file()), None)
 
 
@@ -128,8 +128,9 @@ class _Streams:
         from mocapflow.messages import MESSAGE_TYPES, SCHEMA_PREFIX, DecodeError, decode
 
         if delete:
-            self.open.discard(key)
-            self.ended = not self.open
+            if key in self.open:
+                self.open.discard(key)
+                self.ended = not self.open
             return
         type_name = encoding.partition(f";{SCHEMA_PREFIX}")[2]
         if type_name not in MESSAGE_TYPES:
