@@ -8,7 +8,7 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
-from mocapflow.io.scene import Scene, open_stream
+from mocapflow.io.scene import Scene, close_stream, open_stream
 from mocapflow.messages import MarkerFrame, Message, Pose, Segments, Skeleton
 from mocapflow.runtime.node import Input, Node, Publish
 
@@ -87,5 +87,6 @@ class RerunSink(Node):
     def finish(self) -> None:
         for port, message in self.skipped.items():  # the last frame is always shown
             self.scene.log(f"world/{port}", message)
-        self.stream.flush()
-        self.stream.disconnect()
+        problem = close_stream(self.stream)
+        if problem:
+            self.log.warning("the scene's last frames were not delivered: %s", problem)

@@ -13,9 +13,10 @@ from typing import Any
 import numpy as np
 import pytest
 import yaml
+from conftest import free_port
 from test_replay_pipeline import real_slice
 
-from mocapflow.io.markers import MarkerData, read_markers
+from mocapflow.io.markers import MarkerData, read_markers, write_markers
 from mocapflow.io.scene import FLAG_COLOURS, LOST, OTHER_ESTIMATE, SEGMENT_COLOURS, UNASSIGNED, up_axis_of_file
 from mocapflow.runtime.graph import load_graph
 
@@ -264,3 +265,7 @@ def test_bad_input_is_one_line(tmp_path: Path) -> None:
             "viewer": {"plugin": "rerun", "inputs": {"markers": "tracker/markers"}, "config": config}}}))
         assert "nodes.viewer.config" in fails("validate", graph) and reason in fails("validate", graph)
     assert not list(tmp_path.glob("*.rrd"))
+    small = tmp_path / "small.c3d"
+    write_markers(small, MarkerData(np.zeros((5, 2, 3)) + 100, ["A", "B"], 100.0))
+    no_viewer = f"rerun+http://127.0.0.1:{free_port()}/proxy"
+    assert "the viewer did not receive the scene" in fails("view", small, "--viewer", no_viewer)

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import itertools
+import os
 import queue
 import signal
 import threading
@@ -54,7 +55,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def _view(args: argparse.Namespace) -> int:
     from mocapflow.errors import MocapflowError
-    from mocapflow.io.scene import Scene, open_stream, up_axis_of_file
+    from mocapflow.io.scene import Scene, close_stream, open_stream, up_axis_of_file
 
     source = Path(args.source)
     suffix = source.suffix.lower()
@@ -64,6 +65,8 @@ def _view(args: argparse.Namespace) -> int:
         raise MocapflowError("--rate must be 0 (every frame) or positive")
     if args.skeleton and suffix not in (".c3d", ".trc"):
         raise MocapflowError("--skeleton applies to a .c3d or .trc file")
+    # Problems reach the user as one line of ours; RUST_LOG=warn shows Rerun's own log.
+    os.environ.setdefault("RUST_LOG", "off")
     stop = threading.Event()
     # Read (and so check) the source before a viewer or file is opened.
     draw: Callable[[Scene], int]
@@ -93,12 +96,13 @@ def _view(args: argparse.Namespace) -> int:
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
     count = draw(Scene(stream, up=up))
-    stream.flush()
-    print(f"{count} marker frames drawn" + (f" to {args.save}" if args.save else ""), flush=True)
     if args.serve and suffix in RECORDINGS:
         print(f"serving on http://127.0.0.1:{args.web_port} (Ctrl-C to stop)", flush=True)
         stop.wait()
-    stream.disconnect()
+    problem = close_stream(stream)
+    if problem:
+        raise MocapflowError(f"the viewer did not receive the scene: {problem}")
+    print(f"{count} marker frames drawn" + (f" to {args.save}" if args.save else ""), flush=True)
     return 0
 
 

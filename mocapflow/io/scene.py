@@ -25,6 +25,8 @@ if TYPE_CHECKING:
     import rerun as rr
     import rerun.blueprint as rrb
 
+FLUSH_TIMEOUT_S: Final = 10.0
+"""How long a closing stream waits for its sinks: a viewer that went away must not hold a node or command forever."""
 UP_AXES: Final = ("+Z", "+Y", "+X", "-Z", "-Y", "-X")
 """Up directions a scene can be drawn with (Rerun's right-handed view coordinates)."""
 
@@ -249,3 +251,15 @@ def open_stream(name: str, *, spawn: bool = False, connect: str | None = None, s
     if serve:
         rr.serve_web_viewer(web_port=web_port, open_browser=False, connect_to=server.uri)
     return stream
+
+
+def close_stream(stream: rr.RecordingStream) -> str | None:
+    """Send what is pending (waiting at most ``FLUSH_TIMEOUT_S``) and close; the reason on one line if a sink could
+    not take it (a viewer that went away), else None."""
+    try:
+        stream.flush(timeout_sec=FLUSH_TIMEOUT_S)
+    except RuntimeError as exc:
+        return str(exc).splitlines()[0]
+    finally:
+        stream.disconnect()
+    return None
