@@ -1,0 +1,92 @@
+"""Rerun sink: the live capture as a 3D scene to orbit, pause and scrub, in Rerun's native or web viewer or an .rrd."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+
+from mocapflow.io.scene import Scene, close_stream, open_stream
+from mocapflow.messages import MarkerFrame, Message, Pose, Segments, Skeleton
+from mocapflow.runtime.node import Input, Node, Publish
+
+
+class RerunConfig(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    spawn: bool = Field(default=False, description="start Rerun's native viewer on this machine")
+    connect: str | None = Field(default=None, description="send to a running viewer at this gRPC URL, e.g. "
+                                                          "rerun+http://HOST:9876/proxy")
+    serve: bool = Field(default=False, description="serve the scene over gRPC and the web viewer over HTTP")
+    grpc_port: int = Field(default=9876, ge=1, le=65535, description="port of the spawned viewer or of the server")
+    web_port: int = Field(default=9090, ge=1, le=65535, description="web viewer port when serving")
+    save: str | None = Field(default=None, description="write the scene to this .rrd file")
+    rate: float | None = Field(default=60.0, gt=0, description="display rate, Hz; frames in between are skipped "
+                                                               "(null: every frame)")
+    memory_limit: str = Field(default="1GiB", description="memory of the spawned viewer or server; beyond it the "
+                                                          "oldest data is dropped")
+    up: Literal["+Z", "+Y", "+X", "-Z", "-Y", "-X"] = Field(default="+Z", description="the capture's up axis")
+    ray_length_mm: float = Field(default=4000.0, gt=0, description="length drawn of a ray with no position on it")
+
+    @field_validator("save")
+    @classmethod
+    def _suffix(cls, path: str | None) -> str | None:
+        if path is not None and Path(path).suffix.lower() != ".rrd":
+            raise ValueError(f"{path!r}: the scene is saved as a .rrd file")
+        return path
+
+    @model_validator(mode="after")
+    def _somewhere(self) -> RerunConfig:
+        if not (self.spawn or self.connect or self.serve or self.save):
+            raise ValueError("nowhere to show the scene: set spawn, connect, serve or save")
+        return self
+
+
+class RerunSink(Node):
+    """Draws markers (coloured by segment, and by flag where estimated), rays, joint centres and bones at up to
+    ``rate`` frames a second. Only the latest frame of each input is drawn: frames that queued while drawing are
+    skipped in one go, so the viewer never holds the pipeline back."""
+
+    Config = RerunConfig
+    inputs = {
+        "markers": Input(MarkerFrame, doc="markers to draw"),
+        "pose": Input(Pose, required=False, doc="joint centres and bones to draw"),
+        "skeleton": Input(Skeleton, required=False, state=True, doc="joint tree for the bones"),
+        "segments": Input(Segments, required=False, state=True, doc="marker colours by segment"),
+    }
+
+    def __init__(self, config: RerunConfig, publish: Publish, name: str = "viewer") -> None:
+        super().__init__(config, publish, name)
+        self.stream = open_stream(name, spawn=config.spawn, connect=config.connect, serve=config.serve,
+                                  save=config.save, memory_limit=config.memory_limit, grpc_port=config.grpc_port,
+                                  web_port=config.web_port)
+        self.scene = Scene(self.stream, up=config.up, ray_length_mm=config.ray_length_mm)
+        self.period = 1.0 / config.rate if config.rate else 0.0
+        self.due: dict[str, float] = {}
+        self.skipped: dict[str, Message] = {}
+
+    def process(self, port: str, message: Message) -> None:
+        self.process_batch(port, [message])
+
+    def process_batch(self, port: str, messages: list[Message]) -> None:
+        if self.inputs[port].state or self.config.rate is None:
+            for message in messages:
+                self.scene.log(f"world/{port}", message)
+            return
+        latest = messages[-1]
+        now = time.monotonic()
+        if now < self.due.get(port, 0.0):
+            self.skipped[port] = latest
+            return
+        self.due[port] = now + self.period
+        self.skipped.pop(port, None)
+        self.scene.log(f"world/{port}", latest)
+
+    def finish(self) -> None:
+        for port, message in self.skipped.items():  # the last frame is always shown
+            self.scene.log(f"world/{port}", message)
+        problem = close_stream(self.stream)
+        if problem:
+            self.log.warning("the scene's last frames were not delivered: %s", problem)
