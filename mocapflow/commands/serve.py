@@ -33,15 +33,18 @@ def run(args: argparse.Namespace) -> int:
         raise MocapflowError(f"--speed must be positive, not {args.speed}")
     port = args.port or PORTS[args.protocol]
     path = Path(args.file)
+    source: object
     try:
         if args.protocol == "natnet" and path.suffix.lower() in (".pcapng", ".pcap"):
             from mocapflow.trackers.natnet_server import Recording
 
-            source: object = Recording.read(path)
-            what = f"{len(source.frames)} recorded frames"  # type: ignore[attr-defined]
+            recording = Recording.read(path)
+            what = f"{len(recording.frames)} recorded frames"
+            source = recording
         else:
-            source = read_markers(path)
-            what = f"{len(source.positions)} frames x {len(source.labels)} markers at {source.rate:g} Hz"  # type: ignore
+            data = read_markers(path)
+            what = f"{len(data.positions)} frames x {len(data.labels)} markers at {data.rate:g} Hz"
+            source = data
     except (OSError, ValueError) as exc:
         raise MocapflowError(str(exc)) from None
 

@@ -11,7 +11,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from mocapflow.io.markers import clean_labels
+from mocapflow.io.markerdata import clean_labels
 from mocapflow.messages import MarkerFrame
 from mocapflow.runtime.node import Node, Output, Publish
 
