@@ -6,14 +6,13 @@ from __future__ import annotations
 
 import os
 import subprocess
-import sys
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pytest
 import yaml
-from conftest import free_port
+from conftest import CLI, free_port, run_cli
 from test_replay_pipeline import real_slice
 
 from mocapflow.io.markers import MarkerData, read_markers, write_markers
@@ -24,8 +23,6 @@ rr = pytest.importorskip("rerun")
 pytest.importorskip("datafusion")
 
 ROOT = Path(__file__).resolve().parents[1]
-CLI = [sys.executable, "-m", "mocapflow.cli"]
-ENV = {**os.environ, "RERUN_ANALYTICS": "0"}
 SINK = {"markers": "filler/markers", "pose": "skeleton/pose", "skeleton": "joints/skeleton",
         "segments": "clusterer/segments"}
 
@@ -71,8 +68,14 @@ def graph_with_sinks(tmp_path: Path, base: str, endpoint: str, sinks: dict[str, 
     return path
 
 
+@pytest.fixture(autouse=True)
+def _no_analytics(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Rerun processes started by these tests (inheriting the environment) send nothing anywhere."""
+    monkeypatch.setenv("RERUN_ANALYTICS", "0")
+
+
 def run(*args: str | Path, timeout: float = 240) -> str:
-    done = subprocess.run([*CLI, *map(str, args)], capture_output=True, text=True, timeout=timeout, env=ENV)
+    done = run_cli(*args, timeout=timeout)
     assert done.returncode == 0, done.stdout + done.stderr
     return done.stdout + done.stderr
 
@@ -192,11 +195,11 @@ def test_view_attaches_to_a_running_graph_and_replays_its_recording(tmp_path: Pa
     graph = graph_with_sinks(tmp_path, "quickstart.yaml", free_endpoint, sinks, {"frames": 960, "rate": 120}, True)
     prefix = load_graph(graph).key_prefix
     run_graph = subprocess.Popen([*CLI, "run", str(graph), "--duration", "150"], stdout=subprocess.PIPE,
-                                 stderr=subprocess.STDOUT, text=True, env=ENV)
+                                 stderr=subprocess.STDOUT, text=True)
     try:
         recorder = subprocess.Popen([*CLI, "record", f"{prefix}/**", "-o", str(tmp_path / "run.mcap"), "--connect",
                                      free_endpoint, "--duration", "120"], stdout=subprocess.PIPE,
-                                    stderr=subprocess.STDOUT, text=True, env=ENV)
+                                    stderr=subprocess.STDOUT, text=True)
         live_out = run("view", graph, "--save", tmp_path / "live.rrd", "--rate", "30", timeout=180)
         out, _ = run_graph.communicate(timeout=180)
         assert "all nodes finished" in out, out
@@ -225,6 +228,7 @@ def test_view_attaches_to_a_running_graph_and_replays_its_recording(tmp_path: Pa
             assert f"/health/latency_p99_ms/{node}:Scalars:scalars" in health
 
 
+@pytest.mark.integration
 def test_view_draws_marker_files_with_their_up_axis(tmp_path: Path, real_file: Any) -> None:
     trc = real_file("hamner_run200.trc")
     out = run("view", trc, "--save", tmp_path / "trc.rrd")
@@ -247,9 +251,10 @@ def test_view_draws_marker_files_with_their_up_axis(tmp_path: Path, real_file: A
     assert read_rrd(tmp_path / "x.rrd", None)["/world:ViewCoordinates:xyz"] == static["/world:ViewCoordinates:xyz"]
 
 
+@pytest.mark.integration
 def test_bad_input_is_one_line(tmp_path: Path) -> None:
     def fails(*args: str | Path) -> str:
-        done = subprocess.run([*CLI, *map(str, args)], capture_output=True, text=True, timeout=60, env=ENV)
+        done = run_cli(*args, timeout=60)
         assert done.returncode == 2 and done.stderr.count("\n") == 1, done.stderr
         return done.stderr
 

@@ -11,9 +11,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import free_port
+from conftest import CLI, free_port
 from scipy.optimize import linear_sum_assignment
-from trackers import CLI, Server, graph_file, run_graph
+from trackers import Server, graph_file, run_graph
 
 from mocapflow.io.markers import MarkerData, read_markers, write_markers
 

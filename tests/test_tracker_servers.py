@@ -110,7 +110,7 @@ def test_natnet_client_reads_the_file_exactly(real_file) -> None:
 def test_serve_refuses_a_file_it_cannot_read_in_one_line(tmp_path: Path) -> None:
     import subprocess
 
-    from trackers import CLI
+    from conftest import CLI
 
     bad = tmp_path / "notes.c3d"
     bad.write_text("not a capture")

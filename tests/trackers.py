@@ -4,13 +4,11 @@ from __future__ import annotations
 
 import json
 import subprocess
-import sys
 from pathlib import Path
 from typing import Any
 
 import yaml
-
-CLI = [sys.executable, "-m", "mocapflow.cli"]
+from conftest import CLI
 
 
 class Server:
