@@ -14,6 +14,7 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
 from mocapflow.errors import GraphError
+from mocapflow.runtime.integrity import StreamLimits
 from mocapflow.runtime.node import Node
 from mocapflow.runtime.plugins import PluginNotFound, load
 
@@ -44,6 +45,7 @@ class Graph(BaseModel):
     name: str
     prefix: str | None = None
     zenoh: ZenohSettings = Field(default_factory=ZenohSettings)
+    limits: StreamLimits = Field(default_factory=StreamLimits, description="what every node's data inputs accept")
     nodes: dict[str, NodeSpec]
 
     @field_validator("nodes")

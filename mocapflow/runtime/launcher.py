@@ -16,6 +16,7 @@ import signal
 import sys
 import threading
 import time
+import uuid
 from collections.abc import Iterator
 from contextlib import nullcontext
 from pathlib import Path
@@ -83,6 +84,7 @@ class Launcher:
                 " router: pass --connect ENDPOINT (see docs/lab-deployment.md), or remove 'machine' to run here"
             )
         endpoints = self.connect or client_endpoints(self.listen)
+        self.run_id = uuid.uuid4().hex[:12]
         ends = end_inputs(graph, classes)
         all_procs = {
             name: Proc(
@@ -90,7 +92,8 @@ class Launcher:
                     node=name, plugin=spec.plugin, config=spec.config, prefix=self.prefix,
                     inputs={p: f"{self.prefix}/{link}" for p, link in spec.inputs.items()},
                     connect=endpoints, peers=list(graph.nodes), end_inputs=ends[name],
-                    security=str(self.security) if self.security else None,
+                    security=str(self.security) if self.security else None, limits=graph.limits,
+                    run=self.run_id,
                 ),
                 source=classes[name].is_source(), restart=spec.restart, max_restarts=spec.max_restarts,
             )

@@ -15,7 +15,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import IO, Literal
 
-from mocapflow.runtime.worker import EXIT_CONFIG, WorkerSpec
+from mocapflow.runtime.worker import EXIT_CONFIG, EXIT_FINISH, WorkerSpec
 
 DRAIN_S = 10.0
 TERM_S = 3.0
@@ -92,8 +92,10 @@ class Supervisor:
             if now - proc.started_at > HEALTHY_S:
                 proc.failures = 0
             proc.failures += 1
-            why = "configuration error" if code == EXIT_CONFIG else f"exit code {code}"
-            if self.stopping or code == EXIT_CONFIG or proc.restart == "never" or proc.failures > proc.max_restarts:
+            why = {EXIT_CONFIG: "configuration error", EXIT_FINISH: "its output is lost: finish failed"}.get(
+                code, f"exit code {code}")
+            if self.stopping or code in (EXIT_CONFIG, EXIT_FINISH) or proc.restart == "never" \
+                    or proc.failures > proc.max_restarts:
                 proc.state = "failed"
                 self.lines.put(f"[{proc.name}] failed for good ({why})")
             else:
