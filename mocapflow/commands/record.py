@@ -49,11 +49,15 @@ def _record(args: argparse.Namespace) -> int:
     with open_client(args.connect) as session, RecordingWriter(args.output) as writer:
         subs = [session.declare_subscriber(key, on_sample) for key in args.keys]
         print(f"recording {', '.join(args.keys)} to {args.output} (Ctrl-C to stop)", flush=True)
+        flushed = time.monotonic()
         while not stop.is_set() and (deadline is None or time.monotonic() < deadline):
             try:
                 writer.write(inbox.get(timeout=0.1))
             except queue.Empty:
                 pass
+            if time.monotonic() - flushed > 0.5:  # a killed recorder keeps all but the last half second
+                writer.flush()
+                flushed = time.monotonic()
         for s in subs:
             s.undeclare()
         while not inbox.empty():

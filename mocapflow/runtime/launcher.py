@@ -25,7 +25,7 @@ from typing import IO, Any
 import orjson
 import zenoh
 
-from mocapflow.errors import GraphError
+from mocapflow.errors import GraphError, MocapflowError
 from mocapflow.messages import MESSAGE_TYPES, NodeStats, json_schema
 from mocapflow.runtime import keys
 from mocapflow.runtime.agent import (
@@ -57,6 +57,16 @@ def serve_schemas(session: zenoh.Session, prefix: str) -> zenoh.Queryable:
                             encoding=zenoh.Encoding.APPLICATION_JSON)
 
     return session.declare_queryable(keys.schema_key(prefix, "**"), on_query)
+
+
+def refuse_prefix_in_use(session: zenoh.Session, prefix: str) -> None:
+    """Refuse to start a graph whose keys another live graph uses: both trackers would feed both recordings."""
+    users = set()
+    for key in (keys.launcher_key(prefix), keys.alive_key(prefix)):
+        users |= {str(r.ok.key_expr) for r in session.liveliness().get(key, timeout=2.0) if r.ok is not None}
+    if users:
+        raise MocapflowError(f"keys {prefix}/... are in use by a running graph ({', '.join(sorted(users))}): stop it,"
+                             " or give this graph another 'name' or 'prefix'")
 
 
 class Launcher:
@@ -205,7 +215,9 @@ class Launcher:
         old = {s: signal.signal(s, request_stop) for s in (signal.SIGINT, signal.SIGTERM)}
         agents = Agents(session, self.prefix, self.remote, self.lines, self.agent_timeout) if self.remote else None
         try:
-            with session.declare_subscriber(keys.stats_key(self.prefix), self._on_stats), \
+            refuse_prefix_in_use(session, self.prefix)
+            with session.liveliness().declare_token(keys.launcher_key(self.prefix, self.run_id)), \
+                    session.declare_subscriber(keys.stats_key(self.prefix), self._on_stats), \
                     serve_schemas(session, self.prefix), agents or nullcontext():
                 where = ", ".join(self.connect) if self.connect else f"embedded router on {', '.join(self.listen)}"
                 self.out.write(f"mocapflow: running {self.graph.name!r} ({len(self.specs)} nodes, {where}, "

@@ -1,0 +1,194 @@
+"""Nothing lost, nobody in: an attacker client, glitching trackers, SIGKILLed nodes and recorders, failing writes and a
+second launcher, each over real processes and real Zenoh on loopback. Every real frame must reach the recording
+unchanged (but those of a documented restart gap) and the exit code must tell the truth."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import orjson
+import pytest
+from test_runtime import RATE, read_c3d, start, wait_for_frames, worker_pid, workers_of
+
+from mocapflow.io.framelog import scan
+from mocapflow.io.recording import read_recording
+from mocapflow.messages import MarkerFrame, encode
+from mocapflow.mocap.simulator import Simulator, SimulatorConfig
+from mocapflow.runtime.session import open_client, open_router
+
+pytestmark = pytest.mark.integration
+
+GLITCHY = '''
+import numpy as np
+from mocapflow.messages import MarkerFrame
+from mocapflow.plugins.simulator import SimulatorNode
+
+class Glitchy(SimulatorNode):
+    """A tracker whose counter glitches: besides every real frame, it sends a frame numbered 10**12, a repeat of an
+    earlier number with other positions, one frame of 20,000 markers and one whose coordinates are all 1e30."""
+
+    def emit(self, index):
+        glitch = {100: 10**12, 200: 150, 300: index, 400: index}.get(index)
+        if glitch is not None:
+            n = 20_000 if index == 300 else len(self.labels)
+            value = 1e30 if index == 400 else 7.0
+            self.publish("markers", MarkerFrame(frame=glitch, capture_ns=0, rate=self.rate,
+                                                positions=np.full((n, 3), value)))
+        return super().emit(index)
+'''
+
+
+def write_graph(tmp_path: Path, endpoint: str, name: str, frames: int, plugin: str = "simulator",
+                relay: bool = False) -> tuple[Path, str]:
+    name = f"{name}{endpoint.rsplit(':', 1)[1]}"
+    source = "relay" if relay else "tracker"
+    path = tmp_path / f"{name}.yaml"
+    path.write_text(f"""
+name: {name}
+zenoh: {{listen: ["{endpoint}"]}}
+nodes:
+  tracker: {{plugin: "{plugin}", config: {{rig: human, rate: {RATE}, seed: 3, frames: {frames}}}}}
+{"  relay: {plugin: relay, inputs: {markers: tracker/markers}}" if relay else ""}
+  recorder: {{plugin: recorder, inputs: {{markers: {source}/markers}}, config: {{path: {tmp_path / 'out.c3d'}}}}}
+""")
+    return path, f"mocapflow/{name}"
+
+
+def truth(frames: int) -> np.ndarray:
+    sim = Simulator(SimulatorConfig(rig="human", rate=RATE, seed=3))
+    return np.stack([sim.frame(i).points for i in range(frames)])
+
+
+def assert_real_frames(points: np.ndarray, expected: np.ndarray, rows: np.ndarray) -> None:
+    """The recorded rows are exactly the simulated frames of the same number: nothing replaced or shifted."""
+    np.testing.assert_allclose(points[rows], expected[rows], atol=1e-3, equal_nan=True)
+
+
+def test_an_attacker_can_neither_end_nor_corrupt_a_stream(tmp_path: Path, free_endpoint: str) -> None:
+    frames = 10 * RATE
+    path, prefix = write_graph(tmp_path, free_endpoint, "atk", frames, relay=True)
+    run = start(["run", str(path), "--duration", "90", "--summary", str(tmp_path / "summary.json")], tmp_path)
+    wait_for_frames(free_endpoint, prefix, "recorder", RATE)
+    key = f"{prefix}/tracker/markers"
+    with open_client([free_endpoint]) as attacker:
+        pub = attacker.declare_publisher(key)
+        pub.delete()  # what ended the whole pipeline
+        pub.delete(attachment=b"tracker@0000")  # a DELETE naming the publisher, but not its run
+        for frame, n, value in ((10**12, 53, 1.0), (5, 53, 7.0), (RATE * 3, 350_000 // 50, 1.0), (RATE * 3, 53, 1e30),
+                                (RATE * 3, 53, np.nan)):
+            pub.put(encode(MarkerFrame(frame=frame, capture_ns=0, rate=RATE, positions=np.full((n, 3), value))))
+        pub.put(encode(MarkerFrame(frame=RATE * 4, capture_ns=0, rate=RATE, positions=np.zeros((53, 3)))),
+                attachment=b"tracker@0000")
+        time.sleep(0.5)
+    out, _ = run.communicate(timeout=120)
+    assert run.returncode == 0, out
+    assert "all nodes finished" in out and "not from the stream's publisher: ignored" in out
+    assert "while tracker@" in out  # the frames were refused because the tracker publishes this stream
+    points, *_ = read_c3d(tmp_path / "out.c3d")
+    assert points.shape[0] == frames  # every real frame, no frame 10**12, nothing after the last one
+    assert_real_frames(points, truth(frames), np.arange(frames))
+    summary = orjson.loads((tmp_path / "summary.json").read_bytes())
+    assert summary["relay"]["refused"] == 8 and summary["recorder"]["refused"] == 0, summary
+    assert not workers_of(prefix)
+
+
+def test_a_glitching_tracker_loses_no_real_frame(tmp_path: Path, free_endpoint: str) -> None:
+    (tmp_path / "glitchy.py").write_text(GLITCHY)
+    frames = 3 * RATE
+    path, prefix = write_graph(tmp_path, free_endpoint, "gl", frames, plugin="glitchy:Glitchy", relay=True)
+    run = start(["run", str(path), "--duration", "60", "--summary", str(tmp_path / "summary.json")], tmp_path)
+    out, _ = run.communicate(timeout=90)
+    assert run.returncode == 0, out
+    assert "frame 1000000000000 is more than 1000 frames after the last accepted frame 99" in out
+    assert "frame 150 is not after the last accepted frame 199" in out
+    assert "has 20000 markers (at most 5000" in out and "every coordinate is beyond" in out
+    points, *_ = read_c3d(tmp_path / "out.c3d")
+    assert points.shape[0] == frames
+    assert_real_frames(points, truth(frames), np.arange(frames))
+    summary = orjson.loads((tmp_path / "summary.json").read_bytes())
+    assert summary["relay"]["refused"] == 4 and summary["recorder"]["refused"] == 0, summary
+
+
+def test_a_killed_recorder_keeps_what_it_had_and_appends(tmp_path: Path, free_endpoint: str) -> None:
+    frames = 10 * RATE
+    path, prefix = write_graph(tmp_path, free_endpoint, "rk", frames)
+    run = start(["run", str(path), "--duration", "90"], tmp_path)
+    victim = worker_pid(prefix, "recorder")
+    wait_for_frames(free_endpoint, prefix, "recorder", 2 * RATE)
+    os.kill(victim, signal.SIGKILL)
+    part = tmp_path / "out.c3d.part"
+    assert sum(1 for _ in scan(part)[2]) >= 2 * RATE  # everything received is on disk already
+    out, _ = run.communicate(timeout=120)
+    assert run.returncode == 0, out
+    assert "[recorder] stopped (exit code -9); restart 1" in out and "resuming" in out
+    assert not part.exists()
+    points, *_ = read_c3d(tmp_path / "out.c3d")
+    seen = ~np.isnan(points[:, 0, 0])
+    edges = np.flatnonzero(np.diff(seen.astype(int)))
+    # frames before the kill kept, then one gap while the recorder restarted, then every frame to the end
+    assert seen[0] and seen[-1] and len(edges) == 2 and edges[0] + 1 >= 2 * RATE, edges
+    assert points.shape[0] == frames
+    assert_real_frames(points, truth(frames), np.flatnonzero(seen))
+    gap = edges[1] - edges[0]
+    print(f"recorder restart gap: {gap} frames ({gap / RATE:.2f} s at {RATE} Hz)")
+    assert not workers_of(prefix)
+
+
+def test_a_failed_finish_fails_the_run(tmp_path: Path, free_endpoint: str) -> None:
+    path, prefix = write_graph(tmp_path, free_endpoint, "ff", 3 * RATE)
+    run = start(["run", str(path), "--duration", "60", "--summary", str(tmp_path / "summary.json")], tmp_path)
+    wait_for_frames(free_endpoint, prefix, "recorder", RATE)
+    (tmp_path / "out.c3d").mkdir()  # the recording's path is taken by the time it is written
+    out, _ = run.communicate(timeout=90)
+    assert run.returncode == 1, out
+    assert "[recorder] failed for good (its output is lost: finish failed)" in out and "failed: recorder" in out
+    summary = orjson.loads((tmp_path / "summary.json").read_bytes())
+    assert summary["recorder"]["state"] == "failed" and summary["recorder"]["last_error"].startswith("finish")
+    assert (tmp_path / "out.c3d.part").stat().st_size > 0  # what was received is still on disk
+    assert not workers_of(prefix)
+
+
+def test_a_second_launcher_on_a_prefix_in_use_is_refused(tmp_path: Path, free_endpoint: str) -> None:
+    path, prefix = write_graph(tmp_path, free_endpoint, "two", 20 * RATE)
+    first = start(["run", str(path), "--duration", "40"], tmp_path)
+    try:
+        wait_for_frames(free_endpoint, prefix, "recorder", RATE)
+        second = subprocess.run([sys.executable, "-m", "mocapflow.cli", "run", str(path), "--connect", free_endpoint,
+                                 "--duration", "5"], cwd=tmp_path, capture_output=True, text=True, timeout=60)
+        assert second.returncode == 2, second.stdout + second.stderr
+        assert f"keys {prefix}/... are in use by a running graph" in second.stderr
+        assert "Traceback" not in second.stderr
+    finally:
+        first.send_signal(signal.SIGINT)
+        out, _ = first.communicate(timeout=60)
+    assert first.returncode == 0, out
+    assert not workers_of(prefix)
+
+
+def test_replay_reads_what_a_killed_record_left(tmp_path: Path, free_endpoint: str) -> None:
+    path, prefix = write_graph(tmp_path, free_endpoint, "kr", 20 * RATE)
+    run = start(["run", str(path), "--duration", "40"], tmp_path)
+    live = tmp_path / "live.mcap"
+    rec = subprocess.Popen([sys.executable, "-m", "mocapflow.cli", "record", f"{prefix}/tracker/markers", "-o",
+                            str(live), "--connect", free_endpoint], stdout=subprocess.PIPE, text=True)
+    try:
+        wait_for_frames(free_endpoint, prefix, "recorder", 2 * RATE)
+        time.sleep(3)
+        rec.kill()
+        rec.communicate(timeout=10)
+    finally:
+        run.send_signal(signal.SIGINT)
+        run.communicate(timeout=60)
+    samples = list(read_recording(live))
+    recorded = [orjson.loads(s.payload)["frame"] for s in samples]
+    assert len(recorded) > 2 * RATE and recorded == list(range(recorded[0], recorded[0] + len(recorded)))
+    with open_router([free_endpoint]):
+        replay = subprocess.run([sys.executable, "-m", "mocapflow.cli", "replay", str(live), "--connect",
+                                 free_endpoint, "--speed", "20"], capture_output=True, text=True, timeout=60)
+    assert replay.returncode == 0 and f"replayed {len(samples)} samples" in replay.stdout, replay.stderr
