@@ -3,12 +3,13 @@
 An agent is a Zenoh client of the lab's router and speaks with launchers over Zenoh only (docs/lab-deployment.md):
 
 - ``mocapflow/_agents/{name}``: liveliness token held while the agent runs; launchers wait for it.
-- ``mocapflow/_agents/{name}/deploy``: queryable; the query payload is a ``Deployment`` (JSON: run id, key prefix,
+- ``mocapflow-control/agents/{name}/deploy``: queryable (control keys live outside ``mocapflow/**``, so read-only
+  roles of the data do not reach them); the query payload is a ``Deployment`` (JSON: run id, key prefix,
   each node's WorkerSpec and restart policy). The agent starts the nodes under a ``Supervisor`` and replies with
   their ``ProcStatus`` list, or with an error (plugin missing here, prefix busy with another run). Deploying a run
   the agent already runs is answered with its current state, so a launcher may repeat a deployment safely.
-- ``mocapflow/_agents/{name}/stop``: queryable; payload ``{"run": ID}``. The agent stops that run's nodes in order
-  (sources first, drain, terminate, kill) and replies with their final ``ProcStatus`` list.
+- ``mocapflow-control/agents/{name}/stop``: queryable; payload ``{"run": ID}``. The agent stops that run's nodes in
+  order (sources first, drain, terminate, kill) and replies with their final ``ProcStatus`` list.
 - ``{prefix}/_procs/{node}``: the ``ProcStatus`` of each node it runs, on every change and every second.
 - ``{prefix}/_log/{name}``: every line its nodes print, as ``[node] text``.
 - ``{prefix}/_launcher/{run}``: the launcher's liveliness token. A run whose launcher has been gone for
