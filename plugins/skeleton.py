@@ -32,6 +32,7 @@ class SkeletonPublisher(Node):
     def __init__(self, config: SkeletonConfig, publish: Publish, name: str = "skeleton") -> None:
         super().__init__(config, publish, name)
         self.model: SkeletonModel | None = read_skeleton(config.skeleton) if config.skeleton else None
+        self.frames = self.posed = 0
 
     def process(self, port: str, message: MarkerFrame | Skeleton) -> None:
         self.process_batch(port, [message])
@@ -43,6 +44,7 @@ class SkeletonPublisher(Node):
             return
         labels = messages[0].labels
         if self.model is None or labels is None:
+            self.frames += len(messages)
             return
         if any(m.labels != labels for m in messages):  # the marker set changed inside the batch: split it
             cut = next(i for i, m in enumerate(messages) if m.labels != labels)
@@ -50,7 +52,16 @@ class SkeletonPublisher(Node):
             self.process_batch(port, messages[cut:])
             return
         pose = solve(self.model, np.stack([m.positions for m in messages]).astype(np.float64), labels)
+        self.frames += len(messages)
+        self.posed += len(messages)
         for i, m in enumerate(messages):
             self.publish("pose", Pose(frame=m.frame, capture_ns=m.capture_ns, joint_names=pose.joint_names,
                                       joint_centres=pose.joint_centres[i], segment_names=pose.segment_names,
                                       rotations=pose.rotations[i], translations=pose.translations[i]))
+
+    def finish(self) -> None:
+        """A run that never posed a frame it received has no skeleton output at all: that is a failure to report,
+        not a finished node."""
+        if self.frames and not self.posed:
+            raise RuntimeError(f"no skeleton in {self.frames} frames: no skeleton model arrived"
+                               f"{'' if self.model is None else ' that fits these labels'}, no pose published")

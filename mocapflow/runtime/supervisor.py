@@ -92,7 +92,7 @@ class Supervisor:
             if now - proc.started_at > HEALTHY_S:
                 proc.failures = 0
             proc.failures += 1
-            why = {EXIT_CONFIG: "configuration error", EXIT_FINISH: "its output is lost: finish failed"}.get(
+            why = {EXIT_CONFIG: "configuration error", EXIT_FINISH: "finish failed: its output is lost"}.get(
                 code, f"exit code {code}")
             if self.stopping or code in (EXIT_CONFIG, EXIT_FINISH) or proc.restart == "never" \
                     or proc.failures > proc.max_restarts:
