@@ -51,8 +51,8 @@ def convert_log(log_path: Path, out: Path, log: logging.Logger) -> bool:
     if not numbers:
         log.warning("no frame received: %s not written", out)
         return False
-    first, last = _main_span(np.array(numbers))
     limit = WIDTH_FACTOR * max(int(np.median(widths)), 1)
+    first, last = _main_span(np.array([n for n, w in zip(numbers, widths, strict=True) if w <= limit]))
     width = max(w for n, w in zip(numbers, widths, strict=True) if first <= n <= last and w <= limit)
     count = last - first + 1
     positions = np.full((count, width, 3), np.nan)

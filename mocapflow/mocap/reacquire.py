@@ -6,9 +6,10 @@ seen, so that cannot start. Each marker with its rigid partners (the markers who
 cloud by its pairwise distances, placed by a proper rotation (so a mirror image, the other side of the body, does not
 fit), and the marker takes the point only when its whole layout fits one way far better than any other and no other
 marker claims that point. Markers placed so pin their partners' layouts; a layout that still fits several ways (the
-mirror-image segments of a body, a triangle of nearly equal sides) is decided by where each way puts the nearby
-markers placed so far, as they were around it before the restart. The markers
-placed are tracked again from this frame on; the others are looked for again in the next frames.
+mirror-image segments of a body, a triangle of nearly equal sides) is decided by the distances to, then by where
+each way puts, the nearby markers placed so far. The markers placed are tracked again from that frame on; the
+others are looked for again in the next frames. Only this brings a track back: the labeller relearns its other cues
+from scratch, so a marker that cannot be placed surely gets a new label rather than another marker's.
 """
 
 from __future__ import annotations
@@ -90,6 +91,13 @@ class Reacquirer:
             members = np.concatenate([[t], mates[mates != t]])
             if len(members) >= 3 and np.isfinite(self.saved[t]).all():
                 self.layouts[t] = members
+        # Only these layouts bring a track back: the labeller's own cues (snapshots, partner distances) were learnt
+        # before the gap and, with every marker lost at once, could hand a mirror-image marker to the wrong track.
+        labeller._poses[:] = np.nan
+        labeller._pose_count[:] = 0
+        labeller._pose_time[:] = -np.inf
+        labeller._pair_n[:], labeller._pair_mean[:], labeller._pair_m2[:] = 0.0, 0.0, 0.0
+        labeller._next_select = -np.inf
 
     def __call__(self, points: np.ndarray, time: float) -> int:
         """Place the lost tracks on ``points`` captured at ``time`` where their layouts say surely; those are followed

@@ -1,0 +1,117 @@
+"""What a data input accepts, and the recorder's frame log: the rules one by one, on real files."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from mocapflow.io.framelog import FrameLog, scan
+from mocapflow.io.markers import read_markers
+from mocapflow.io.recorded import PORTS, convert_log
+from mocapflow.messages import MarkerFrame, Pose, encode
+from mocapflow.runtime.integrity import InputGuard, Refused, StreamLimits
+
+TRACKER, OTHER = b"tracker@1", b"tracker@2"
+
+
+def frame(number: int, n: int = 3, value: float = 1.0) -> MarkerFrame:
+    return MarkerFrame(frame=number, capture_ns=0, rate=100, positions=np.full((n, 3), value))
+
+
+def accept(guard: InputGuard, identity: bytes | None, message: MarkerFrame, now: float = 0.0) -> MarkerFrame:
+    guard.check_source(identity, now)
+    return guard.check_frame(message)
+
+
+def test_frames_and_end_only_from_the_owner() -> None:
+    guard = InputGuard(upstream="tracker", limits=StreamLimits())
+    assert not guard.accept_end(None) and not guard.accept_end(b"other@1")  # before any frame: only the upstream
+    assert guard.accept_end(b"tracker@9")
+    accept(guard, TRACKER, frame(0))
+    assert not guard.accept_end(OTHER) and not guard.accept_end(None) and guard.accept_end(TRACKER)
+    with pytest.raises(Refused, match="while tracker@1 publishes"):
+        accept(guard, OTHER, frame(1), now=0.5)
+    accept(guard, TRACKER, frame(1), now=0.6)
+    # the owner silent for longer than takeover_s: its restart (a new run id) takes over, resuming on its clock
+    accept(guard, OTHER, frame(400), now=2.0)
+    assert guard.owner == OTHER and guard.accept_end(OTHER) and not guard.accept_end(TRACKER)
+
+
+def test_frame_numbers_are_plausible_and_a_real_jump_resynchronises() -> None:
+    guard = InputGuard(upstream="tracker", limits=StreamLimits(max_frame_jump=100, resync_frames=3))
+    for i in range(10):
+        accept(guard, TRACKER, frame(i))
+    with pytest.raises(Refused, match="frame 10000000 is more than 100 frames after the last accepted frame 9"):
+        accept(guard, TRACKER, frame(10_000_000))
+    with pytest.raises(Refused, match="frame 5 is not after the last accepted frame 9"):
+        accept(guard, TRACKER, frame(5))
+    with pytest.raises(Refused, match="not after"):
+        accept(guard, TRACKER, frame(9))  # a repeat never replaces the real frame 9
+    accept(guard, TRACKER, frame(10))  # the glitches cost nothing
+    # a counter that really reset: refused until three consecutive frames agree, then followed
+    for i in range(2):
+        with pytest.raises(Refused):
+            accept(guard, TRACKER, frame(i))
+    accept(guard, TRACKER, frame(2))
+    accept(guard, TRACKER, frame(3))
+    # a restarted publisher may be ahead by what its silence allows at 100 kHz, not by 10**12
+    guard.check_source(OTHER, now=12.0)
+    with pytest.raises(Refused):
+        guard.check_frame(frame(10**12))
+    guard.check_frame(frame(3 + 10 * 240))
+
+
+def test_sizes_and_coordinates_are_bounded() -> None:
+    guard = InputGuard(upstream="tracker", limits=StreamLimits(max_markers=10, max_coordinate_mm=1e4))
+    with pytest.raises(Refused, match="11 markers"):
+        accept(guard, TRACKER, frame(0, n=11))
+    with pytest.raises(Refused, match="every coordinate is beyond"):
+        accept(guard, TRACKER, frame(0, value=1e30))
+    message = frame(0)
+    message.positions[1] = [1e30, 0, 0]
+    out = accept(guard, TRACKER, message)
+    assert np.isnan(out.positions[1]).all() and (out.positions[[0, 2]] == 1).all()
+    assert guard.last == 0
+
+
+def test_the_frame_log_survives_a_cut_and_is_continued_by_the_same_run(tmp_path: Path) -> None:
+    path = tmp_path / "out.c3d.part"
+    log = FrameLog(path, "run1")
+    for i in range(5):
+        log.append(PORTS["markers"], encode(frame(i)))
+    log.close()
+    with path.open("ab") as f:
+        f.write(b"\x40\x00\x00\x00\x01\x02")  # a record cut short by a kill
+    log = FrameLog(path, "run1")  # the restarted recorder of the same run
+    assert log.resumed
+    log.append(PORTS["markers"], encode(frame(7)))
+    log.close()
+    run, _, records = scan(path)
+    assert run == "run1" and [p for p, _ in records] == [0] * 6
+    other = FrameLog(path, "run2")  # another run never appends to, nor truncates, this one's log
+    other.close()
+    assert other.set_aside == tmp_path / "out.c3d.part.run1" and len(list(scan(other.set_aside)[2])) == 6
+    assert len(list(scan(path)[2])) == 0
+
+
+def test_conversion_keeps_the_first_copy_and_leaves_out_implausible_frames(tmp_path: Path) -> None:
+    path = tmp_path / "out.c3d.part"
+    log = FrameLog(path, "r")
+    for i in range(20):
+        log.append(PORTS["markers"], encode(frame(i, value=i + 1.0)))  # (0, 0, 0) reads back as missing
+    log.append(PORTS["markers"], encode(frame(5, value=99.0)))  # a repeated number: must not replace frame 5
+    log.append(PORTS["markers"], encode(frame(10**12)))  # would make a 10**12-frame file
+    log.append(PORTS["markers"], encode(frame(21, n=5000)))  # would make every frame 5000 markers wide
+    log.append(PORTS["pose"], encode(Pose(frame=3, capture_ns=0, joint_names=["hip"], joint_centres=[[1, 2, 3]],
+                                          segment_names=[], rotations=np.zeros((0, 4)),
+                                          translations=np.zeros((0, 3)))))
+    log.close()
+    out = tmp_path / "out.c3d"
+    assert convert_log(path, out, logging.getLogger("test"))
+    data = read_markers(out)
+    assert data.positions.shape == (20, 3, 3) and data.first_frame in (0, 1)
+    np.testing.assert_allclose(data.positions[:, 0, 0], np.arange(1.0, 21.0))
+    np.testing.assert_allclose(data.extra["hip"][3], [1, 2, 3])
