@@ -242,3 +242,82 @@ nodes:
     gap = edges[1] - edges[0]
     print(f"labeller restart gap: {gap} frames ({gap / RATE:.2f} s at {RATE} Hz); {kept} of {markers} markers keep "
           f"their label, {len(labels) - markers} new labels")
+
+
+def test_record_and_echo_receive_the_cached_models(tmp_path: Path, free_endpoint: str) -> None:
+    from mocapflow.mocap.simulator import simulate, truth_skeleton
+
+    sim = Simulator(SimulatorConfig(rig="rods", rate=RATE, seed=3))
+    reference = simulate(SimulatorConfig(rig="rods", rate=RATE, seed=3, noise_mm=0.0), 1).true_positions[0]
+    (tmp_path / "rods.json").write_text(truth_skeleton(sim.rig, reference).model_dump_json())
+    name = f"mod{free_endpoint.rsplit(':', 1)[1]}"
+    prefix = f"mocapflow/{name}"
+    (tmp_path / "g.yaml").write_text(f"""
+name: {name}
+zenoh: {{listen: ["{free_endpoint}"]}}
+nodes:
+  tracker: {{plugin: simulator, config: {{rig: rods, rate: {RATE}, seed: 3}}}}
+  joints: {{plugin: joints-closed-form, inputs: {{markers: tracker/markers}},
+            config: {{skeleton: {tmp_path / 'rods.json'}, refine: false}}}}
+""")
+    run = start(["run", str(tmp_path / "g.yaml"), "--duration", "60"], tmp_path)
+    cli = [sys.executable, "-m", "mocapflow.cli"]
+    try:
+        wait_for_frames(free_endpoint, prefix, "joints", 2 * RATE)  # the skeleton was published long before
+        rec = subprocess.run([*cli, "record", f"{prefix}/**", "-o", str(tmp_path / "late.mcap"), "--connect",
+                              free_endpoint, "--duration", "2"], capture_output=True, text=True, timeout=60)
+        assert rec.returncode == 0, rec.stderr
+        echo = subprocess.run([*cli, "echo", f"{prefix}/joints/skeleton", "-n", "1", "--connect", free_endpoint],
+                              capture_output=True, text=True, timeout=30)
+    finally:
+        run.send_signal(signal.SIGINT)
+        run.communicate(timeout=60)
+    models = [s for s in read_recording(tmp_path / "late.mcap") if s.key == f"{prefix}/joints/skeleton"]
+    assert len(models) == 1 and models[0].encoding.endswith("mocapflow/Skeleton")
+    assert "application/json;mocapflow/Skeleton" in echo.stdout, echo.stdout + echo.stderr
+
+
+def test_commands_fail_in_one_line(tmp_path: Path, free_endpoint: str) -> None:
+    """What printed a traceback, or hung, is one line and a non-zero exit code."""
+    cli = [sys.executable, "-m", "mocapflow.cli"]
+    (tmp_path / "binary.yaml").write_bytes(bytes(range(256)))
+    (tmp_path / "prefix.yaml").write_text('name: p\nprefix: "a//b"\nnodes:\n  tracker: {plugin: simulator}\n')
+    (tmp_path / "folder").mkdir()
+    quickstart = Path(__file__).resolve().parents[1] / "deployments" / "quickstart.yaml"
+    cases = [
+        (["simulate", "-o", "x.c3d", "--frames", "100000000"], "--frames 100000000: must be between 1 and"),
+        (["validate", "binary.yaml"], "not a text file"),
+        (["validate", str(quickstart), "--set", "tracker.rate.x=1"], "tracker.rate is a value, not a section"),
+        (["validate", "prefix.yaml"], "'a//b' must be '/'-separated chunks"),
+        (["replay", "x.mcap", "--speed", "1e-300"], "--speed 1e-300: must be between"),
+        (["record", "x/**", "-o", "folder", "--connect", free_endpoint, "--timeout", "1"], "no router accepted"),
+        (["echo", "x/**", "--connect", free_endpoint, "--timeout", "1"], "no router accepted"),
+        (["hz", "x/**", "--connect", free_endpoint, "--timeout", "1"], "no router accepted"),
+        (["nodes", "--connect", free_endpoint, "--timeout", "1"], "no router accepted"),
+    ]
+    for args, message in cases:
+        done = subprocess.run([*cli, *args], cwd=tmp_path, capture_output=True, text=True, timeout=60)
+        lines = done.stderr.strip().splitlines()
+        assert done.returncode != 0 and len(lines) == 1 and message in lines[0], (args, done.stderr)
+    with open_router([free_endpoint]):
+        done = subprocess.run([*cli, "record", "x/**", "-o", "folder", "--connect", free_endpoint], cwd=tmp_path,
+                              capture_output=True, text=True, timeout=60)
+    assert done.returncode == 2 and done.stderr.strip() == \
+        "mocapflow record: error: folder: cannot write a recording there: Is a directory", done.stderr
+
+
+def test_router_listens_on_loopback_and_warns_when_public_and_open(tmp_path: Path) -> None:
+    from conftest import free_port
+
+    port = free_port()
+    router = subprocess.Popen([sys.executable, "-m", "mocapflow.cli", "router", "--listen", f"tcp/0.0.0.0:{port}"],
+                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        time.sleep(3)
+    finally:
+        router.send_signal(signal.SIGTERM)
+        out, err = router.communicate(timeout=30)
+    assert f"WARNING: listening on tcp/0.0.0.0:{port} with no authentication" in err, err
+    from mocapflow.commands.router import loopback
+
+    assert loopback("tcp/127.0.0.1:7447") and loopback("tcp/[::1]:7447") and not loopback("tcp/0.0.0.0:7447")

@@ -16,6 +16,16 @@ if TYPE_CHECKING:
 M = TypeVar("M", bound=BaseModel)
 
 
+JOIN_TIMEOUT_S = 5.0
+
+
+def timeout_option(parser: argparse.ArgumentParser) -> None:
+    """``--timeout S``: how long a command waits for a router to accept its session before saying why it cannot."""
+    parser.add_argument("--timeout", type=float, default=JOIN_TIMEOUT_S, metavar="S",
+                        help=f"give up, saying so, when no router accepts the session within S seconds (no router "
+                             f"there, a refused login) (default {JOIN_TIMEOUT_S:g})")
+
+
 def marker_choice(parser: argparse.ArgumentParser, include: bool = True) -> None:
     """The ``--markers GLOB`` / ``--exclude GLOB`` options of a command that reads a marker file."""
     if include:

@@ -45,8 +45,11 @@ class RecordingWriter:
 
     def __init__(self, path: str | Path) -> None:
         self.path = Path(path)
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._stream = self.path.open("wb")
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            self._stream = self.path.open("wb")
+        except OSError as exc:
+            raise MocapFileError(f"{self.path}: cannot write a recording there: {exc.strerror}") from None
         self._writer = Writer(self._stream, compression=CompressionType.ZSTD, chunk_size=CHUNK_SIZE)
         self._writer.start(profile=PROFILE, library="mocapflow")
         self._schemas: dict[str, int] = {}

@@ -121,13 +121,13 @@ class Agent:
     """Runs, supervises and stops the nodes that launchers deploy on machine ``name``."""
 
     def __init__(self, name: str, connect: list[str], security: Path | None = None,
-                 out: IO[str] = sys.stdout) -> None:
+                 out: IO[str] = sys.stdout, timeout: float | None = None) -> None:
         self.name = name
         self.connect = connect
         self.security = security
         self.out = out
         self.runs: dict[str, Run] = {}  # by key prefix: one run per prefix on an agent
-        self.session = open_client(connect, security)
+        self.session = open_client(connect, security, timeout)
 
     def say(self, text: str) -> None:
         self.out.write(f"agent {self.name}: {text}\n")
@@ -290,11 +290,11 @@ class Agent:
             self.session.close()
 
 
-def run_agent(name: str, connect: list[str], security: Path | None = None) -> int:
+def run_agent(name: str, connect: list[str], security: Path | None = None, timeout: float | None = None) -> int:
     """Serve as agent ``name`` until SIGINT or SIGTERM."""
     print(f"agent {name}: joining {', '.join(connect)}", flush=True)
     signal.signal(signal.SIGINT, signal.SIG_DFL)  # until the router answers, Ctrl-C simply ends the agent
-    agent = Agent(name, connect, security)
+    agent = Agent(name, connect, security, timeout=timeout)
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())

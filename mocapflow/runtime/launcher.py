@@ -73,9 +73,10 @@ class Launcher:
     def __init__(self, graph: Graph, classes: dict[str, type[Node]], *, duration: float | None = None,
                  listen: list[str] | None = None, connect: list[str] | None = None, out: IO[str] = sys.stdout,
                  security: str | Path | None = None, agent_timeout: float = 30.0,
-                 summary: str | Path | None = None) -> None:
+                 summary: str | Path | None = None, timeout: float | None = None) -> None:
         self.graph = graph
         self.summary = Path(summary) if summary else None
+        self.timeout = timeout
         self.prefix = graph.key_prefix
         self.duration = duration
         self.out = out
@@ -205,7 +206,7 @@ class Launcher:
     # -- main loop ------------------------------------------------------------------------------------------------
     def run(self) -> int:
         session = (open_router(self.listen, self.security) if not self.connect
-                   else open_client(self.connect, self.security))
+                   else open_client(self.connect, self.security, self.timeout))
         stop = threading.Event()
 
         def request_stop(signum: int, _frame: object) -> None:
