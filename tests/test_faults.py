@@ -321,3 +321,24 @@ def test_router_listens_on_loopback_and_warns_when_public_and_open(tmp_path: Pat
     from mocapflow.commands.router import loopback
 
     assert loopback("tcp/127.0.0.1:7447") and loopback("tcp/[::1]:7447") and not loopback("tcp/0.0.0.0:7447")
+
+
+@pytest.mark.parametrize("victim", ["tracker", "relay"])
+def test_a_killed_stage_loses_only_its_restart_gap(tmp_path: Path, free_endpoint: str, victim: str) -> None:
+    frames = 10 * RATE
+    path, prefix = write_graph(tmp_path, free_endpoint, f"k{victim[:3]}", frames, relay=True)
+    run = start(["run", str(path), "--duration", "90"], tmp_path)
+    wait_for_frames(free_endpoint, prefix, "recorder", 2 * RATE)
+    os.kill(worker_pid(prefix, victim), signal.SIGKILL)
+    out, _ = run.communicate(timeout=120)
+    assert run.returncode == 0, out
+    assert f"[{victim}] stopped (exit code -9); restart 1" in out
+    points, *_ = read_c3d(tmp_path / "out.c3d")
+    seen = ~np.isnan(points[:, 0, 0])
+    edges = np.flatnonzero(np.diff(seen.astype(int)))
+    assert seen[0] and seen[-1] and len(edges) == 2, edges  # one gap, every frame before and after it
+    assert points.shape[0] == frames
+    assert_real_frames(points, truth(frames), np.flatnonzero(seen))
+    gap = edges[1] - edges[0]
+    print(f"{victim} restart gap: {gap} frames ({gap / RATE:.2f} s at {RATE} Hz)")
+    assert not workers_of(prefix)
