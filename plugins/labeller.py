@@ -20,8 +20,9 @@ class LabellerNode(Node):
     single-camera rays it could attribute to markers it did not see.
 
     Twice a second of stream time it keeps its tracks (``mocapflow.runtime.resume``): restarted within the same run,
-    it carries on with them, so a label keeps naming the same marker; the markers come back as after an occlusion of
-    the restart's length, found again by their neighbours."""
+    it carries on with them and finds each marker again by its rigid layout (``mocapflow.mocap.reacquire``), so a label
+    keeps naming the same marker. Frames with no point at all for longer than a coast (a blinded tracker) are
+    followed the same way."""
 
     Config = LabellerConfig
     inputs = {
@@ -37,6 +38,7 @@ class LabellerNode(Node):
         self._saved_at = -float("inf")
         self.reacquire = Reacquirer(self.labeller) if self.labeller is not None else None
         self._resumed_at: float | None = None  # stream time of the first frame after a restart
+        self._empty_since: float | None = None  # stream time of the first of consecutive frames with no point
         self.placed = 0
         if self.labeller is not None:
             self.log.info("resuming %d tracks after a restart", len(self.labeller.labels))
@@ -59,6 +61,12 @@ class LabellerNode(Node):
         before = len(labeller.labels)
         rays = None if frame.rays is None else frame.rays.astype(np.float64)
         time = frame.frame / frame.rate
+        if not np.isfinite(frame.positions).all(axis=1).any():  # nothing seen: every marker is being lost at once
+            self._empty_since = time if self._empty_since is None else self._empty_since
+        elif self._empty_since is not None:
+            if time - self._empty_since > labeller.config.max_coast_s and self.reacquire is None:
+                self.reacquire, self._resumed_at, self.placed = Reacquirer(labeller), None, 0  # as after a restart
+            self._empty_since = None
         if self.reacquire is not None:  # every marker was lost while this node restarted: find them by their layouts
             self._resumed_at = time if self._resumed_at is None else self._resumed_at
             self.placed += self.reacquire(frame.positions.astype(np.float64), time)

@@ -234,7 +234,7 @@ nodes:
         return int(np.bincount(match).argmax())
 
     pairs = [(marker_of(points[:, t], before), marker_of(points[:, t], after)) for t in range(markers)]
-    kept = sum(a == b for a, b in pairs)
+    kept = sum(a == b and a is not None for a, b in pairs)
     moved = sum(a is not None and b is not None and a != b for a, b in pairs)
     assert moved == 0, f"{moved} of {markers} labels name another marker after the restart"
     # markers of a mirror-symmetric segment whose layout fits two ways are left to new labels rather than risk a swap

@@ -115,3 +115,54 @@ def test_conversion_keeps_the_first_copy_and_leaves_out_implausible_frames(tmp_p
     assert data.positions.shape == (20, 3, 3) and data.first_frame in (0, 1)
     np.testing.assert_allclose(data.positions[:, 0, 0], np.arange(1.0, 21.0))
     np.testing.assert_allclose(data.extra["hip"][3], [1, 2, 3])
+
+
+def test_a_blinded_tracker_does_not_change_identities() -> None:
+    """Half a second of frames with no point at all (every camera blinded), then the markers again: the labeller
+    node finds them by their layouts instead of opening new tracks."""
+    from mocapflow.mocap.labelling import LabellerConfig
+    from mocapflow.mocap.simulator import Simulator, SimulatorConfig
+    from mocapflow.plugins.labeller import LabellerNode
+
+    rate = 240
+    sim = Simulator(SimulatorConfig(rig="human", rate=rate, seed=3, unlabelled=True))
+    out: list[MarkerFrame] = []
+    node = LabellerNode(LabellerConfig(), lambda _port, message: out.append(message), "labeller")
+    identity = {}
+    for i in range(6 * rate):
+        f = sim.frame(i)
+        points = f.points if not 3 * rate <= i < 3 * rate + rate // 2 else np.full((len(f.points), 3), np.nan)
+        node.process("markers", MarkerFrame(frame=i, capture_ns=0, rate=rate, positions=points))
+        if i in (3 * rate - 1, 6 * rate - 1):  # each label's marker, before the blackout and at the end
+            labelled = out[-1].positions
+            d = np.linalg.norm(labelled[:, None] - f.points[None], axis=2)  # (labels, points)
+            d[np.isnan(d)] = np.inf
+            nearest = d.argmin(axis=1)
+            identity[i] = {t: int(f.identity[p]) for t, p in enumerate(nearest) if d[t, p] < 1e-3}
+    before, after = identity[3 * rate - 1], identity[6 * rate - 1]
+    markers = len(sim.rig.marker_labels)
+    # no label names another marker; most keep theirs (a segment whose layout fits two ways gets new labels instead)
+    assert len(before) >= markers - 5 and len(after) >= markers - 5  # the labelled samples are the real points
+    assert all(before[t] == after[t] for t in before.keys() & after.keys()), (before, after)
+    kept = sum(before.get(t) == m for t, m in after.items())
+    assert kept >= markers // 2 and len(out[-1].labels) <= 2 * markers, (kept, len(out[-1].labels))
+
+
+def test_commands_refuse_absurd_data(tmp_path: Path) -> None:
+    import subprocess
+    import sys
+
+    from mocapflow.io.markers import MarkerData, write_markers
+
+    positions = np.random.default_rng(0).normal(0, 100, (50, 4, 3))
+    positions[10, 2] = [1e6, 0, 0]
+    write_markers(tmp_path / "spike.c3d", MarkerData(positions=positions, labels=list("ABCD"), rate=100))
+    write_markers(tmp_path / "fast.trc", MarkerData(positions=positions[:, :, :] * 0 + 1, labels=list("ABCD"),
+                                                    rate=1e6))
+    for name, message in (("spike.c3d", "1 samples beyond 100 m from the origin (first: C at frame"),
+                          ("fast.trc", "a rate of 1e+06 Hz is beyond any tracker")):
+        for command, output in (("fill", "out.c3d"), ("calibrate", "out.json"), ("label", "out.c3d")):
+            done = subprocess.run([sys.executable, "-m", "mocapflow.cli", command, name, "-o", output],
+                                  cwd=tmp_path, capture_output=True, text=True, timeout=60)
+            assert done.returncode == 2 and message in done.stderr and len(done.stderr.splitlines()) == 1, \
+                (command, done.stderr)

@@ -52,6 +52,9 @@ def summary(skeleton: SkeletonModel) -> str:
     return "\n".join(lines)
 
 
+MAX_MARKERS = 500
+
+
 def run(args: argparse.Namespace) -> int:
     from mocapflow.io.markers import join_trials
     from mocapflow.io.skeleton import write_skeleton
@@ -61,6 +64,9 @@ def run(args: argparse.Namespace) -> int:
         raise MocapflowError("--segments must be at least 2")
     out = distinct_output(args.output, *args.inputs)
     data = join_trials([read_chosen(path, args) for path in args.inputs])
+    if data.n_markers > MAX_MARKERS:
+        raise MocapflowError(f"{data.n_markers} markers: calibrate takes at most {MAX_MARKERS} (its memory grows with "
+                             "the square of their number); choose a subject's markers with --markers/--exclude")
     start = time.perf_counter()
     skeleton = calibrate(data.positions, data.labels, data.rate, segments=args.segments, method=args.method,
                          joint_method=args.joints, name=args.name or Path(args.inputs[0]).stem)
