@@ -83,6 +83,7 @@ class FrameLog:
             if previous != run:
                 self.set_aside = self.path.with_name(f"{self.path.name}.{previous or 'earlier'}")
                 self.path.rename(self.set_aside)
+        self._stream: BinaryIO
         if self.path.exists():
             keep = whole_length(self.path)
             self._stream = self.path.open("r+b")

@@ -71,8 +71,9 @@ def convert_log(log_path: Path, out: Path, log: logging.Logger) -> bool:
         if isinstance(m, Pose):
             if not posed[i]:
                 posed[i] = True
-                for name, centre in zip(m.joint_names, m.joint_centres, strict=True):
-                    extra[joints[name], i] = centre
+                centres = np.asarray(m.joint_centres, dtype=float)
+                for j, name in enumerate(m.joint_names):
+                    extra[joints[name], i] = centres[j]
             continue
         if seen[i]:
             duplicates += 1
