@@ -166,3 +166,31 @@ def test_commands_refuse_absurd_data(tmp_path: Path) -> None:
                                   cwd=tmp_path, capture_output=True, text=True, timeout=60)
             assert done.returncode == 2 and message in done.stderr and len(done.stderr.splitlines()) == 1, \
                 (command, done.stderr)
+
+
+@pytest.mark.parametrize("spike_mm", [1e6, 5000.0])
+def test_a_wild_sample_does_not_move_other_markers(spike_mm: float) -> None:
+    """One sample far off (a reflection, a glitch) while a segment mate is hidden and filled from it: it is treated
+    as missing, so the mate is filled near its true position and every other marker exactly as without it."""
+    from mocapflow.mocap.filler import FillerConfig, fill_sequence
+    from mocapflow.mocap.simulator import SimulatorConfig, simulate
+
+    rec = simulate(SimulatorConfig(rig="human", rate=120, seed=5, dropout_rate=0.0), 600)
+    f, m = 400, 7
+    segment = np.array(rec.marker_segment)
+    mate = int(np.flatnonzero((segment == segment[m]) & (np.arange(len(rec.labels)) != m))[0])
+    hidden = rec.positions.copy()
+    hidden[f - 10 : f + 10, mate] = np.nan
+    spiked = hidden.copy()
+    spiked[f, m] += spike_mm
+    rest = np.ones(len(rec.labels), bool)
+    rest[[m, mate]] = False
+    for config, trusted in ((FillerConfig(), False), (FillerConfig(outlier_mm=1e12), True)):
+        clean, _ = fill_sequence(hidden, rec.labels, rec.rate, config)
+        filled, flags = fill_sequence(spiked, rec.labels, rec.rate, config)
+        error = np.linalg.norm(filled[f, mate] - rec.true_positions[f, mate])
+        if trusted:  # without the outlier test, the spike drags the hidden mate off: what this guards against
+            assert error > 100.0, error
+            continue
+        np.testing.assert_allclose(filled[:, rest], clean[:, rest], atol=1e-6, equal_nan=True)
+        assert error < 20.0 and flags[f, m] >= 2 and np.linalg.norm(filled[f, m] - rec.true_positions[f, m]) < 20.0

@@ -122,6 +122,9 @@ class FillerConfig(BaseModel):
     min_joint_rotation_deg: float = Field(
         5.0, gt=0, description="least RMS relative rotation of two segments before a joint between them is trusted")
     min_joint_s: float = Field(2.0, gt=0, description="seconds of usable frames before a learned joint is trusted")
+    outlier_mm: float = Field(
+        300.0, gt=0, description="a sample this far from where its marker, seen in the previous frame, is predicted "
+        "is an outlier (a reflection, a glitch) and treated as missing, not trusted")
     update_joint_offsets: Literal["observed", "partial", "always"] = Field(
         "partial", description="frames that update learned joint offsets: both sides fully observed; also with "
         "predicted markers while each side keeps one visible (tables 6.1-6.3); or every frame")
@@ -694,6 +697,8 @@ class GapFiller:
             self._pending = None
         self._extrapolated[:] = False
         self.kf.predict(self._velocity_gain())
+        seen &= ~self._outliers(z, seen)
+        z[~seen] = np.nan
         body = self.body
         flags = seen.astype(np.uint8)
         poses = None if seen.all() else self._fill_missing(z, seen, flags, rays)
@@ -720,6 +725,14 @@ class GapFiller:
             # ``joint_names`` keep describing the same body until then
             self._pending = self._learner.observe(z, seen, flags, body, self._current_poses) or self._pending
         return FillResult(positions=z, flags=flags, joint_centres=centres)
+
+    def _outliers(self, z: np.ndarray, seen: np.ndarray) -> np.ndarray:
+        """Samples of markers seen in the previous frame that are ``outlier_mm`` or more from their prediction: no
+        marker moves so in one frame, so they would only pull the filter and the segment fits off."""
+        followed = seen & (self._unmeasured == 0) & np.isfinite(self.kf.position).all(axis=1)
+        far = np.zeros(len(z), bool)
+        far[followed] = np.linalg.norm(z[followed] - self.kf.position[followed], axis=1) >= self.config.outlier_mm
+        return far
 
     def _current_poses(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """This frame's segment poses, fitted now where skipped."""
