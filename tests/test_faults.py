@@ -342,3 +342,20 @@ def test_a_killed_stage_loses_only_its_restart_gap(tmp_path: Path, free_endpoint
     gap = edges[1] - edges[0]
     print(f"{victim} restart gap: {gap} frames ({gap / RATE:.2f} s at {RATE} Hz)")
     assert not workers_of(prefix)
+
+
+def test_a_live_run_that_never_poses_a_frame_fails(tmp_path: Path, free_endpoint: str) -> None:
+    name = f"nosk{free_endpoint.rsplit(':', 1)[1]}"
+    (tmp_path / "g.yaml").write_text(f"""
+name: {name}
+zenoh: {{listen: ["{free_endpoint}"]}}
+nodes:
+  tracker: {{plugin: simulator, config: {{rig: human, rate: {RATE}, frames: {2 * RATE}}}}}
+  skeleton: {{plugin: skeleton, inputs: {{markers: tracker/markers}}}}
+""")
+    run = start(["run", str(tmp_path / "g.yaml"), "--duration", "60", "--summary", str(tmp_path / "s.json")], tmp_path)
+    out, _ = run.communicate(timeout=90)
+    assert run.returncode == 1, out
+    assert f"no skeleton in {2 * RATE} frames: no skeleton model arrived, no pose published" in out
+    assert "failed: skeleton" in out
+    assert orjson.loads((tmp_path / "s.json").read_bytes())["skeleton"]["state"] == "failed"

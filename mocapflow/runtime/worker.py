@@ -224,7 +224,8 @@ class Worker:
         try:
             self.node.finish()
         except Exception as exc:
-            self._report_error("finish", exc)
+            self.stats.errors += 1
+            self.stats.last_error = f"finish: {exc}"
             log.error("node %s: finish failed, its output is lost: %s", self.spec.node, exc)
             return False
         return True
@@ -398,7 +399,11 @@ def main(argv: list[str] | None = None) -> int:
     # The launcher decides when nodes stop; Ctrl-C in the terminal reaches it, not each node.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     _die_with_parent()
-    return run_worker(spec)
+    code = run_worker(spec)
+    # Past this point the node is done; a stop request arriving while the interpreter shuts down (which restores
+    # the default SIGTERM action) must not turn a finished node into one killed by a signal.
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    return code
 
 
 if __name__ == "__main__":
