@@ -302,8 +302,21 @@ def test_commands_fail_in_one_line(tmp_path: Path, free_endpoint: str) -> None:
     with open_router([free_endpoint]):
         done = subprocess.run([*cli, "record", "x/**", "-o", "folder", "--connect", free_endpoint], cwd=tmp_path,
                               capture_output=True, text=True, timeout=60)
+        # --duration, SIGTERM and SIGINT each end a recording, written whole
+        timed = subprocess.run([*cli, "record", "x/**", "-o", "d.mcap", "--connect", free_endpoint, "--duration", "1"],
+                               cwd=tmp_path, capture_output=True, text=True, timeout=60)
+        stopped = []
+        for sig in (signal.SIGTERM, signal.SIGINT):
+            rec = subprocess.Popen([*cli, "record", "x/**", "-o", f"{sig.name}.mcap", "--connect", free_endpoint],
+                                   cwd=tmp_path, stdout=subprocess.PIPE, text=True)
+            assert "recording" in rec.stdout.readline()
+            rec.send_signal(sig)
+            stopped.append((rec.wait(timeout=30), rec.stdout.read()))
     assert done.returncode == 2 and done.stderr.strip() == \
         "mocapflow record: error: folder: cannot write a recording there: Is a directory", done.stderr
+    assert timed.returncode == 0 and "recorded 0 samples to d.mcap" in timed.stdout, timed.stderr
+    assert all(code == 0 and "recorded 0 samples" in text for code, text in stopped), stopped
+    assert list(read_recording(tmp_path / "SIGTERM.mcap")) == []  # a whole, readable (empty) recording
 
 
 def test_router_listens_on_loopback_and_warns_when_public_and_open(tmp_path: Path) -> None:
