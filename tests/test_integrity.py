@@ -194,3 +194,26 @@ def test_a_wild_sample_does_not_move_other_markers(spike_mm: float) -> None:
             continue
         np.testing.assert_allclose(filled[:, rest], clean[:, rest], atol=1e-6, equal_nan=True)
         assert error < 20.0 and flags[f, m] >= 2 and np.linalg.norm(filled[f, m] - rec.true_positions[f, m]) < 20.0
+
+
+def test_a_ten_frame_spike_does_not_change_the_calibrated_model(tmp_path: Path) -> None:
+    """Ten frames of one marker 3 m off (a reflection): calibrate leaves them out and finds the segments and the
+    topology of the clean recording; without that step, the segments differ."""
+    from mocapflow.mocap.calibration import calibrate
+    from mocapflow.mocap.outliers import wild_samples
+    from mocapflow.mocap.simulator import SimulatorConfig, simulate
+
+    rec = simulate(SimulatorConfig(rig="human", rate=120, seed=0), 2400)
+    spiked = rec.positions.copy()
+    spiked[1000:1010, 20] += [3000.0, 0.0, 0.0]
+    wild = wild_samples(spiked)
+    assert wild.sum() == 10 and wild[1000:1010, 20].all() and not wild_samples(rec.positions).any()
+
+    def model(positions: np.ndarray) -> tuple[list, list]:
+        skeleton = calibrate(positions, list(rec.labels), rec.rate)
+        return (sorted(tuple(sorted(s.markers)) for s in skeleton.segments),
+                sorted((j.parent, j.child) for j in skeleton.joints))
+
+    clean = model(rec.positions)
+    assert model(np.where(wild[..., None], np.nan, spiked)) == clean
+    assert model(spiked) != clean  # what leaving the wild samples out guards against
