@@ -41,6 +41,10 @@ def main(argv: list[str] | None = None) -> int:
     except MocapflowError as exc:
         print(f"mocapflow {args.command}: error: {exc}", file=sys.stderr)
         return 2
+    except OSError as exc:  # a file the command could not read or write (permissions, a folder, a full disk)
+        where = f"{exc.filename}: " if exc.filename else ""
+        print(f"mocapflow {args.command}: error: {where}{exc.strerror or exc}", file=sys.stderr)
+        return 1
     except KeyboardInterrupt:
         return 130
     except BrokenPipeError:  # output piped into a reader that closed early (`| head`): not an error

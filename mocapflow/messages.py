@@ -183,6 +183,7 @@ class NodeStats(BaseModel):
     latency_p99_ms: float | None = None
     drops: int = 0
     errors: int = 0
+    refused: int = Field(default=0, description="input samples refused (wrong publisher, frame number, size)")
     last_error: str | None = None
     clock_origin_ns: int | None = Field(default=None, description="sources: wall-clock time of frame 0")
 

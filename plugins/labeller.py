@@ -6,13 +6,23 @@ import numpy as np
 
 from mocapflow.messages import MarkerFrame, Segments
 from mocapflow.mocap.labelling import Labeller, LabellerConfig
+from mocapflow.mocap.reacquire import Reacquirer
 from mocapflow.runtime.node import Input, Node, Output
+from mocapflow.runtime.resume import clear_state, load_state, save_state
+
+SAVE_EVERY_S = 0.5
+RESUME_S = 1.0  # after a restart, how long lost tracks are looked for by their layouts
 
 
 class LabellerNode(Node[LabellerConfig]):
     """Tracks points frame to frame; re-identifies reappearing markers from their segment mates or, when linked, from
     the gap filler's predictions. Publishes the confirmed markers in a fixed order that only grows, with the
-    single-camera rays it could attribute to markers it did not see."""
+    single-camera rays it could attribute to markers it did not see.
+
+    Twice a second of stream time it keeps its tracks (``mocapflow.runtime.resume``): restarted within the same run,
+    it carries on with them and finds each marker again by its rigid layout (``mocapflow.mocap.reacquire``), so a label
+    keeps naming the same marker. Frames with no point at all for longer than a coast (a blinded tracker) are
+    followed the same way."""
 
     Config = LabellerConfig
     inputs = {
@@ -23,7 +33,14 @@ class LabellerNode(Node[LabellerConfig]):
     outputs = {"markers": Output(MarkerFrame, doc="labelled markers, NaN where not seen")}
 
     def setup(self) -> None:
-        self.labeller: Labeller | None = None
+        self.labeller: Labeller | None = load_state(self.run_id, self.name)
+        self._saved_at = -float("inf")
+        self.reacquire = Reacquirer(self.labeller) if self.labeller is not None else None
+        self._resumed_at: float | None = None  # stream time of the first frame after a restart
+        self._empty_since: float | None = None  # stream time of the first of consecutive frames with no point
+        self.placed = 0
+        if self.labeller is not None:
+            self.log.info("resuming %d tracks after a restart", len(self.labeller.labels))
         self.predictions: MarkerFrame | None = None
         self.segments: Segments | None = None
 
@@ -42,12 +59,31 @@ class LabellerNode(Node[LabellerConfig]):
         labeller = self.labeller
         before = len(labeller.labels)
         rays = None if frame.rays is None else frame.rays.astype(np.float64)
+        time = frame.frame / frame.rate
+        if not np.isfinite(frame.positions).all(axis=1).any():  # nothing seen: every marker is being lost at once
+            self._empty_since = time if self._empty_since is None else self._empty_since
+        elif self._empty_since is not None:
+            if time - self._empty_since > labeller.config.max_coast_s and self.reacquire is None:
+                self.reacquire, self._resumed_at, self.placed = Reacquirer(labeller), None, 0  # as after a restart
+            self._empty_since = None
+        if self.reacquire is not None:  # every marker was lost while this node restarted: find them by their layouts
+            self._resumed_at = time if self._resumed_at is None else self._resumed_at
+            self.placed += self.reacquire(frame.positions.astype(np.float64), time)
+            if time - self._resumed_at >= RESUME_S or self.placed >= len(labeller.labels):
+                self.log.info("found %d of %d tracks again by their rigid layouts", self.placed, len(labeller.labels))
+                self.reacquire = None
         result = labeller.update(frame.positions.astype(np.float64), frame.frame / frame.rate, self._predicted(frame),
                                  rays)
         self.publish("markers", MarkerFrame.derive(frame, positions=result.positions, labels=list(labeller.labels),
                                                    rays=result.rays))
         if len(labeller.labels) != before:
             self._apply_segments()
+        if frame.frame / frame.rate - self._saved_at >= SAVE_EVERY_S:
+            save_state(self.run_id, self.name, labeller)
+            self._saved_at = frame.frame / frame.rate
+
+    def finish(self) -> None:
+        clear_state(self.run_id, self.name)
 
     def _predicted(self, frame: MarkerFrame) -> np.ndarray | None:
         """The filler's predictions for this very frame, in track order; None when there are none for it."""

@@ -4,11 +4,11 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
-from mocapflow.io.markers import MarkerData, write_markers
-from mocapflow.messages import MarkerFrame, Pose
+from mocapflow.io.framelog import FrameLog, part_path
+from mocapflow.io.recorded import PORTS, convert_log
+from mocapflow.messages import MarkerFrame, Pose, encode
 from mocapflow.runtime.node import Input, Node, Publish
 
 
@@ -28,7 +28,11 @@ class RecorderConfig(BaseModel):
 class Recorder(Node):
     """Writes every received frame at its frame number; frames that never arrived are left missing (NaN). Joint
     centres become one extra point per joint name ever received (the skeleton may change during a run), missing in
-    frames whose pose lacks that joint."""
+    frames whose pose lacks that joint.
+
+    Frames go to ``PATH.part`` as they arrive (``mocapflow.io.framelog``): a killed recorder loses nothing it had
+    received, and its restart appends to the same log. When the stream ends the log becomes ``PATH``, the first
+    copy of each frame number kept; the log is removed once ``PATH`` is written."""
 
     Config = RecorderConfig
     inputs = {
@@ -38,45 +42,17 @@ class Recorder(Node):
 
     def __init__(self, config: RecorderConfig, publish: Publish, name: str = "recorder") -> None:
         super().__init__(config, publish, name)
-        self.frames: dict[int, np.ndarray] = {}
-        self.flags: dict[int, np.ndarray] = {}
-        self.joints: dict[str, dict[int, np.ndarray]] = {}  # joint name -> frame -> centre
-        self.labels: list[str] | None = None
-        self.rate = 0.0
+        self.log_file = FrameLog(part_path(config.path), self.run_id)  # fails at start on a path it cannot write
+        if self.log_file.set_aside is not None:
+            self.log.warning("an unfinished recording of another run is kept as %s", self.log_file.set_aside)
+        if self.log_file.resumed:
+            self.log.info("resuming %s after a restart", self.log_file.path)
 
     def process(self, port: str, message: MarkerFrame | Pose) -> None:
-        if isinstance(message, Pose):
-            for name, centre in zip(message.joint_names, message.joint_centres, strict=True):
-                self.joints.setdefault(name, {})[message.frame] = centre
-            return
-        if self.labels is None and message.labels is not None:
-            self.labels = message.labels
-        self.rate = message.rate
-        self.frames[message.frame] = message.positions
-        if message.flags is not None:
-            self.flags[message.frame] = message.flags
+        self.log_file.append(PORTS[port], encode(message))
 
     def finish(self) -> None:
-        if not self.frames:
-            self.log.warning("no frame received: %s not written", self.config.path)
-            return
-        first, last = min(self.frames), max(self.frames)
-        width = max(len(p) for p in self.frames.values())
-        positions = np.full((last - first + 1, width, 3), np.nan)
-        flags = np.zeros((last - first + 1, width), np.uint8) if self.flags else None
-        for i, p in self.frames.items():
-            positions[i - first, : len(p)] = p
-            if flags is not None and i in self.flags:
-                flags[i - first, : len(p)] = self.flags[i]
-        labels = self.labels if self.labels and len(self.labels) == width else [f"P{i + 1:03d}" for i in range(width)]
-        extra = {}
-        for name, centres in self.joints.items():
-            track = extra[name] = np.full((last - first + 1, 3), np.nan)
-            for i, centre in centres.items():
-                if first <= i <= last:
-                    track[i - first] = centre
-        path = Path(self.config.path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        write_markers(path, MarkerData(positions=positions, labels=labels, rate=self.rate, first_frame=first,
-                                       flags=flags, extra=extra))
-        self.log.info("wrote %d frames x %d markers to %s", len(positions), width, path)
+        self.log_file.close()
+        written = convert_log(self.log_file.path, Path(self.config.path), self.log)
+        if written:
+            self.log_file.path.unlink()

@@ -31,6 +31,7 @@ class SkeletonPublisher(Node[SkeletonConfig]):
 
     def setup(self) -> None:
         self.model: SkeletonModel | None = read_skeleton(self.config.skeleton) if self.config.skeleton else None
+        self.frames = self.posed = 0
 
     def process(self, port: str, message: MarkerFrame | Skeleton) -> None:
         self.process_batch(port, [message])
@@ -47,6 +48,7 @@ class SkeletonPublisher(Node[SkeletonConfig]):
     def _solve(self, frames: list[MarkerFrame]) -> None:
         labels = frames[0].labels
         if self.model is None or labels is None:
+            self.frames += len(frames)
             return
         if any(m.labels != labels for m in frames):  # the marker set changed inside the batch: split it
             cut = next(i for i, m in enumerate(frames) if m.labels != labels)
@@ -54,7 +56,16 @@ class SkeletonPublisher(Node[SkeletonConfig]):
             self._solve(frames[cut:])
             return
         pose = solve(self.model, np.stack([m.positions for m in frames]).astype(np.float64), labels)
+        self.frames += len(frames)
+        self.posed += len(frames)
         for i, m in enumerate(frames):
             self.publish("pose", Pose.derive(m, joint_names=pose.joint_names, joint_centres=pose.joint_centres[i],
                                              segment_names=pose.segment_names, rotations=pose.rotations[i],
                                              translations=pose.translations[i]))
+
+    def finish(self) -> None:
+        """A run that never posed a frame it received has no skeleton output at all: that is a failure to report,
+        not a finished node."""
+        if self.frames and not self.posed:
+            raise RuntimeError(f"no skeleton in {self.frames} frames: no skeleton model arrived"
+                               f"{'' if self.model is None else ' that fits these labels'}, no pose published")

@@ -86,7 +86,8 @@ def test_recording_round_trip_and_bad_files(tmp_path: Path) -> None:
         list(read_recording(not_mcap))
     with pytest.raises(MocapFileError, match="no such file"):
         list(read_recording(tmp_path / "missing.mcap"))
+    # a recording cut short (its writer killed) reads up to the cut: a prefix of what was written, never an error
     truncated = tmp_path / "t.mcap"
     truncated.write_bytes(path.read_bytes()[: len(path.read_bytes()) // 2])
-    with pytest.raises(MocapFileError, match="damaged"):
-        list(read_recording(truncated))
+    recovered = list(read_recording(truncated))
+    assert recovered == samples[: len(recovered)]

@@ -131,13 +131,16 @@ def test_cmu_capture_replays_every_frame(tmp_path: Path, free_endpoint: str, dat
     summary = tmp_path / "summary.json"
     run = subprocess.Popen(
         [*CLI, "run", str(graph), "--set", f"tracker.path={source}", "--set", f"recorder.path={tmp_path / 'live.c3d'}",
+         # windows short enough for a skeleton within the capture's 6.75 s: a run that never poses a frame fails
+         "--set", "clusterer.window_s=2", "--set", "joints.window_s=3", "--set", "joints.every_s=1",
          "--summary", str(summary)], cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     out = finish(run)
     assert "all nodes finished" in out, out
     nodes = json.loads(summary.read_text())
     assert set(nodes) == {"tracker", "clusterer", "joints", "filler", "skeleton", "recorder"}
     assert all(n["state"] == "finished" and n["drops"] == 0 and n["errors"] == 0 for n in nodes.values()), nodes
-    assert nodes["recorder"]["frames_in"] == 810
+    assert nodes["skeleton"]["frames_out"] > 0  # a skeleton was learnt and posed
+    assert nodes["recorder"]["frames_in"] == 810 + nodes["skeleton"]["frames_out"]  # every frame and every pose
     data, live = read_markers(source), read_markers(tmp_path / "live.c3d")
     assert live.n_frames == data.n_frames == 810 and live.rate == data.rate == 120.0
     assert live.first_frame == data.first_frame and live.labels == data.labels

@@ -103,18 +103,23 @@ def make_certificates(folder: Path) -> None:
         subprocess.run(["openssl", *args], cwd=folder, check=True, capture_output=True)
 
 
+def documented_access() -> dict:
+    """The access rules of docs/lab-deployment.md's example settings file, as printed there."""
+    doc = (Path(__file__).resolve().parents[1] / "docs" / "lab-deployment.md").read_text()
+    example = yaml.safe_load(doc.split("## Security settings")[1].split("```yaml")[1].split("```")[0])
+    return example["access"]
+
+
 @pytest.fixture
 def secured(tmp_path: Path, free_endpoint: str) -> Iterator[tuple[str, Path]]:
-    """A router on tls/ with users lab (everything on mocapflow/**), viewer (subscribe, query, watch) and guest
-    (nothing); one settings file per user in ``tmp_path``."""
+    """A router on tls/ with the documented access rules: users lab (everything on mocapflow/** and
+    mocapflow-control/**), viewer (subscribe, query, watch on mocapflow/**) and guest (nothing); one settings file
+    per user in ``tmp_path``."""
     make_certificates(tmp_path)
     (tmp_path / "router.yaml").write_text(yaml.safe_dump({
         "tls": {"ca": "ca.pem", "certificate": "router.pem", "key": "router-key.pem"},
         "users": PASSWORDS,
-        "access": {"default": "deny", "rules": [
-            {"users": ["lab"], "allow": ["all"], "keys": ["mocapflow/**"]},
-            {"users": ["viewer"], "allow": ["subscribe", "query", "watch"], "keys": ["mocapflow/**"]},
-        ]},
+        "access": documented_access(),
     }))
     for user, password in PASSWORDS.items():
         (tmp_path / f"{user}.yaml").write_text(yaml.safe_dump(
@@ -234,3 +239,50 @@ nodes:
     assert command_lines and all(lab in c and all(p not in c for p in PASSWORDS.values()) for c in command_lines)
     positions = read_markers(folder / "out.c3d").positions
     assert positions.shape[0] == frames and not np.isnan(positions).any()
+
+
+@pytest.mark.integration
+def test_the_documented_viewer_role_can_neither_deploy_stop_nor_end_a_stream(secured: tuple[str, Path]) -> None:
+    """The read-only role of the documented rules, against a live agent: a deployment of a recorder writing a file
+    of the viewer's choosing is never delivered, nor is a stop, nor an end of stream; the lab user reaches both."""
+    from mocapflow.runtime.agent import Deployment, Placement
+    from mocapflow.runtime.keys import deploy_key, stop_key
+    from mocapflow.runtime.worker import WorkerSpec
+
+    endpoint, folder = secured
+    cli = CLI
+    with (folder / "agent.log").open("wb") as out:
+        agent = subprocess.Popen([*cli, "agent", "--name", "cam", "--connect", endpoint, "--security",
+                                  str(folder / "lab.yaml")], stdout=out, stderr=subprocess.STDOUT)
+    chosen = folder / "chosen-by-the-viewer.c3d"
+    deployment = Deployment(run="evil", prefix="mocapflow/evil", nodes=[Placement(source=False, spec=WorkerSpec(
+        node="recorder", plugin="recorder", config={"path": str(chosen)}, prefix="mocapflow/evil",
+        inputs={"markers": "mocapflow/evil/tracker/markers"}))]).model_dump_json()
+    viewer, lab = try_open(endpoint, folder / "viewer.yaml"), try_open(endpoint, folder / "lab.yaml")
+    assert viewer and lab
+    try:
+        deadline = time.monotonic() + 30
+        while not list(lab.liveliness().get("mocapflow/_agents/cam", timeout=2)):
+            assert time.monotonic() < deadline and agent.poll() is None, (folder / "agent.log").read_text()
+            time.sleep(0.2)
+        assert list(viewer.liveliness().get("mocapflow/_agents/cam", timeout=2))  # the viewer sees the agent
+        assert list(viewer.get(deploy_key("cam"), payload=deployment, timeout=3)) == []
+        assert list(viewer.get(stop_key("cam"), payload="evil", timeout=3)) == []
+        time.sleep(1)
+        assert not chosen.with_name(chosen.name + ".part").exists() and "evil" not in (folder / "agent.log").read_text()
+        # the queryables are there for the lab user: an invalid deployment is answered with the agent's error
+        replies = list(lab.get(deploy_key("cam"), payload=b"{}", timeout=5))
+        assert replies and replies[0].err is not None and "invalid deployment" in replies[0].err.payload.to_string()
+        # a viewer's end of stream never reaches a subscriber of the data
+        ended = []
+        with lab.declare_subscriber("mocapflow/t/tracker/markers", lambda s: ended.append(s.kind)), \
+                viewer.declare_publisher("mocapflow/t/tracker/markers") as pub:
+            time.sleep(0.3)
+            pub.delete()
+            time.sleep(0.5)
+        assert ended == []
+    finally:
+        viewer.close()
+        lab.close()
+        agent.send_signal(signal.SIGTERM)
+        agent.wait(timeout=30)

@@ -16,6 +16,16 @@ if TYPE_CHECKING:
 M = TypeVar("M", bound=BaseModel)
 
 
+JOIN_TIMEOUT_S = 5.0
+
+
+def timeout_option(parser: argparse.ArgumentParser) -> None:
+    """``--timeout S``: how long a command waits for a router to accept its session before saying why it cannot."""
+    parser.add_argument("--timeout", type=float, default=JOIN_TIMEOUT_S, metavar="S",
+                        help=f"give up, saying so, when no router accepts the session within S seconds (no router "
+                             f"there, a refused login) (default {JOIN_TIMEOUT_S:g})")
+
+
 def marker_choice(parser: argparse.ArgumentParser, include: bool = True) -> None:
     """The ``--markers GLOB`` / ``--exclude GLOB`` options of a command that reads a marker file."""
     if include:
@@ -32,12 +42,33 @@ def read_chosen(path: str, args: argparse.Namespace) -> MarkerData:
     from mocapflow.io.markers import read_markers, select_markers
 
     data = read_markers(path)
+    refuse_absurd(data, path)
     include, exclude = getattr(args, "include", []), args.exclude
     if not (include or exclude):
         return data
     chosen = select_markers(data, include, exclude)
     print(f"{path}: using {chosen.n_markers} of {data.n_markers} markers")
     return chosen
+
+
+MAX_RATE_HZ = 100_000
+MAX_COORDINATE_MM = 1e5
+
+
+def refuse_absurd(data: MarkerData, path: str | Path) -> None:
+    """Refuse data no motion capture produces: a rate over 100 kHz, a coordinate over 100 m from the origin."""
+    import numpy as np
+
+    if data.rate > MAX_RATE_HZ:
+        raise MocapflowError(f"{path}: a rate of {data.rate:g} Hz is beyond any tracker ({MAX_RATE_HZ:,} Hz at most)")
+    with np.errstate(invalid="ignore"):
+        beyond = np.abs(data.positions) > MAX_COORDINATE_MM
+    if beyond.any():
+        f, m, _ = np.argwhere(beyond)[0]
+        raise MocapflowError(
+            f"{path}: {int(beyond.any(axis=2).sum())} samples beyond {MAX_COORDINATE_MM / 1000:g} m from the origin "
+            f"(first: {data.labels[m]} at frame {data.first_frame + f}, {data.positions[f, m].tolist()} mm): not "
+            "motion capture; remove them (set them missing) first")
 
 
 def distinct_output(output: str | Path, *inputs: str | Path) -> Path:

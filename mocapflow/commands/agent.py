@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 
+from mocapflow.commands import timeout_option
 from mocapflow.errors import MocapflowError
 from mocapflow.runtime.graph import NAME
 from mocapflow.runtime.session import DEFAULT_ENDPOINT
@@ -16,6 +17,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                         help=f"the lab's router (default {DEFAULT_ENDPOINT})")
     parser.add_argument("--security", metavar="FILE", default=None,
                         help="security settings: TLS, login (docs/lab-deployment.md; default $MOCAPFLOW_SECURITY)")
+    timeout_option(parser)
     parser.set_defaults(func=run)
 
 
@@ -25,4 +27,4 @@ def run(args: argparse.Namespace) -> int:
 
     if not NAME.match(args.name):
         raise MocapflowError(f"--name {args.name!r}: a machine name is letters, digits, '-' or '_'")
-    return run_agent(args.name, args.connect or [DEFAULT_ENDPOINT], security_path(args.security))
+    return run_agent(args.name, args.connect or [DEFAULT_ENDPOINT], security_path(args.security), args.timeout)

@@ -52,16 +52,29 @@ def summary(skeleton: SkeletonModel) -> str:
     return "\n".join(lines)
 
 
+MAX_MARKERS = 500
+
+
 def run(args: argparse.Namespace) -> int:
+    import numpy as np
+
     from mocapflow.io.markers import join_trials
     from mocapflow.io.skeleton import write_skeleton
     from mocapflow.mocap.calibration import calibrate
+    from mocapflow.mocap.outliers import wild_samples
     from mocapflow.progress import Reporter
 
     if args.segments is not None and args.segments < 2:
         raise MocapflowError("--segments must be at least 2")
     out = distinct_output(args.output, *args.inputs)
     data = join_trials([read_chosen(path, args) for path in args.inputs])
+    if data.n_markers > MAX_MARKERS:
+        raise MocapflowError(f"{data.n_markers} markers: calibrate takes at most {MAX_MARKERS} (its memory grows with "
+                             "the square of their number); choose a subject's markers with --markers/--exclude")
+    wild = wild_samples(data.positions)
+    if wild.any():  # a reflection a few frames long must not decide which markers move together
+        print(f"{int(wild.sum())} wild samples (a metre or more from their marker's neighbourhood in time) left out")
+        data.positions = np.where(wild[..., None], np.nan, data.positions)
     start = time.perf_counter()
     skeleton = calibrate(data.positions, data.labels, data.rate, segments=args.segments, method=args.method,
                          joint_method=args.joints, name=args.name or Path(args.inputs[0]).stem, progress=Reporter())

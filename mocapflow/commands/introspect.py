@@ -12,10 +12,11 @@ import numpy as np
 import orjson
 import zenoh
 
+from mocapflow.commands import timeout_option
 from mocapflow.messages import MESSAGE_TYPES, json_schema
 from mocapflow.runtime import keys
 from mocapflow.runtime.plugins import available, load
-from mocapflow.runtime.session import DEFAULT_ENDPOINT, open_client
+from mocapflow.runtime.session import DEFAULT_ENDPOINT, open_client, subscribe_with_cache
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -26,6 +27,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     def with_connect(parser: argparse.ArgumentParser) -> None:
         parser.add_argument("--connect", action="append", default=[], metavar="ENDPOINT",
                             help=f"router to join (default {DEFAULT_ENDPOINT})")
+        timeout_option(parser)
 
     n = sub.add_parser("nodes", help="list live nodes and their health")
     n.add_argument("--prefix", default="mocapflow/**", help="key prefix of the run (default: every run)")
@@ -70,7 +72,7 @@ def _plugins(args: argparse.Namespace) -> int:
 def _nodes(args: argparse.Namespace) -> int:
     prefix = args.prefix.rstrip("/")
     stats: dict[str, dict] = {}
-    with open_client(args.connect) as session:
+    with open_client(args.connect, timeout=args.timeout) as session:
         alive = sorted(str(r.ok.key_expr) for r in session.liveliness().get(keys.alive_key(prefix), timeout=2.0)
                        if r.ok is not None)
 
@@ -129,7 +131,8 @@ def _echo(args: argparse.Namespace) -> int:
         if args.count is not None and count >= args.count:
             done.set()
 
-    with open_client(args.connect) as session, session.declare_subscriber(args.key, on_sample):
+    with open_client(args.connect, timeout=args.timeout) as session, \
+            subscribe_with_cache(session, args.key, on_sample):
         try:
             while not done.wait(0.2):
                 pass
@@ -147,7 +150,7 @@ def _hz(args: argparse.Namespace) -> int:
             stamps.append(time.perf_counter())
 
     reports = 0
-    with open_client(args.connect) as session, session.declare_subscriber(args.key, on_sample):
+    with open_client(args.connect, timeout=args.timeout) as session, session.declare_subscriber(args.key, on_sample):
         try:
             while args.reports is None or reports < args.reports:
                 time.sleep(args.window)

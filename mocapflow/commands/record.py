@@ -9,7 +9,10 @@ import signal
 import threading
 import time
 
+from mocapflow.commands import timeout_option
 from mocapflow.runtime.session import DEFAULT_ENDPOINT
+
+MIN_SPEED, MAX_SPEED = 1e-3, 1e3
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -19,6 +22,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     rec.add_argument("--duration", type=float, default=None, metavar="S", help="stop after S seconds")
     rec.add_argument("--connect", action="append", default=[], metavar="ENDPOINT",
                      help=f"router to join (default {DEFAULT_ENDPOINT})")
+    timeout_option(rec)
     rec.set_defaults(func=_record)
 
     rep = sub.add_parser("replay", help="publish an MCAP recording again with its original timing")
@@ -26,6 +30,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     rep.add_argument("--speed", type=float, default=1.0, help="time factor (2 = twice as fast)")
     rep.add_argument("--connect", action="append", default=[], metavar="ENDPOINT",
                      help=f"router to join (default {DEFAULT_ENDPOINT})")
+    timeout_option(rep)
     rep.set_defaults(func=_replay)
 
 
@@ -33,7 +38,7 @@ def _record(args: argparse.Namespace) -> int:
     import zenoh
 
     from mocapflow.io.recording import RecordedSample, RecordingWriter
-    from mocapflow.runtime.session import open_client
+    from mocapflow.runtime.session import open_client, subscribe_with_cache
 
     inbox: queue.Queue[RecordedSample] = queue.Queue()
     stop = threading.Event()
@@ -46,14 +51,18 @@ def _record(args: argparse.Namespace) -> int:
                                  delete=sample.kind == zenoh.SampleKind.DELETE))
 
     deadline = None if args.duration is None else time.monotonic() + args.duration
-    with open_client(args.connect) as session, RecordingWriter(args.output) as writer:
-        subs = [session.declare_subscriber(key, on_sample) for key in args.keys]
+    with open_client(args.connect, timeout=args.timeout) as session, RecordingWriter(args.output) as writer:
+        subs = [subscribe_with_cache(session, key, on_sample) for key in args.keys]  # models too, as nodes get them
         print(f"recording {', '.join(args.keys)} to {args.output} (Ctrl-C to stop)", flush=True)
+        flushed = time.monotonic()
         while not stop.is_set() and (deadline is None or time.monotonic() < deadline):
             try:
                 writer.write(inbox.get(timeout=0.1))
             except queue.Empty:
                 pass
+            if time.monotonic() - flushed > 0.5:  # a killed recorder keeps all but the last half second
+                writer.flush()
+                flushed = time.monotonic()
         for s in subs:
             s.undeclare()
         while not inbox.empty():
@@ -70,8 +79,8 @@ def _replay(args: argparse.Namespace) -> int:
     from mocapflow.io.recording import read_recording
     from mocapflow.runtime.session import open_client
 
-    if args.speed <= 0:
-        raise MocapflowError("--speed must be positive")
+    if not MIN_SPEED <= args.speed <= MAX_SPEED:
+        raise MocapflowError(f"--speed {args.speed:g}: must be between {MIN_SPEED:g} and {MAX_SPEED:g}")
     samples = read_recording(args.recording)
     first = next(samples, None)
     if first is None:
@@ -82,7 +91,7 @@ def _replay(args: argparse.Namespace) -> int:
         signal.signal(sig, lambda *_: stop.set())
     count = 0
     late_ms: list[float] = []
-    with open_client(args.connect) as session:
+    with open_client(args.connect, timeout=args.timeout) as session:
         publishers: dict[tuple[str, str], zenoh.Publisher] = {}
         t0 = time.monotonic()
         for sample in itertools.chain([first], samples):

@@ -1,10 +1,14 @@
 """``mocapflow router [--listen ENDPOINT...] [--config FILE]``: the lab's Zenoh router, with TLS, users and access
-control from a security settings file (docs/lab-deployment.md)."""
+control from a security settings file (docs/lab-deployment.md).
+
+Without a settings file the router accepts anyone who reaches it, so it listens on loopback unless told otherwise,
+and says loudly when it is told to listen on another address with no authentication."""
 
 from __future__ import annotations
 
 import argparse
 import signal
+import sys
 import threading
 
 PORT = 7447
@@ -13,11 +17,18 @@ PORT = 7447
 def register(sub: argparse._SubParsersAction) -> None:
     parser = sub.add_parser("router", help="run the lab's Zenoh router (TLS, users, access control)")
     parser.add_argument("--listen", action="append", default=[], metavar="ENDPOINT",
-                        help=f"endpoint to listen on (repeatable; default tcp/0.0.0.0:{PORT}, or tls/0.0.0.0:{PORT}"
-                             " when the settings give the router a certificate)")
+                        help=f"endpoint to listen on (repeatable; default tcp/127.0.0.1:{PORT} without security "
+                             f"settings, tcp/0.0.0.0:{PORT} with them, tls/0.0.0.0:{PORT} when they give the router "
+                             "a certificate)")
     parser.add_argument("--config", metavar="FILE", default=None,
                         help="security settings: TLS certificate, users, access rules (default $MOCAPFLOW_SECURITY)")
     parser.set_defaults(func=run)
+
+
+def loopback(endpoint: str) -> bool:
+    """Whether an endpoint listens on this machine only."""
+    host = endpoint.partition("/")[2].rsplit(":", 1)[0].strip("[]")
+    return host in ("localhost", "::1") or host.startswith("127.")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -27,7 +38,13 @@ def run(args: argparse.Namespace) -> int:
 
     chosen = settings(args.config)
     scheme = "tls" if chosen is not None and chosen.tls_listener else "tcp"
-    listen = args.listen or [f"{scheme}/0.0.0.0:{PORT}"]
+    host = "127.0.0.1" if chosen is None else "0.0.0.0"
+    listen = args.listen or [f"{scheme}/{host}:{PORT}"]
+    if (chosen is None or not chosen.accepted_users()) and any(not loopback(ep) for ep in listen):
+        print(f"mocapflow router: WARNING: listening on {', '.join(ep for ep in listen if not loopback(ep))} with no "
+              "authentication: anyone who reaches this address may read, publish, and deploy and stop nodes on "
+              "every agent. Give the router users and access rules with --config (docs/lab-deployment.md).",
+              file=sys.stderr, flush=True)
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())

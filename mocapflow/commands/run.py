@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from mocapflow.commands import timeout_option
 from mocapflow.runtime.graph import load_graph
 
 
@@ -24,6 +25,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                      help="how long to wait for the agents of 'machine:' placements, at start or when one is lost")
     run.add_argument("--summary", metavar="FILE.json", default=None,
                      help="write each node's final state and statistics to a JSON file when the run ends")
+    timeout_option(run)
     run.set_defaults(func=_run)
 
     val = sub.add_parser("validate", help="check a graph's plugins, ports, link types and configs")
@@ -38,7 +40,8 @@ def _run(args: argparse.Namespace) -> int:
 
     graph = load_graph(args.graph, args.overrides)
     launcher = Launcher(graph, validate(graph), duration=args.duration, listen=args.listen, connect=args.connect,
-                        security=args.security, agent_timeout=args.agent_timeout, summary=args.summary)
+                        security=args.security, agent_timeout=args.agent_timeout, summary=args.summary,
+                        timeout=args.timeout)
     return launcher.run()
 
 

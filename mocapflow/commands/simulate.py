@@ -16,10 +16,14 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("simulate", help="write simulated capture to C3D/TRC, with a .truth.npz sidecar: ground truth, "
                        "and the single-camera rays when cameras are modelled")
     p.add_argument("-o", "--output", required=True, help="output .c3d or .trc file")
-    p.add_argument("--frames", type=int, default=2400, help="number of frames (default 2400)")
+    p.add_argument("--frames", type=int, default=2400, help=f"number of frames (default 2400, at most {MAX_FRAMES:,})")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                    help="simulator setting, e.g. --set rig=rods --set cameras=4 (see `mocapflow plugins simulator`)")
     p.set_defaults(func=run)
+
+
+MAX_FRAMES = 1_000_000
+"""About 70 minutes at 240 Hz: what a C3D file written from memory can hold."""
 
 
 def truth_path(path: Path) -> Path:
@@ -35,8 +39,8 @@ def run(args: argparse.Namespace) -> int:
     from mocapflow.progress import Reporter
 
     config = settings(SimulatorConfig, args.overrides)
-    if args.frames < 1:
-        raise MocapflowError("--frames must be at least 1")
+    if not 1 <= args.frames <= MAX_FRAMES:
+        raise MocapflowError(f"--frames {args.frames}: must be between 1 and {MAX_FRAMES:,}")
     try:
         rec = simulate(config, args.frames, read_bvh(config.bvh) if config.bvh else None, progress=Reporter())
     except MotionError as exc:

@@ -3,12 +3,13 @@
 An agent is a Zenoh client of the lab's router and speaks with launchers over Zenoh only (docs/lab-deployment.md):
 
 - ``mocapflow/_agents/{name}``: liveliness token held while the agent runs; launchers wait for it.
-- ``mocapflow/_agents/{name}/deploy``: queryable; the query payload is a ``Deployment`` (JSON: run id, key prefix,
+- ``mocapflow-control/agents/{name}/deploy``: queryable (control keys live outside ``mocapflow/**``, so read-only
+  roles of the data do not reach them); the query payload is a ``Deployment`` (JSON: run id, key prefix,
   each node's WorkerSpec and restart policy). The agent starts the nodes under a ``Supervisor`` and replies with
   their ``ProcStatus`` list, or with an error (plugin missing here, prefix busy with another run). Deploying a run
   the agent already runs is answered with its current state, so a launcher may repeat a deployment safely.
-- ``mocapflow/_agents/{name}/stop``: queryable; payload ``{"run": ID}``. The agent stops that run's nodes in order
-  (sources first, drain, terminate, kill) and replies with their final ``ProcStatus`` list.
+- ``mocapflow-control/agents/{name}/stop``: queryable; payload ``{"run": ID}``. The agent stops that run's nodes in
+  order (sources first, drain, terminate, kill) and replies with their final ``ProcStatus`` list.
 - ``{prefix}/_procs/{node}``: the ``ProcStatus`` of each node it runs, on every change and every second.
 - ``{prefix}/_log/{name}``: every line its nodes print, as ``[node] text``.
 - ``{prefix}/_launcher/{run}``: the launcher's liveliness token. A run whose launcher has been gone for
@@ -71,13 +72,13 @@ class Agent:
     """Runs, supervises and stops the nodes that launchers deploy on machine ``name``."""
 
     def __init__(self, name: str, connect: list[str], security: Path | None = None,
-                 out: IO[str] = sys.stdout) -> None:
+                 out: IO[str] = sys.stdout, timeout: float | None = None) -> None:
         self.name = name
         self.connect = connect
         self.security = security
         self.out = out
         self.runs: dict[str, Run] = {}  # by key prefix: one run per prefix on an agent
-        self.session = open_client(connect, security)
+        self.session = open_client(connect, security, timeout)
 
     def say(self, text: str) -> None:
         self.out.write(f"agent {self.name}: {text}\n")
@@ -240,11 +241,11 @@ class Agent:
             self.session.close()
 
 
-def run_agent(name: str, connect: list[str], security: Path | None = None) -> int:
+def run_agent(name: str, connect: list[str], security: Path | None = None, timeout: float | None = None) -> int:
     """Serve as agent ``name`` until SIGINT or SIGTERM."""
     print(f"agent {name}: joining {', '.join(connect)}", flush=True)
     signal.signal(signal.SIGINT, signal.SIG_DFL)  # until the router answers, Ctrl-C simply ends the agent
-    agent = Agent(name, connect, security)
+    agent = Agent(name, connect, security, timeout=timeout)
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())

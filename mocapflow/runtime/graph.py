@@ -14,10 +14,12 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
 from mocapflow.errors import GraphError
+from mocapflow.runtime.integrity import StreamLimits
 from mocapflow.runtime.node import Node
 from mocapflow.runtime.plugins import PluginNotFound, load
 
 NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_-]*$")
+KEY_PREFIX = re.compile(r"^[A-Za-z0-9_.-]+(/[A-Za-z0-9_.-]+)*$")
 
 
 class ZenohSettings(BaseModel):
@@ -54,6 +56,7 @@ class Graph(BaseModel):
     name: str
     prefix: str | None = None
     zenoh: ZenohSettings = Field(default_factory=ZenohSettings)
+    limits: StreamLimits = Field(default_factory=StreamLimits, description="what every node's data inputs accept")
     nodes: dict[str, NodeSpec]
 
     @field_validator("nodes")
@@ -65,6 +68,21 @@ class Graph(BaseModel):
             if not NAME.match(name):
                 raise ValueError(f"node name {name!r} must be letters, digits, '-' or '_' and not start with '_'")
         return nodes
+
+    @field_validator("name")
+    @classmethod
+    def _name(cls, name: str) -> str:
+        if "/" in name or not KEY_PREFIX.match(name):
+            raise ValueError(f"{name!r} must be letters, digits, '-', '_' or '.' (it names the graph's keys)")
+        return name
+
+    @field_validator("prefix")
+    @classmethod
+    def _prefix(cls, prefix: str | None) -> str | None:
+        if prefix is not None and not KEY_PREFIX.match(prefix):
+            raise ValueError(f"{prefix!r} must be '/'-separated chunks of letters, digits, '-', '_' or '.' (no empty "
+                             "chunk, no wildcard)")
+        return prefix
 
     @property
     def key_prefix(self) -> str:
@@ -100,8 +118,10 @@ def apply_overrides(raw: dict[str, Any], overrides: list[str]) -> None:
             raise GraphError(f"--set {text!r}: no node {node!r} in the graph (nodes: {', '.join(nodes)})")
         target = nodes[node].setdefault("config", {})
         *path, last = key.split(".")
-        for part in path:
+        for depth, part in enumerate(path):
             target = target.setdefault(part, {})
+            if not isinstance(target, dict):
+                raise GraphError(f"--set {text!r}: {node}.{'.'.join(path[:depth + 1])} is a value, not a section")
         target[last] = value
 
 
@@ -112,6 +132,8 @@ def load_graph(path: str | Path, overrides: list[str] | None = None) -> Graph:
         text = path.read_text()
     except OSError as exc:
         raise GraphError(f"{path}: cannot read: {exc.strerror}") from None
+    except UnicodeDecodeError:
+        raise GraphError(f"{path}: not a text file (a graph is YAML)") from None
     try:
         raw = yaml.safe_load(text)
     except yaml.YAMLError as exc:

@@ -21,6 +21,9 @@ def schema_key(prefix: str, type_name: str = "*") -> str:
 
 
 AGENTS = "mocapflow/_agents"
+CONTROL = "mocapflow-control"
+"""Agents' control queryables (deploy, stop): a key space of their own, outside ``mocapflow/**``, so that an access
+rule for read-only users of the data cannot reach them."""
 
 
 def agent_key(name: str = "*") -> str:
@@ -28,11 +31,11 @@ def agent_key(name: str = "*") -> str:
 
 
 def deploy_key(name: str) -> str:
-    return f"{AGENTS}/{name}/deploy"
+    return f"{CONTROL}/agents/{name}/deploy"
 
 
 def stop_key(name: str) -> str:
-    return f"{AGENTS}/{name}/stop"
+    return f"{CONTROL}/agents/{name}/stop"
 
 
 def procs_key(prefix: str, node: str = "*") -> str:

@@ -16,6 +16,7 @@ import signal
 import sys
 import threading
 import time
+import uuid
 from collections.abc import Iterator
 from contextlib import nullcontext
 from pathlib import Path
@@ -24,7 +25,7 @@ from typing import IO, Any
 import orjson
 import zenoh
 
-from mocapflow.errors import GraphError
+from mocapflow.errors import GraphError, MocapflowError
 from mocapflow.messages import MESSAGE_TYPES, NodeStats, json_schema
 from mocapflow.runtime import keys
 from mocapflow.runtime.graph import NAME, Graph, end_inputs
@@ -58,13 +59,24 @@ def serve_schemas(session: zenoh.Session, prefix: str) -> zenoh.Queryable:
     return session.declare_queryable(keys.schema_key(prefix, "**"), on_query)
 
 
+def refuse_prefix_in_use(session: zenoh.Session, prefix: str) -> None:
+    """Refuse to start a graph whose keys another live graph uses: both trackers would feed both recordings."""
+    users = set()
+    for key in (keys.launcher_key(prefix), keys.alive_key(prefix)):
+        users |= {str(r.ok.key_expr) for r in session.liveliness().get(key, timeout=2.0) if r.ok is not None}
+    if users:
+        raise MocapflowError(f"keys {prefix}/... are in use by a running graph ({', '.join(sorted(users))}): stop it,"
+                             " or give this graph another 'name' or 'prefix'")
+
+
 class Launcher:
     def __init__(self, graph: Graph, classes: dict[str, type[Node]], *, duration: float | None = None,
                  listen: list[str] | None = None, connect: list[str] | None = None, out: IO[str] = sys.stdout,
                  security: str | Path | None = None, agent_timeout: float = 30.0,
-                 summary: str | Path | None = None) -> None:
+                 summary: str | Path | None = None, timeout: float | None = None) -> None:
         self.graph = graph
         self.summary = Path(summary) if summary else None
+        self.timeout = timeout
         self.prefix = graph.key_prefix
         self.duration = duration
         self.out = out
@@ -83,6 +95,7 @@ class Launcher:
                 " router: pass --connect ENDPOINT (see docs/lab-deployment.md), or remove 'machine' to run here"
             )
         endpoints = self.connect or client_endpoints(self.listen)
+        self.run_id = uuid.uuid4().hex[:12]
         ends = end_inputs(graph, classes)
         all_procs = {
             name: Proc(
@@ -90,7 +103,8 @@ class Launcher:
                     node=name, plugin=spec.plugin, config=spec.config, prefix=self.prefix,
                     inputs={p: f"{self.prefix}/{link}" for p, link in spec.inputs.items()},
                     connect=endpoints, peers=list(graph.nodes), end_inputs=ends[name],
-                    security=str(self.security) if self.security else None,
+                    security=str(self.security) if self.security else None, limits=graph.limits,
+                    run=self.run_id,
                 ),
                 source=classes[name].is_source(), restart=spec.restart, max_restarts=spec.max_restarts,
             )
@@ -192,7 +206,7 @@ class Launcher:
     # -- main loop ------------------------------------------------------------------------------------------------
     def run(self) -> int:
         session = (open_router(self.listen, self.security) if not self.connect
-                   else open_client(self.connect, self.security))
+                   else open_client(self.connect, self.security, self.timeout))
         stop = threading.Event()
 
         def request_stop(signum: int, _frame: object) -> None:
@@ -202,7 +216,9 @@ class Launcher:
         old = {s: signal.signal(s, request_stop) for s in (signal.SIGINT, signal.SIGTERM)}
         agents = Agents(session, self.prefix, self.remote, self.lines, self.agent_timeout) if self.remote else None
         try:
-            with session.declare_subscriber(keys.stats_key(self.prefix), self._on_stats), \
+            refuse_prefix_in_use(session, self.prefix)
+            with session.liveliness().declare_token(keys.launcher_key(self.prefix, self.run_id)), \
+                    session.declare_subscriber(keys.stats_key(self.prefix), self._on_stats), \
                     serve_schemas(session, self.prefix), agents or nullcontext():
                 where = ", ".join(self.connect) if self.connect else f"embedded router on {', '.join(self.listen)}"
                 self.out.write(f"mocapflow: running {self.graph.name!r} ({len(self.specs)} nodes, {where}, "

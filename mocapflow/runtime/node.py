@@ -8,6 +8,7 @@ under the launcher, under an agent on another machine, or in a test.
 from __future__ import annotations
 
 import logging
+import os
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, ClassVar, Generic, TypeVar
@@ -15,6 +16,9 @@ from typing import Any, ClassVar, Generic, TypeVar
 from pydantic import BaseModel, ConfigDict
 
 from mocapflow.messages import Message
+
+RUN_ENV = "MOCAPFLOW_RUN"
+"""The run a worker belongs to, set by the worker from its spec: a restarted node sees the same value."""
 
 Publish = Callable[[str, Message], None]
 """How a node sends a message: ``publish(output_port, message)``."""
@@ -77,6 +81,12 @@ class Node(Generic[ConfigT]):
     def setup(self) -> None:
         """Build the node's state from ``self.config``; called once, at the end of construction. Override this
         rather than ``__init__``."""
+
+    @property
+    def run_id(self) -> str:
+        """Identifies the run (one launch of a graph): a node that keeps files can tell its own restart from a new
+        run. Empty outside a launched graph."""
+        return os.environ.get(RUN_ENV, "")
 
     @classmethod
     def is_source(cls) -> bool:

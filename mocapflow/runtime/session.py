@@ -8,11 +8,12 @@ introspection commands) applies the same file without passwords on any command l
 from __future__ import annotations
 
 import json
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Literal
+from typing import Any, Literal
 
 import zenoh
+import zenoh.ext as zext
 
 from mocapflow.errors import MocapflowError
 from mocapflow.runtime.security import SecuritySettings, load_security, security_path
@@ -23,7 +24,8 @@ RECONNECT = {"period_init_ms": 250, "period_max_ms": 1000, "period_increase_fact
 
 
 def zenoh_config(mode: Literal["router", "client"], *, listen: Sequence[str] = (), connect: Sequence[str] = (),
-                 security: SecuritySettings | None = None, users_file: Path | None = None) -> zenoh.Config:
+                 security: SecuritySettings | None = None, users_file: Path | None = None,
+                 timeout: float | None = None) -> zenoh.Config:
     """A Zenoh config with multicast scouting and gossip off: a lab network is explicit, never discovered by chance.
 
     Timestamping is on so that model outputs can be cached for late joiners (Zenoh's advanced publisher needs it).
@@ -37,13 +39,20 @@ def zenoh_config(mode: Literal["router", "client"], *, listen: Sequence[str] = (
         config.insert_json5("listen/endpoints", json.dumps(list(listen)))
     if connect:
         config.insert_json5("connect/endpoints", json.dumps(list(connect)))
-        # Keep retrying: a router that restarts must not end a node.
-        config.insert_json5("connect/timeout_ms", "-1")
+        # Keep retrying: a router that restarts must not end a node. A command a person typed gives up instead.
+        config.insert_json5("connect/timeout_ms", "-1" if timeout is None else str(int(timeout * 1000)))
         config.insert_json5("connect/retry", json.dumps(RECONNECT))
     if security is not None:
         for key, value in security.zenoh_keys(mode, users_file).items():
             config.insert_json5(key, json.dumps(value))
     return config
+
+
+def subscribe_with_cache(session: zenoh.Session, key: str, callback: Callable[[zenoh.Sample], None]) -> Any:
+    """A subscriber that also receives, at once, the cached latest value of every model output (segments,
+    skeleton) matching ``key``, as nodes do; plain data keys arrive as with an ordinary subscriber."""
+    return zext.declare_advanced_subscriber(
+        session, key, callback, history=zext.HistoryConfig(detect_late_publishers=True, max_samples=1))
 
 
 def settings(security: str | Path | None = None) -> SecuritySettings | None:
@@ -52,9 +61,21 @@ def settings(security: str | Path | None = None) -> SecuritySettings | None:
     return load_security(path) if path is not None else None
 
 
-def open_client(connect: Sequence[str], security: str | Path | None = None) -> zenoh.Session:
-    """A client session to the given routers; used by nodes, agents and the CLI's introspection commands."""
-    return zenoh.open(zenoh_config("client", connect=connect or [DEFAULT_ENDPOINT], security=settings(security)))
+def open_client(connect: Sequence[str], security: str | Path | None = None,
+                timeout: float | None = None) -> zenoh.Session:
+    """A client session to the given routers; used by nodes, agents and the CLI's commands. Without ``timeout`` it
+    waits for a router for ever (nodes outlive a router restart); with one, no router accepting this session within
+    ``timeout`` seconds (none running, or a login it refuses) is a one-line error."""
+    endpoints = list(connect) or [DEFAULT_ENDPOINT]
+    config = zenoh_config("client", connect=endpoints, security=settings(security), timeout=timeout)
+    try:
+        return zenoh.open(config)
+    except zenoh.ZError:
+        if timeout is None:
+            raise
+        raise MocapflowError(f"no router accepted this session at {', '.join(endpoints)} within {timeout:g} s: is it "
+                             "running there, and are the security settings (login, TLS) the router's? "
+                             "(--timeout S to wait longer)") from None
 
 
 def open_router(listen: Sequence[str], security: str | Path | None = None) -> zenoh.Session:

@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 from typing import IO, Literal
 
 from mocapflow.runtime.graph import Restart, RestartPolicy
-from mocapflow.runtime.worker import EXIT_CONFIG, WorkerSpec
+from mocapflow.runtime.worker import EXIT_CONFIG, EXIT_FINISH, WorkerSpec
 
 DRAIN_S = 10.0
 TERM_S = 3.0
@@ -93,8 +93,10 @@ class Supervisor:
             if now - proc.started_at > HEALTHY_S:
                 proc.failures = 0
             proc.failures += 1
-            why = "configuration error" if code == EXIT_CONFIG else f"exit code {code}"
-            if self.stopping or code == EXIT_CONFIG or proc.restart == "never" or proc.failures > proc.max_restarts:
+            why = {EXIT_CONFIG: "configuration error", EXIT_FINISH: "finish failed: its output is lost"}.get(
+                code, f"exit code {code}")
+            if self.stopping or code in (EXIT_CONFIG, EXIT_FINISH) or proc.restart == "never" \
+                    or proc.failures > proc.max_restarts:
                 proc.state = "failed"
                 self.lines.put(f"[{proc.name}] failed for good ({why})")
             else:

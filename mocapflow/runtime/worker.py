@@ -6,9 +6,11 @@ cleanly on end of stream or SIGTERM.
 
 End of stream is a Zenoh DELETE sample on a data key: a source sends it when it has no more frames, and a node sends
 it on its own outputs once every data input it waits for has ended (``graph.end_inputs``: all linked data inputs
-but feedback), so a finite run drains in order and stops by itself.
+but feedback), so a finite run drains in order and stops by itself. Every sample carries its publisher's identity;
+what a data input accepts (from whom, which frame numbers, how many markers) is ``mocapflow.runtime.integrity``.
 
-Exit codes: 0 finished; 2 configuration error (never restarted); anything else is a crash the supervisor may restart.
+Exit codes: 0 finished; 2 configuration error (never restarted); 3 the node's ``finish()`` failed, so what it was to
+write is lost (never restarted: its stream has ended); anything else is a crash the supervisor may restart.
 """
 
 from __future__ import annotations
@@ -32,12 +34,14 @@ from pydantic import BaseModel, Field, ValidationError
 
 from mocapflow.messages import DecodeError, Message, NodeStats, decode, encode
 from mocapflow.runtime import keys
-from mocapflow.runtime.node import Node
+from mocapflow.runtime.integrity import InputGuard, Refused, StreamLimits, new_identity
+from mocapflow.runtime.node import RUN_ENV, Node
 from mocapflow.runtime.plugins import PluginNotFound, load
 from mocapflow.runtime.security import SecurityError
 from mocapflow.runtime.session import open_client
 
 EXIT_CONFIG = 2
+EXIT_FINISH = 3
 STATS_PERIOD_S = 0.5
 PEER_WAIT_S = 20.0
 QUEUE_CAPACITY = 100_000
@@ -65,6 +69,8 @@ class WorkerSpec(BaseModel):
     security: str | None = Field(
         default=None, description="security settings file (TLS, login); its path, so no password is on a command line"
     )
+    limits: StreamLimits = Field(default_factory=StreamLimits, description="what the data inputs accept")
+    run: str = Field(default="", description="the launch this node belongs to (the same across its restarts)")
 
 
 class Stats:
@@ -76,6 +82,7 @@ class Stats:
         self.handled = 0
         self.drops = 0
         self.errors = 0
+        self.refused = 0
         self.last_error: str | None = None
         self.latencies_ms: deque[float] = deque(maxlen=4096)
         self._rate_mark = (time.monotonic(), 0)
@@ -104,7 +111,7 @@ class Stats:
         return NodeStats(
             node=node, pid=os.getpid(), state=state, frames_in=self.frames_in, frames_out=self.frames_out,
             rate_hz=round(self.rate_hz, 2), latency_p50_ms=p50, latency_p99_ms=p99, drops=self.drops,
-            errors=self.errors, last_error=self.last_error,
+            errors=self.errors, refused=self.refused, last_error=self.last_error,
         )
 
 
@@ -115,11 +122,17 @@ class Worker:
         self.stats = Stats()
         self.state = "starting"
         self.stop_event = threading.Event()
+        self.finished_ok = True
         self.inbox: queue.Queue[tuple[str, zenoh.Sample]] = queue.Queue(QUEUE_CAPACITY)
         self._publishers: dict[str, Any] = {}
         self._last_frame: dict[str, int] = {}
         self._last_capture_ns: int | None = None
         self.clock_origin_ns: int | None = None
+        self.identity = new_identity(spec.node)
+        self.guards = {
+            port: InputGuard(upstream=key.rsplit("/", 2)[-2], limits=spec.limits)
+            for port, key in spec.inputs.items() if port in node_cls.inputs and not node_cls.inputs[port].state
+        }
         for port, out in node_cls.outputs.items():
             key = keys.output_key(spec.prefix, spec.node, port)
             enc = zenoh.Encoding(out.type.encoding())
@@ -161,14 +174,14 @@ class Worker:
     def _publish(self, port: str, message: Message) -> None:
         if port not in self._publishers:
             raise KeyError(f"node {self.spec.node!r} has no output {port!r}")
-        self._publishers[port].put(encode(message))
+        self._publishers[port].put(encode(message), attachment=self.identity)
         self.stats.frames_out += 1
         self._last_capture_ns = message.capture_ns
 
     def _end_outputs(self) -> None:
         for port, pub in self._publishers.items():
             if not self.node.outputs[port].state:
-                pub.delete()
+                pub.delete(attachment=self.identity)
 
     def _report_error(self, where: str, exc: BaseException) -> None:
         self.stats.errors += 1
@@ -201,10 +214,21 @@ class Worker:
         finally:
             self.state = "finished" if not self.stop_event.is_set() else "stopping"
             try:
-                self.node.finish()
+                self.finished_ok = self._finish()
             finally:
                 self.publish_stats()
                 self.stop_event.set()
+
+    def _finish(self) -> bool:
+        """The node's ``finish()``; its failure is reported, never a crash to restart (the stream has ended)."""
+        try:
+            self.node.finish()
+        except Exception as exc:
+            self.stats.errors += 1
+            self.stats.last_error = f"finish: {exc}"
+            log.error("node %s: finish failed, its output is lost: %s", self.spec.node, exc)
+            return False
+        return True
 
     def _wait_for_peers(self) -> None:
         """Sources wait for every other node's liveliness token so that no first frame goes unheard."""
@@ -255,6 +279,11 @@ class Worker:
             port, sample = pending
             pending = None
             if sample.kind == zenoh.SampleKind.DELETE:
+                if port in self.guards and not self.guards[port].accept_end(_identity(sample)):
+                    self.stats.refused += 1
+                    self._report_error(f"input {port!r}", Refused(
+                        f"end of stream from {_who(sample)}, not from the stream's publisher: ignored"))
+                    continue
                 self._open_inputs.discard(port)
                 if not self._open_inputs and not self.node.inputs[port].state:
                     self._end_outputs()
@@ -282,6 +311,15 @@ class Worker:
             return None
         if not spec.state:
             self.stats.frames_in += 1
+            if port in self.guards:
+                guard = self.guards[port]
+                try:
+                    guard.check_source(_identity(sample))
+                    message = guard.check_frame(message)
+                except Refused as exc:
+                    self.stats.refused += 1
+                    self._report_error(f"input {port!r} ({_who(sample)})", exc)
+                    return None
             last = self._last_frame.get(port)
             if last is not None and message.frame != last + 1:
                 if message.frame > last + 1:
@@ -311,6 +349,15 @@ class Worker:
                     self.stats.frame_done(message.capture_ns)
 
 
+def _identity(sample: zenoh.Sample) -> bytes | None:
+    return sample.attachment.to_bytes() if sample.attachment is not None else None
+
+
+def _who(sample: zenoh.Sample) -> str:
+    identity = _identity(sample)
+    return identity.decode(errors="replace") if identity is not None else "an anonymous publisher"
+
+
 def _die_with_parent() -> None:
     """Ask Linux to SIGTERM this process if its launcher dies, so no orphan outlives a killed launcher."""
     try:
@@ -320,6 +367,7 @@ def _die_with_parent() -> None:
 
 
 def run_worker(spec: WorkerSpec) -> int:
+    os.environ[RUN_ENV] = spec.run
     try:
         node_cls = load(spec.plugin)
         config = node_cls.Config.model_validate(spec.config)
@@ -335,7 +383,7 @@ def run_worker(spec: WorkerSpec) -> int:
             return EXIT_CONFIG
         signal.signal(signal.SIGTERM, lambda *_: worker.stop_event.set())
         worker.run()
-        return 0
+        return 0 if worker.finished_ok else EXIT_FINISH
     finally:
         session.close()
 
@@ -352,7 +400,11 @@ def main(argv: list[str] | None = None) -> int:
     # The launcher decides when nodes stop; Ctrl-C in the terminal reaches it, not each node.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     _die_with_parent()
-    return run_worker(spec)
+    code = run_worker(spec)
+    # Past this point the node is done; a stop request arriving while the interpreter shuts down (which restores
+    # the default SIGTERM action) must not turn a finished node into one killed by a signal.
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    return code
 
 
 if __name__ == "__main__":

@@ -59,6 +59,9 @@ class FillerConfig(BaseModel):
     min_joint_rotation_deg: float = Field(
         5.0, gt=0, description="least RMS relative rotation of two segments before a joint between them is trusted")
     min_joint_s: float = Field(2.0, gt=0, description="seconds of usable frames before a learned joint is trusted")
+    outlier_mm: float = Field(
+        1000.0, gt=0, description="a sample this far from where its marker, seen in the previous frame, is predicted "
+        "is an outlier (a reflection, a glitch) and treated as missing, not trusted")
     update_joint_offsets: Literal["observed", "partial", "always"] = Field(
         "partial", description="frames that update learned joint offsets: both sides fully observed; also with "
         "predicted markers while each side keeps one visible (tables 6.1-6.3); or every frame")

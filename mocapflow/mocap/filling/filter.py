@@ -178,6 +178,8 @@ class GapFiller:
             self._pending = None
         self._extrapolated[:] = False
         self.kf.predict(self._velocity_gain())
+        seen &= ~self._outliers(z, seen)
+        z[~seen] = np.nan
         body = self.body
         flags = seen.astype(np.uint8)
         poses = None if seen.all() else self._fill_missing(z, seen, flags, rays)
@@ -204,6 +206,14 @@ class GapFiller:
             # ``joint_names`` keep describing the same body until then
             self._pending = self._learner.observe(z, seen, flags, body, self._current_poses) or self._pending
         return FillResult(positions=z, flags=flags, joint_centres=centres)
+
+    def _outliers(self, z: np.ndarray, seen: np.ndarray) -> np.ndarray:
+        """Samples of markers seen in the previous frame that are ``outlier_mm`` or more from their prediction: no
+        marker moves so in one frame, so they would only pull the filter and the segment fits off."""
+        followed = seen & (self._unmeasured == 0) & np.isfinite(self.kf.position).all(axis=1)
+        far = np.zeros(len(z), bool)
+        far[followed] = np.linalg.norm(z[followed] - self.kf.position[followed], axis=1) >= self.config.outlier_mm
+        return far
 
     def _current_poses(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """This frame's segment poses, fitted now where skipped."""

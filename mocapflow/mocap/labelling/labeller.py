@@ -27,6 +27,11 @@ class Labeller:
         # tentative tracks and the points they have collected
         self._tentative = Tentatives()
 
+    @property
+    def tracks(self) -> Tracks:
+        """The confirmed tracks' state, for a caller that places lost tracks itself (``mocap.reacquire``)."""
+        return self._tracks
+
     def set_segments(self, segments: list[list[int]]) -> None:
         """Declare groups of track indices that move rigidly: a track's segment mates become its neighbours.
 

@@ -68,6 +68,15 @@ class Tracks:
             self.span = np.concatenate([self.span, np.tile([np.inf, -np.inf], (len(self.span), extra, 1))], axis=1)
         self.next_select = -np.inf
 
+    def forget_cues(self) -> None:
+        """Forget the snapshots and distance statistics learnt so far (the kinematic state stays): cues learnt before
+        every marker was lost at once could hand a mirror-image marker to the wrong track."""
+        self.poses[:] = np.nan
+        self.pose_count[:] = 0
+        self.pose_time[:] = -np.inf
+        self.pair_n[:], self.pair_mean[:], self.pair_m2[:] = 0.0, 0.0, 0.0
+        self.next_select = -np.inf
+
     def plausible(self, tracks: np.ndarray, cur: np.ndarray, z: np.ndarray) -> np.ndarray:
         """``(T, B)``: where point ``z[b]`` can be the marker of ``tracks[t]``: its distances to three of the track's
         neighbours seen now (all, if fewer; one at least) are ones the snapshots have shown, give or take

@@ -1,0 +1,374 @@
+"""Nothing lost, nobody in: an attacker client, glitching trackers, SIGKILLed nodes and recorders, failing writes and a
+second launcher, each over real processes and real Zenoh on loopback. Every real frame must reach the recording
+unchanged (but those of a documented restart gap) and the exit code must tell the truth."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import orjson
+import pytest
+from test_runtime import RATE, read_c3d, start, wait_for_frames, worker_pid, workers_of
+
+from mocapflow.io.framelog import scan
+from mocapflow.io.recording import read_recording
+from mocapflow.messages import MarkerFrame, encode
+from mocapflow.mocap.simulator import Simulator, SimulatorConfig
+from mocapflow.runtime.session import open_client, open_router
+
+pytestmark = pytest.mark.integration
+
+GLITCHY = '''
+import numpy as np
+from mocapflow.messages import MarkerFrame
+from mocapflow.plugins.simulator import SimulatorNode
+
+class Glitchy(SimulatorNode):
+    """A tracker whose counter glitches: besides every real frame, it sends a frame numbered 10**12, a repeat of an
+    earlier number with other positions, one frame of 20,000 markers and one whose coordinates are all 1e30."""
+
+    def emit(self, index):
+        glitch = {100: 10**12, 200: 150, 300: index, 400: index}.get(index)
+        if glitch is not None:
+            n = 20_000 if index == 300 else len(self.labels)
+            value = 1e30 if index == 400 else 7.0
+            self.publish("markers", MarkerFrame(frame=glitch, capture_ns=0, rate=self.rate,
+                                                positions=np.full((n, 3), value)))
+        return super().emit(index)
+'''
+
+
+def write_graph(tmp_path: Path, endpoint: str, name: str, frames: int, plugin: str = "simulator",
+                relay: bool = False) -> tuple[Path, str]:
+    name = f"{name}{endpoint.rsplit(':', 1)[1]}"
+    source = "relay" if relay else "tracker"
+    path = tmp_path / f"{name}.yaml"
+    path.write_text(f"""
+name: {name}
+zenoh: {{listen: ["{endpoint}"]}}
+nodes:
+  tracker: {{plugin: "{plugin}", config: {{rig: human, rate: {RATE}, seed: 3, frames: {frames}}}}}
+{"  relay: {plugin: relay, inputs: {markers: tracker/markers}}" if relay else ""}
+  recorder: {{plugin: recorder, inputs: {{markers: {source}/markers}}, config: {{path: {tmp_path / 'out.c3d'}}}}}
+""")
+    return path, f"mocapflow/{name}"
+
+
+def truth(frames: int) -> np.ndarray:
+    sim = Simulator(SimulatorConfig(rig="human", rate=RATE, seed=3))
+    return np.stack([sim.frame(i).points for i in range(frames)])
+
+
+def assert_real_frames(points: np.ndarray, expected: np.ndarray, rows: np.ndarray) -> None:
+    """The recorded rows are exactly the simulated frames of the same number: nothing replaced or shifted."""
+    np.testing.assert_allclose(points[rows], expected[rows], atol=1e-3, equal_nan=True)
+
+
+def test_an_attacker_can_neither_end_nor_corrupt_a_stream(tmp_path: Path, free_endpoint: str) -> None:
+    frames = 10 * RATE
+    path, prefix = write_graph(tmp_path, free_endpoint, "atk", frames, relay=True)
+    run = start(["run", str(path), "--duration", "90", "--summary", str(tmp_path / "summary.json")], tmp_path)
+    wait_for_frames(free_endpoint, prefix, "recorder", RATE)
+    key = f"{prefix}/tracker/markers"
+    with open_client([free_endpoint]) as attacker:
+        pub = attacker.declare_publisher(key)
+        pub.delete()  # what ended the whole pipeline
+        pub.delete(attachment=b"tracker@0000")  # a DELETE naming the publisher, but not its run
+        for frame, n, value in ((10**12, 53, 1.0), (5, 53, 7.0), (RATE * 3, 350_000 // 50, 1.0), (RATE * 3, 53, 1e30),
+                                (RATE * 3, 53, np.nan)):
+            pub.put(encode(MarkerFrame(frame=frame, capture_ns=0, rate=RATE, positions=np.full((n, 3), value))))
+        pub.put(encode(MarkerFrame(frame=RATE * 4, capture_ns=0, rate=RATE, positions=np.zeros((53, 3)))),
+                attachment=b"tracker@0000")
+        time.sleep(0.5)
+    out, _ = run.communicate(timeout=120)
+    assert run.returncode == 0, out
+    assert "all nodes finished" in out and "not from the stream's publisher: ignored" in out
+    assert "while tracker@" in out  # the frames were refused because the tracker publishes this stream
+    points, *_ = read_c3d(tmp_path / "out.c3d")
+    assert points.shape[0] == frames  # every real frame, no frame 10**12, nothing after the last one
+    assert_real_frames(points, truth(frames), np.arange(frames))
+    summary = orjson.loads((tmp_path / "summary.json").read_bytes())
+    assert summary["relay"]["refused"] == 8 and summary["recorder"]["refused"] == 0, summary
+    assert not workers_of(prefix)
+
+
+def test_a_glitching_tracker_loses_no_real_frame(tmp_path: Path, free_endpoint: str) -> None:
+    (tmp_path / "glitchy.py").write_text(GLITCHY)
+    frames = 3 * RATE
+    path, prefix = write_graph(tmp_path, free_endpoint, "gl", frames, plugin="glitchy:Glitchy", relay=True)
+    run = start(["run", str(path), "--duration", "60", "--summary", str(tmp_path / "summary.json")], tmp_path)
+    out, _ = run.communicate(timeout=90)
+    assert run.returncode == 0, out
+    assert "frame 1000000000000 is more than 1000 frames after the last accepted frame 99" in out
+    assert "frame 150 is not after the last accepted frame 199" in out
+    assert "has 20000 markers (at most 5000" in out and "every coordinate is beyond" in out
+    points, *_ = read_c3d(tmp_path / "out.c3d")
+    assert points.shape[0] == frames
+    assert_real_frames(points, truth(frames), np.arange(frames))
+    summary = orjson.loads((tmp_path / "summary.json").read_bytes())
+    assert summary["relay"]["refused"] == 4 and summary["recorder"]["refused"] == 0, summary
+
+
+def test_a_killed_recorder_keeps_what_it_had_and_appends(tmp_path: Path, free_endpoint: str) -> None:
+    frames = 10 * RATE
+    path, prefix = write_graph(tmp_path, free_endpoint, "rk", frames)
+    run = start(["run", str(path), "--duration", "90"], tmp_path)
+    victim = worker_pid(prefix, "recorder")
+    wait_for_frames(free_endpoint, prefix, "recorder", 2 * RATE)
+    os.kill(victim, signal.SIGKILL)
+    part = tmp_path / "out.c3d.part"
+    assert sum(1 for _ in scan(part)[2]) >= 2 * RATE  # everything received is on disk already
+    out, _ = run.communicate(timeout=120)
+    assert run.returncode == 0, out
+    assert "[recorder] stopped (exit code -9); restart 1" in out and "resuming" in out
+    assert not part.exists()
+    points, *_ = read_c3d(tmp_path / "out.c3d")
+    seen = ~np.isnan(points[:, 0, 0])
+    edges = np.flatnonzero(np.diff(seen.astype(int)))
+    # frames before the kill kept, then one gap while the recorder restarted, then every frame to the end
+    assert seen[0] and seen[-1] and len(edges) == 2 and edges[0] + 1 >= 2 * RATE, edges
+    assert points.shape[0] == frames
+    assert_real_frames(points, truth(frames), np.flatnonzero(seen))
+    gap = edges[1] - edges[0]
+    print(f"recorder restart gap: {gap} frames ({gap / RATE:.2f} s at {RATE} Hz)")
+    assert not workers_of(prefix)
+
+
+def test_a_failed_finish_fails_the_run(tmp_path: Path, free_endpoint: str) -> None:
+    path, prefix = write_graph(tmp_path, free_endpoint, "ff", 3 * RATE)
+    run = start(["run", str(path), "--duration", "60", "--summary", str(tmp_path / "summary.json")], tmp_path)
+    wait_for_frames(free_endpoint, prefix, "recorder", RATE)
+    (tmp_path / "out.c3d").mkdir()  # the recording's path is taken by the time it is written
+    out, _ = run.communicate(timeout=90)
+    assert run.returncode == 1, out
+    assert "[recorder] failed for good (finish failed: its output is lost)" in out and "failed: recorder" in out
+    summary = orjson.loads((tmp_path / "summary.json").read_bytes())
+    assert summary["recorder"]["state"] == "failed" and summary["recorder"]["last_error"].startswith("finish")
+    assert (tmp_path / "out.c3d.part").stat().st_size > 0  # what was received is still on disk
+    assert not workers_of(prefix)
+
+
+def test_a_second_launcher_on_a_prefix_in_use_is_refused(tmp_path: Path, free_endpoint: str) -> None:
+    path, prefix = write_graph(tmp_path, free_endpoint, "two", 20 * RATE)
+    first = start(["run", str(path), "--duration", "40"], tmp_path)
+    try:
+        wait_for_frames(free_endpoint, prefix, "recorder", RATE)
+        second = subprocess.run([sys.executable, "-m", "mocapflow.cli", "run", str(path), "--connect", free_endpoint,
+                                 "--duration", "5"], cwd=tmp_path, capture_output=True, text=True, timeout=60)
+        assert second.returncode == 2, second.stdout + second.stderr
+        assert f"keys {prefix}/... are in use by a running graph" in second.stderr
+        assert "Traceback" not in second.stderr
+    finally:
+        first.send_signal(signal.SIGINT)
+        out, _ = first.communicate(timeout=60)
+    assert first.returncode == 0, out
+    assert not workers_of(prefix)
+
+
+def test_replay_reads_what_a_killed_record_left(tmp_path: Path, free_endpoint: str) -> None:
+    path, prefix = write_graph(tmp_path, free_endpoint, "kr", 20 * RATE)
+    run = start(["run", str(path), "--duration", "40"], tmp_path)
+    live = tmp_path / "live.mcap"
+    rec = subprocess.Popen([sys.executable, "-m", "mocapflow.cli", "record", f"{prefix}/tracker/markers", "-o",
+                            str(live), "--connect", free_endpoint], stdout=subprocess.PIPE, text=True)
+    try:
+        wait_for_frames(free_endpoint, prefix, "recorder", 2 * RATE)
+        time.sleep(3)
+        rec.kill()
+        rec.communicate(timeout=10)
+    finally:
+        run.send_signal(signal.SIGINT)
+        run.communicate(timeout=60)
+    samples = list(read_recording(live))
+    recorded = [orjson.loads(s.payload)["frame"] for s in samples]
+    assert len(recorded) > 2 * RATE and recorded == list(range(recorded[0], recorded[0] + len(recorded)))
+    with open_router([free_endpoint]):
+        replay = subprocess.run([sys.executable, "-m", "mocapflow.cli", "replay", str(live), "--connect",
+                                 free_endpoint, "--speed", "20"], capture_output=True, text=True, timeout=60)
+    assert replay.returncode == 0 and f"replayed {len(samples)} samples" in replay.stdout, replay.stderr
+
+
+def test_a_restarted_labeller_keeps_every_identity(tmp_path: Path, free_endpoint: str) -> None:
+    frames = 12 * RATE
+    name = f"lab{free_endpoint.rsplit(':', 1)[1]}"
+    prefix = f"mocapflow/{name}"
+    path = tmp_path / "g.yaml"
+    path.write_text(f"""
+name: {name}
+zenoh: {{listen: ["{free_endpoint}"]}}
+nodes:
+  tracker: {{plugin: simulator, config: {{rig: human, rate: {RATE}, seed: 3, frames: {frames}, unlabelled: true}}}}
+  labeller: {{plugin: labeller, inputs: {{markers: tracker/markers}}}}
+  recorder: {{plugin: recorder, inputs: {{markers: labeller/markers}}, config: {{path: {tmp_path / 'out.c3d'}}}}}
+""")
+    run = start(["run", str(path), "--duration", "90"], tmp_path)
+    wait_for_frames(free_endpoint, prefix, "recorder", 4 * RATE)
+    os.kill(worker_pid(prefix, "labeller"), signal.SIGKILL)
+    out, _ = run.communicate(timeout=120)
+    assert run.returncode == 0, out
+    assert "[labeller] stopped (exit code -9); restart 1" in out and "resuming" in out
+    points, labels, *_ = read_c3d(tmp_path / "out.c3d")
+    seen = ~np.isnan(points).all(axis=(1, 2))
+    edges = np.flatnonzero(np.diff(seen.astype(int)))
+    edges = edges[edges > RATE // 10]  # the first frames label nothing: tracks are confirmed after a few frames
+    assert len(edges) == 2, edges  # one gap: the frames published while the labeller was down
+    before, after = slice(0, edges[0] + 1), slice(edges[1] + 1, len(points))
+    observed = truth(len(points))  # the same frames, labelled: row m is marker m
+    rig = Simulator(SimulatorConfig(rig="human", rate=RATE, seed=3)).rig
+    markers = len(rig.marker_labels)
+
+    def marker_of(track: np.ndarray, span: slice) -> int | None:
+        """The simulated marker whose observed positions this track's samples are, exactly."""
+        rows = np.flatnonzero(np.isfinite(track[span, 0]))
+        if len(rows) == 0:
+            return None
+        d = np.linalg.norm(observed[span][rows] - track[span][rows, None], axis=2)  # (rows, markers)
+        match = np.nanargmin(np.where(np.isnan(d), np.inf, d), axis=1)
+        assert (np.take_along_axis(d, match[:, None], axis=1) < 1e-3).all()  # every sample a real one, unchanged
+        return int(np.bincount(match).argmax())
+
+    pairs = [(marker_of(points[:, t], before), marker_of(points[:, t], after)) for t in range(markers)]
+    kept = sum(a == b and a is not None for a, b in pairs)
+    moved = sum(a is not None and b is not None and a != b for a, b in pairs)
+    assert moved == 0, f"{moved} of {markers} labels name another marker after the restart"
+    # markers of a mirror-symmetric segment whose layout fits two ways are left to new labels rather than risk a swap
+    assert kept >= markers // 2 and len(labels) <= 2 * markers, (kept, len(labels))
+    gap = edges[1] - edges[0]
+    print(f"labeller restart gap: {gap} frames ({gap / RATE:.2f} s at {RATE} Hz); {kept} of {markers} markers keep "
+          f"their label, {len(labels) - markers} new labels")
+
+
+def test_record_and_echo_receive_the_cached_models(tmp_path: Path, free_endpoint: str) -> None:
+    from mocapflow.mocap.simulator import simulate, truth_skeleton
+
+    sim = Simulator(SimulatorConfig(rig="rods", rate=RATE, seed=3))
+    reference = simulate(SimulatorConfig(rig="rods", rate=RATE, seed=3, noise_mm=0.0), 1).true_positions[0]
+    (tmp_path / "rods.json").write_text(truth_skeleton(sim.rig, reference).model_dump_json())
+    name = f"mod{free_endpoint.rsplit(':', 1)[1]}"
+    prefix = f"mocapflow/{name}"
+    (tmp_path / "g.yaml").write_text(f"""
+name: {name}
+zenoh: {{listen: ["{free_endpoint}"]}}
+nodes:
+  tracker: {{plugin: simulator, config: {{rig: rods, rate: {RATE}, seed: 3}}}}
+  joints: {{plugin: joints-closed-form, inputs: {{markers: tracker/markers}},
+            config: {{skeleton: {tmp_path / 'rods.json'}, refine: false}}}}
+""")
+    run = start(["run", str(tmp_path / "g.yaml"), "--duration", "60"], tmp_path)
+    cli = [sys.executable, "-m", "mocapflow.cli"]
+    try:
+        wait_for_frames(free_endpoint, prefix, "joints", 2 * RATE)  # the skeleton was published long before
+        rec = subprocess.run([*cli, "record", f"{prefix}/**", "-o", str(tmp_path / "late.mcap"), "--connect",
+                              free_endpoint, "--duration", "2"], capture_output=True, text=True, timeout=60)
+        assert rec.returncode == 0, rec.stderr
+        echo = subprocess.run([*cli, "echo", f"{prefix}/joints/skeleton", "-n", "1", "--connect", free_endpoint],
+                              capture_output=True, text=True, timeout=30)
+    finally:
+        run.send_signal(signal.SIGINT)
+        run.communicate(timeout=60)
+    models = [s for s in read_recording(tmp_path / "late.mcap") if s.key == f"{prefix}/joints/skeleton"]
+    assert len(models) == 1 and models[0].encoding.endswith("mocapflow/Skeleton")
+    assert "application/json;mocapflow/Skeleton" in echo.stdout, echo.stdout + echo.stderr
+
+
+def test_commands_fail_in_one_line(tmp_path: Path, free_endpoint: str) -> None:
+    """What printed a traceback, or hung, is one line and a non-zero exit code."""
+    cli = [sys.executable, "-m", "mocapflow.cli"]
+    (tmp_path / "binary.yaml").write_bytes(bytes(range(256)))
+    (tmp_path / "prefix.yaml").write_text('name: p\nprefix: "a//b"\nnodes:\n  tracker: {plugin: simulator}\n')
+    (tmp_path / "folder").mkdir()
+    quickstart = Path(__file__).resolve().parents[1] / "deployments" / "quickstart.yaml"
+    cases = [
+        (["simulate", "-o", "x.c3d", "--frames", "100000000"], "--frames 100000000: must be between 1 and"),
+        (["validate", "binary.yaml"], "not a text file"),
+        (["validate", str(quickstart), "--set", "tracker.rate.x=1"], "tracker.rate is a value, not a section"),
+        (["validate", "prefix.yaml"], "'a//b' must be '/'-separated chunks"),
+        (["replay", "x.mcap", "--speed", "1e-300"], "--speed 1e-300: must be between"),
+        (["record", "x/**", "-o", "folder", "--connect", free_endpoint, "--timeout", "1"], "no router accepted"),
+        (["echo", "x/**", "--connect", free_endpoint, "--timeout", "1"], "no router accepted"),
+        (["hz", "x/**", "--connect", free_endpoint, "--timeout", "1"], "no router accepted"),
+        (["nodes", "--connect", free_endpoint, "--timeout", "1"], "no router accepted"),
+    ]
+    for args, message in cases:
+        done = subprocess.run([*cli, *args], cwd=tmp_path, capture_output=True, text=True, timeout=60)
+        lines = done.stderr.strip().splitlines()
+        assert done.returncode != 0 and len(lines) == 1 and message in lines[0], (args, done.stderr)
+    with open_router([free_endpoint]):
+        done = subprocess.run([*cli, "record", "x/**", "-o", "folder", "--connect", free_endpoint], cwd=tmp_path,
+                              capture_output=True, text=True, timeout=60)
+        # --duration, SIGTERM and SIGINT each end a recording, written whole
+        timed = subprocess.run([*cli, "record", "x/**", "-o", "d.mcap", "--connect", free_endpoint, "--duration", "1"],
+                               cwd=tmp_path, capture_output=True, text=True, timeout=60)
+        stopped = []
+        for sig in (signal.SIGTERM, signal.SIGINT):
+            rec = subprocess.Popen([*cli, "record", "x/**", "-o", f"{sig.name}.mcap", "--connect", free_endpoint],
+                                   cwd=tmp_path, stdout=subprocess.PIPE, text=True)
+            assert "recording" in rec.stdout.readline()
+            rec.send_signal(sig)
+            stopped.append((rec.wait(timeout=30), rec.stdout.read()))
+    assert done.returncode == 2 and done.stderr.strip() == \
+        "mocapflow record: error: folder: cannot write a recording there: Is a directory", done.stderr
+    assert timed.returncode == 0 and "recorded 0 samples to d.mcap" in timed.stdout, timed.stderr
+    assert all(code == 0 and "recorded 0 samples" in text for code, text in stopped), stopped
+    assert list(read_recording(tmp_path / "SIGTERM.mcap")) == []  # a whole, readable (empty) recording
+
+
+def test_router_listens_on_loopback_and_warns_when_public_and_open(tmp_path: Path) -> None:
+    from conftest import free_port
+
+    port = free_port()
+    router = subprocess.Popen([sys.executable, "-m", "mocapflow.cli", "router", "--listen", f"tcp/0.0.0.0:{port}"],
+                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        time.sleep(3)
+    finally:
+        router.send_signal(signal.SIGTERM)
+        out, err = router.communicate(timeout=30)
+    assert f"WARNING: listening on tcp/0.0.0.0:{port} with no authentication" in err, err
+    from mocapflow.commands.router import loopback
+
+    assert loopback("tcp/127.0.0.1:7447") and loopback("tcp/[::1]:7447") and not loopback("tcp/0.0.0.0:7447")
+
+
+@pytest.mark.parametrize("victim", ["tracker", "relay"])
+def test_a_killed_stage_loses_only_its_restart_gap(tmp_path: Path, free_endpoint: str, victim: str) -> None:
+    frames = 10 * RATE
+    path, prefix = write_graph(tmp_path, free_endpoint, f"k{victim[:3]}", frames, relay=True)
+    run = start(["run", str(path), "--duration", "90"], tmp_path)
+    wait_for_frames(free_endpoint, prefix, "recorder", 2 * RATE)
+    os.kill(worker_pid(prefix, victim), signal.SIGKILL)
+    out, _ = run.communicate(timeout=120)
+    assert run.returncode == 0, out
+    assert f"[{victim}] stopped (exit code -9); restart 1" in out
+    points, *_ = read_c3d(tmp_path / "out.c3d")
+    seen = ~np.isnan(points[:, 0, 0])
+    edges = np.flatnonzero(np.diff(seen.astype(int)))
+    assert seen[0] and seen[-1] and len(edges) == 2, edges  # one gap, every frame before and after it
+    assert points.shape[0] == frames
+    assert_real_frames(points, truth(frames), np.flatnonzero(seen))
+    gap = edges[1] - edges[0]
+    print(f"{victim} restart gap: {gap} frames ({gap / RATE:.2f} s at {RATE} Hz)")
+    assert not workers_of(prefix)
+
+
+def test_a_live_run_that_never_poses_a_frame_fails(tmp_path: Path, free_endpoint: str) -> None:
+    name = f"nosk{free_endpoint.rsplit(':', 1)[1]}"
+    (tmp_path / "g.yaml").write_text(f"""
+name: {name}
+zenoh: {{listen: ["{free_endpoint}"]}}
+nodes:
+  tracker: {{plugin: simulator, config: {{rig: human, rate: {RATE}, frames: {2 * RATE}}}}}
+  skeleton: {{plugin: skeleton, inputs: {{markers: tracker/markers}}}}
+""")
+    run = start(["run", str(tmp_path / "g.yaml"), "--duration", "60", "--summary", str(tmp_path / "s.json")], tmp_path)
+    out, _ = run.communicate(timeout=90)
+    assert run.returncode == 1, out
+    assert f"no skeleton in {2 * RATE} frames: no skeleton model arrived, no pose published" in out
+    assert "failed: skeleton" in out
+    assert orjson.loads((tmp_path / "s.json").read_bytes())["skeleton"]["state"] == "failed"
