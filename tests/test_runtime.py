@@ -156,7 +156,7 @@ def test_node_failing_for_good_makes_the_run_fail(tmp_path: Path, free_endpoint:
     path, prefix = graph(tmp_path, free_endpoint, f", bvh: {tmp_path / 'missing.bvh'}", name="rf")
     run = start(["run", str(path), "--duration", "30"], tmp_path)
     out, _ = run.communicate(timeout=60)
-    assert run.returncode == 1, out
+    assert run.returncode == 2, out  # refused its configuration: exit code 2
     assert "failed: tracker" in out and "missing.bvh" in out
     assert not workers_of(prefix)
 

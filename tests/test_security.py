@@ -200,12 +200,11 @@ nodes:
   tracker: {{plugin: simulator, config: {{rig: human, rate: 240, frames: {frames}}}, machine: cam}}
   recorder: {{plugin: recorder, inputs: {{markers: tracker/markers}}, config: {{path: {folder / 'out.c3d'}}}}}
 """)
-    cli = CLI
     lab = str(folder / "lab.yaml")
     with (folder / "agent.log").open("wb") as out:
-        agent = subprocess.Popen([*cli, "agent", "--name", "cam", "--connect", endpoint, "--security", lab],
+        agent = subprocess.Popen([*CLI, "agent", "--name", "cam", "--connect", endpoint, "--security", lab],
                                  stdout=out, stderr=subprocess.STDOUT)
-    run = subprocess.Popen([*cli, "run", str(folder / "g.yaml"), "--connect", endpoint, "--security", lab],
+    run = subprocess.Popen([*CLI, "run", str(folder / "g.yaml"), "--connect", endpoint, "--security", lab],
                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
         command_lines = []
@@ -250,9 +249,8 @@ def test_the_documented_viewer_role_can_neither_deploy_stop_nor_end_a_stream(sec
     from mocapflow.runtime.worker import WorkerSpec
 
     endpoint, folder = secured
-    cli = CLI
     with (folder / "agent.log").open("wb") as out:
-        agent = subprocess.Popen([*cli, "agent", "--name", "cam", "--connect", endpoint, "--security",
+        agent = subprocess.Popen([*CLI, "agent", "--name", "cam", "--connect", endpoint, "--security",
                                   str(folder / "lab.yaml")], stdout=out, stderr=subprocess.STDOUT)
     chosen = folder / "chosen-by-the-viewer.c3d"
     deployment = Deployment(run="evil", prefix="mocapflow/evil", nodes=[Placement(source=False, spec=WorkerSpec(

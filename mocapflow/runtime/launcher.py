@@ -38,7 +38,7 @@ from mocapflow.runtime.remote import Agents, RemoteNode
 from mocapflow.runtime.security import security_path
 from mocapflow.runtime.session import DEFAULT_ENDPOINT, open_client, open_router
 from mocapflow.runtime.supervisor import Proc, Supervisor
-from mocapflow.runtime.worker import WorkerSpec
+from mocapflow.runtime.worker import EXIT_CONFIG, WorkerSpec
 
 
 def client_endpoints(listen: list[str]) -> list[str]:
@@ -200,6 +200,9 @@ class Launcher:
         remote = {r.name for r in self.remote.values() if r.state == "failed" or (final and r.state == "lost")}
         return [name for name in self.graph.nodes if name in local or name in remote]
 
+    def _exit_code(self, name: str) -> int | None:
+        return self.remote[name].exit_code if name in self.remote else self.procs[name].exit_code
+
     def _tail(self, name: str) -> list[str]:
         return (self.remote[name].log_tail if name in self.remote else self.procs[name].log_tail)[-5:]
 
@@ -255,7 +258,7 @@ class Launcher:
                 tail = self._tail(name)
                 if tail:
                     self.out.write("\n".join(f"  [{name}] {line}" for line in tail) + "\n")
-            return 1
+            return EXIT_CONFIG if all(self._exit_code(name) == EXIT_CONFIG for name in failed) else 1
         self.out.write(f"mocapflow: stopped ({self.stop_reason or 'all nodes finished'})\n")
         return 0
 
