@@ -230,7 +230,7 @@ def test_node_crash_router_restart_and_agent_loss(lab: Lab) -> None:
     last = np.array([f for when, f in watch.frames if when > t]) - data.first_frame
     assert recorded[: RATE // 2].all() and not recorded.all()  # recorded from the start, with gaps during the faults
     assert recorded[last].all()  # and again once the agent was back, as far as the launcher's stop
-    wait_for("every worker of the run to end", lambda: not workers_of(prefix))  # the agents stop theirs too
+    wait_for("every worker of the run to end", lambda: not workers_of(prefix), 60)  # the agents stop theirs too
 
 
 @pytest.mark.integration

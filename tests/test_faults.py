@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 import orjson
 import pytest
+import zenoh
 from test_runtime import RATE, read_c3d, start, wait_for_frames, worker_pid, workers_of
 
 from mocapflow.io.framelog import scan
@@ -70,6 +71,19 @@ def assert_real_frames(points: np.ndarray, expected: np.ndarray, rows: np.ndarra
     np.testing.assert_allclose(points[rows], expected[rows], atol=1e-3, equal_nan=True)
 
 
+def assert_one_restart_gap(recording: Path, frames: int, victim: str, before: int = 1) -> None:
+    """The recording holds every simulated frame, unchanged, but those of one gap (at least ``before`` frames in)
+    while ``victim`` restarted; prints the gap."""
+    points, *_ = read_c3d(recording)
+    seen = ~np.isnan(points[:, 0, 0])
+    edges = np.flatnonzero(np.diff(seen.astype(int)))
+    assert seen[0] and seen[-1] and len(edges) == 2 and edges[0] + 1 >= before, edges
+    assert points.shape[0] == frames
+    assert_real_frames(points, truth(frames), np.flatnonzero(seen))
+    gap = edges[1] - edges[0]
+    print(f"{victim} restart gap: {gap} frames ({gap / RATE:.2f} s at {RATE} Hz)")
+
+
 def test_an_attacker_can_neither_end_nor_corrupt_a_stream(tmp_path: Path, free_endpoint: str) -> None:
     frames = 10 * RATE
     path, prefix = write_graph(tmp_path, free_endpoint, "atk", frames, relay=True)
@@ -77,7 +91,7 @@ def test_an_attacker_can_neither_end_nor_corrupt_a_stream(tmp_path: Path, free_e
     wait_for_frames(free_endpoint, prefix, "recorder", RATE)
     key = f"{prefix}/tracker/markers"
     with open_client([free_endpoint]) as attacker:
-        pub = attacker.declare_publisher(key)
+        pub = attacker.declare_publisher(key, congestion_control=zenoh.CongestionControl.BLOCK)  # none dropped
         pub.delete()  # what ended the whole pipeline
         pub.delete(attachment=b"tracker@0000")  # a DELETE naming the publisher, but not its run
         for frame, n, value in ((10**12, 53, 1.0), (5, 53, 7.0), (RATE * 3, 350_000 // 50, 1.0), (RATE * 3, 53, 1e30),
@@ -128,15 +142,8 @@ def test_a_killed_recorder_keeps_what_it_had_and_appends(tmp_path: Path, free_en
     assert run.returncode == 0, out
     assert "[recorder] stopped (exit code -9); restart 1" in out and "resuming" in out
     assert not part.exists()
-    points, *_ = read_c3d(tmp_path / "out.c3d")
-    seen = ~np.isnan(points[:, 0, 0])
-    edges = np.flatnonzero(np.diff(seen.astype(int)))
     # frames before the kill kept, then one gap while the recorder restarted, then every frame to the end
-    assert seen[0] and seen[-1] and len(edges) == 2 and edges[0] + 1 >= 2 * RATE, edges
-    assert points.shape[0] == frames
-    assert_real_frames(points, truth(frames), np.flatnonzero(seen))
-    gap = edges[1] - edges[0]
-    print(f"recorder restart gap: {gap} frames ({gap / RATE:.2f} s at {RATE} Hz)")
+    assert_one_restart_gap(tmp_path / "out.c3d", frames, "recorder", before=2 * RATE)
     assert not workers_of(prefix)
 
 
@@ -346,14 +353,7 @@ def test_a_killed_stage_loses_only_its_restart_gap(tmp_path: Path, free_endpoint
     out, _ = run.communicate(timeout=120)
     assert run.returncode == 0, out
     assert f"[{victim}] stopped (exit code -9); restart 1" in out
-    points, *_ = read_c3d(tmp_path / "out.c3d")
-    seen = ~np.isnan(points[:, 0, 0])
-    edges = np.flatnonzero(np.diff(seen.astype(int)))
-    assert seen[0] and seen[-1] and len(edges) == 2, edges  # one gap, every frame before and after it
-    assert points.shape[0] == frames
-    assert_real_frames(points, truth(frames), np.flatnonzero(seen))
-    gap = edges[1] - edges[0]
-    print(f"{victim} restart gap: {gap} frames ({gap / RATE:.2f} s at {RATE} Hz)")
+    assert_one_restart_gap(tmp_path / "out.c3d", frames, victim)
     assert not workers_of(prefix)
 
 
