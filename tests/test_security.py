@@ -244,8 +244,8 @@ nodes:
 def test_the_documented_viewer_role_can_neither_deploy_stop_nor_end_a_stream(secured: tuple[str, Path]) -> None:
     """The read-only role of the documented rules, against a live agent: a deployment of a recorder writing a file
     of the viewer's choosing is never delivered, nor is a stop, nor an end of stream; the lab user reaches both."""
-    from mocapflow.runtime.protocol import Deployment, Placement
     from mocapflow.runtime.keys import deploy_key, stop_key
+    from mocapflow.runtime.protocol import Deployment, Placement
     from mocapflow.runtime.worker import WorkerSpec
 
     endpoint, folder = secured
