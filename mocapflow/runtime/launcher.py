@@ -258,7 +258,7 @@ class Launcher:
                 tail = self._tail(name)
                 if tail:
                     self.out.write("\n".join(f"  [{name}] {line}" for line in tail) + "\n")
-            return EXIT_CONFIG if all(self._exit_code(name) == EXIT_CONFIG for name in failed) else 1
+            return EXIT_CONFIG if any(self._exit_code(name) == EXIT_CONFIG for name in failed) else 1
         self.out.write(f"mocapflow: stopped ({self.stop_reason or 'all nodes finished'})\n")
         return 0
 
