@@ -224,8 +224,8 @@ def test_view_attaches_to_a_running_graph_and_replays_its_recording(tmp_path: Pa
     held = {decode(r.payload, MarkerFrame).frame for r in read_recording(tmp_path / "run.mcap")
             if not r.delete and r.key == f"{prefix}/filler/markers"}
     assert replay_frames == held and held >= set(range(recorded.n_frames - 4)), sorted(set(range(960)) - held)
-    live_rate_frames = set(range(recorded.n_frames))
-    assert live_frames < live_rate_frames and max(live_frames) == recorded.n_frames - 1  # live: 30 Hz, last shown
+    all_frames = set(range(recorded.n_frames))
+    assert live_frames < all_frames and max(live_frames) == recorded.n_frames - 1  # live: 30 Hz, last shown
     # every marker stream the recording holds (tracker, labeller, filler, predictions) is drawn, every message of it
     recorded_frames = sum(1 for r in read_recording(tmp_path / "run.mcap")
                           if not r.delete and r.encoding.endswith("/MarkerFrame"))

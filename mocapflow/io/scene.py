@@ -230,7 +230,10 @@ def open_stream(name: str, *, spawn: bool = False, connect: str | None = None, s
     server on ``grpc_port`` with the web viewer on ``web_port``, an .rrd file. ``memory_limit`` bounds the spawned
     viewer and the server: beyond it the oldest data is dropped, so a session of hours runs in bounded memory.
     ``health``: lay out node latency and rate beside the scene."""
-    import rerun as rr
+    try:
+        import rerun as rr
+    except ImportError:
+        raise RuntimeError("Rerun is not installed: pip install 'mocapflow[viewer]'") from None
 
     if not (spawn or connect or serve or save):
         raise ValueError("nowhere to show the scene: choose spawn, connect, serve or save")
