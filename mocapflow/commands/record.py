@@ -5,12 +5,12 @@ from __future__ import annotations
 import argparse
 import itertools
 import queue
-import signal
 import threading
 import time
 
 from mocapflow.commands import timeout_option
 from mocapflow.runtime.session import DEFAULT_ENDPOINT
+from mocapflow.runtime.signals import stop_on_signals
 
 MIN_SPEED, MAX_SPEED = 1e-3, 1e3
 
@@ -42,32 +42,31 @@ def _record(args: argparse.Namespace) -> int:
 
     inbox: queue.Queue[RecordedSample] = queue.Queue()
     stop = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
 
     def on_sample(sample: zenoh.Sample) -> None:
         inbox.put(RecordedSample(key=str(sample.key_expr), encoding=str(sample.encoding),
                                  payload=sample.payload.to_bytes(), log_time_ns=time.time_ns(),
                                  delete=sample.kind == zenoh.SampleKind.DELETE))
 
-    deadline = None if args.duration is None else time.monotonic() + args.duration
-    with open_client(args.connect, timeout=args.timeout) as session, RecordingWriter(args.output) as writer:
-        subs = [subscribe_with_cache(session, key, on_sample) for key in args.keys]  # models too, as nodes get them
-        print(f"recording {', '.join(args.keys)} to {args.output} (Ctrl-C to stop)", flush=True)
-        flushed = time.monotonic()
-        while not stop.is_set() and (deadline is None or time.monotonic() < deadline):
-            try:
-                writer.write(inbox.get(timeout=0.1))
-            except queue.Empty:
-                pass
-            if time.monotonic() - flushed > 0.5:  # a killed recorder keeps all but the last half second
-                writer.flush()
-                flushed = time.monotonic()
-        for s in subs:
-            s.undeclare()
-        while not inbox.empty():
-            writer.write(inbox.get_nowait())
-        print(f"recorded {writer.count} samples to {args.output}", flush=True)
+    with stop_on_signals(stop):
+        deadline = None if args.duration is None else time.monotonic() + args.duration
+        with open_client(args.connect, timeout=args.timeout) as session, RecordingWriter(args.output) as writer:
+            subs = [subscribe_with_cache(session, key, on_sample) for key in args.keys]  # models too, as nodes get them
+            print(f"recording {', '.join(args.keys)} to {args.output} (Ctrl-C to stop)", flush=True)
+            flushed = time.monotonic()
+            while not stop.is_set() and (deadline is None or time.monotonic() < deadline):
+                try:
+                    writer.write(inbox.get(timeout=0.1))
+                except queue.Empty:
+                    pass
+                if time.monotonic() - flushed > 0.5:  # a killed recorder keeps all but the last half second
+                    writer.flush()
+                    flushed = time.monotonic()
+            for s in subs:
+                s.undeclare()
+            while not inbox.empty():
+                writer.write(inbox.get_nowait())
+            print(f"recorded {writer.count} samples to {args.output}", flush=True)
     return 0
 
 
@@ -87,29 +86,28 @@ def _replay(args: argparse.Namespace) -> int:
         print(f"{args.recording}: empty recording")
         return 0
     stop = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
-    count = 0
-    late_ms: list[float] = []
-    with open_client(args.connect, timeout=args.timeout) as session:
-        publishers: dict[tuple[str, str], zenoh.Publisher] = {}
-        t0 = time.monotonic()
-        for sample in itertools.chain([first], samples):
-            due = t0 + (sample.log_time_ns - first.log_time_ns) / 1e9 / args.speed
-            while (delay := due - time.monotonic()) > 0 and not stop.is_set():
-                time.sleep(delay if delay > 0.002 else 0)  # sleep coarsely, then spin for the last 2 ms
-            if stop.is_set():
-                break
-            ident = (sample.key, sample.encoding)
-            if ident not in publishers:
-                publishers[ident] = session.declare_publisher(sample.key, encoding=zenoh.Encoding(sample.encoding),
-                                                              congestion_control=zenoh.CongestionControl.BLOCK)
-            if sample.delete:
-                publishers[ident].delete()
-            else:
-                publishers[ident].put(sample.payload)
-            late_ms.append((time.monotonic() - due) * 1e3)
-            count += 1
+    with stop_on_signals(stop):
+        count = 0
+        late_ms: list[float] = []
+        with open_client(args.connect, timeout=args.timeout) as session:
+            publishers: dict[tuple[str, str], zenoh.Publisher] = {}
+            t0 = time.monotonic()
+            for sample in itertools.chain([first], samples):
+                due = t0 + (sample.log_time_ns - first.log_time_ns) / 1e9 / args.speed
+                while (delay := due - time.monotonic()) > 0 and not stop.is_set():
+                    time.sleep(delay if delay > 0.002 else 0)  # sleep coarsely, then spin for the last 2 ms
+                if stop.is_set():
+                    break
+                ident = (sample.key, sample.encoding)
+                if ident not in publishers:
+                    publishers[ident] = session.declare_publisher(sample.key, encoding=zenoh.Encoding(sample.encoding),
+                                                                  congestion_control=zenoh.CongestionControl.BLOCK)
+                if sample.delete:
+                    publishers[ident].delete()
+                else:
+                    publishers[ident].put(sample.payload)
+                late_ms.append((time.monotonic() - due) * 1e3)
+                count += 1
     p50, p95 = np.percentile(late_ms, [50, 95]) if late_ms else (0.0, 0.0)
     print(f"replayed {count} samples from {args.recording}; sent after their due time by p50 {p50:.3f} ms,"
           f" p95 {p95:.3f} ms, max {max(late_ms, default=0):.3f} ms")

@@ -7,9 +7,10 @@ and says loudly when it is told to listen on another address with no authenticat
 from __future__ import annotations
 
 import argparse
-import signal
 import sys
 import threading
+
+from mocapflow.runtime.signals import stop_on_signals
 
 PORT = 7447
 
@@ -46,14 +47,12 @@ def run(args: argparse.Namespace) -> int:
               "every agent. Give the router users and access rules with --config (docs/lab-deployment.md).",
               file=sys.stderr, flush=True)
     stop = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
 
     def on_transport(event: zenoh.TransportEvent) -> None:
         what = "joined" if event.kind == zenoh.SampleKind.PUT else "left"
         print(f"mocapflow router: {event.transport.whatami} {event.transport.zid} {what}", flush=True)
 
-    with open_router(listen, args.config) as session:
+    with stop_on_signals(stop), open_router(listen, args.config) as session:
         security = "no security settings" if chosen is None else ", ".join([
             "TLS" if chosen.tls_listener else "no TLS",
             f"{len(chosen.accepted_users())} user(s)" if chosen.accepted_users() else "no authentication",

@@ -12,7 +12,6 @@ import argparse
 import itertools
 import os
 import queue
-import signal
 import threading
 import time
 from collections.abc import Callable
@@ -22,6 +21,7 @@ from typing import TYPE_CHECKING, Any
 
 from mocapflow.io.scene import UP_AXES
 from mocapflow.runtime.session import DEFAULT_ENDPOINT
+from mocapflow.runtime.signals import stop_on_signals
 
 if TYPE_CHECKING:
     from mocapflow.io.markers import MarkerData
@@ -93,12 +93,11 @@ def _view(args: argparse.Namespace) -> int:
                              health=suffix not in (".c3d", ".trc"))
     except (RuntimeError, OSError) as exc:
         raise MocapflowError(f"cannot open the viewer: {exc}") from None
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
-    count = draw(Scene(stream, up=up))
-    if args.serve and suffix in RECORDINGS:
-        print(f"serving on http://127.0.0.1:{args.web_port} (Ctrl-C to stop)", flush=True)
-        stop.wait()
+    with stop_on_signals(stop):
+        count = draw(Scene(stream, up=up))
+        if args.serve and suffix in RECORDINGS:
+            print(f"serving on http://127.0.0.1:{args.web_port} (Ctrl-C to stop)", flush=True)
+            stop.wait()
     problem = close_stream(stream)
     if problem:
         raise MocapflowError(f"the viewer did not receive the scene: {problem}")

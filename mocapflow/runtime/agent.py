@@ -45,6 +45,7 @@ from mocapflow.runtime.keys import (
 from mocapflow.runtime.plugins import PluginNotFound, load
 from mocapflow.runtime.protocol import Deployment, ProcStatus, keep_clock_origin
 from mocapflow.runtime.session import open_client
+from mocapflow.runtime.signals import stop_on_signals
 from mocapflow.runtime.supervisor import Proc, Supervisor
 
 STATUS_PERIOD_S = 1.0
@@ -247,7 +248,6 @@ def run_agent(name: str, connect: list[str], security: Path | None = None, timeo
     signal.signal(signal.SIGINT, signal.SIG_DFL)  # until the router answers, Ctrl-C simply ends the agent
     agent = Agent(name, connect, security, timeout=timeout)
     stop = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
-    agent.serve(stop)
+    with stop_on_signals(stop):
+        agent.serve(stop)
     return 0

@@ -37,6 +37,7 @@ from mocapflow.runtime.protocol import (
 from mocapflow.runtime.remote import Agents, RemoteNode
 from mocapflow.runtime.security import security_path
 from mocapflow.runtime.session import DEFAULT_ENDPOINT, open_client, open_router
+from mocapflow.runtime.signals import stop_on_signals
 from mocapflow.runtime.supervisor import Proc, Supervisor
 from mocapflow.runtime.worker import EXIT_CONFIG, WorkerSpec
 
@@ -212,15 +213,14 @@ class Launcher:
                    else open_client(self.connect, self.security, self.timeout))
         stop = threading.Event()
 
-        def request_stop(signum: int, _frame: object) -> None:
-            self.stop_reason = self.stop_reason or signal.Signals(signum).name
-            stop.set()
+        def stop_reason(signum: signal.Signals) -> None:
+            self.stop_reason = self.stop_reason or signum.name
 
-        old = {s: signal.signal(s, request_stop) for s in (signal.SIGINT, signal.SIGTERM)}
         agents = Agents(session, self.prefix, self.remote, self.lines, self.agent_timeout) if self.remote else None
         try:
             refuse_prefix_in_use(session, self.prefix)
-            with session.liveliness().declare_token(keys.launcher_key(self.prefix, self.run_id)), \
+            with stop_on_signals(stop, on_signal=stop_reason), \
+                    session.liveliness().declare_token(keys.launcher_key(self.prefix, self.run_id)), \
                     session.declare_subscriber(keys.stats_key(self.prefix), self._on_stats), \
                     serve_schemas(session, self.prefix), agents or nullcontext():
                 where = ", ".join(self.connect) if self.connect else f"embedded router on {', '.join(self.listen)}"
@@ -245,8 +245,6 @@ class Launcher:
                 self._clear_table()
                 self.out.write(self.table() + "\n")
         finally:
-            for s, handler in old.items():
-                signal.signal(s, handler)
             session.close()
         if self.summary is not None:
             self.summary.parent.mkdir(parents=True, exist_ok=True)

@@ -39,6 +39,7 @@ from mocapflow.runtime.node import RUN_ENV, Node
 from mocapflow.runtime.plugins import PluginNotFound, load
 from mocapflow.runtime.security import SecurityError
 from mocapflow.runtime.session import open_client
+from mocapflow.runtime.signals import stop_on_signals
 
 EXIT_CONFIG = 2
 EXIT_FINISH = 3
@@ -381,8 +382,11 @@ def run_worker(spec: WorkerSpec) -> int:
         except Exception as exc:  # e.g. a file that cannot be opened: a configuration problem, not a crash
             log.error("node %s could not start: %s", spec.node, exc)
             return EXIT_CONFIG
-        signal.signal(signal.SIGTERM, lambda *_: worker.stop_event.set())
-        worker.run()
+        # From here on a stop request ends the node in order, and once it is done none turns it into one killed by a
+        # signal (the interpreter's shutdown included): the handler's predecessor is SIG_IGN.
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)
+        with stop_on_signals(worker.stop_event, (signal.SIGTERM,)):
+            worker.run()
         return 0 if worker.finished_ok else EXIT_FINISH
     finally:
         session.close()
@@ -400,11 +404,7 @@ def main(argv: list[str] | None = None) -> int:
     # The launcher decides when nodes stop; Ctrl-C in the terminal reaches it, not each node.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     _die_with_parent()
-    code = run_worker(spec)
-    # Past this point the node is done; a stop request arriving while the interpreter shuts down (which restores
-    # the default SIGTERM action) must not turn a finished node into one killed by a signal.
-    signal.signal(signal.SIGTERM, signal.SIG_IGN)
-    return code
+    return run_worker(spec)
 
 
 if __name__ == "__main__":
