@@ -372,3 +372,33 @@ nodes:
     assert f"no skeleton in {2 * RATE} frames: no skeleton model arrived, no pose published" in out
     assert "failed: skeleton" in out
     assert orjson.loads((tmp_path / "s.json").read_bytes())["skeleton"]["state"] == "failed"
+
+
+def test_killed_model_stages_cost_no_frame_and_a_killed_filler_one_gap(tmp_path: Path, free_endpoint: str) -> None:
+    """The clusterer and the joint estimator only refresh models: killing them loses no frame of the filled stream.
+    Killing the filler loses the frames of its own restart gap, and nothing else."""
+    frames = 10 * RATE
+    name = f"mdl{free_endpoint.rsplit(':', 1)[1]}"
+    prefix = f"mocapflow/{name}"
+    path = tmp_path / "g.yaml"
+    path.write_text(f"""
+name: {name}
+zenoh: {{listen: ["{free_endpoint}"]}}
+nodes:
+  tracker: {{plugin: simulator, config: {{rig: human, rate: {RATE}, seed: 3, frames: {frames}}}}}
+  clusterer: {{plugin: clusterer-spectral, inputs: {{markers: tracker/markers}}}}
+  joints: {{plugin: joints-closed-form, inputs: {{markers: tracker/markers, segments: clusterer/segments}}}}
+  filler: {{plugin: occlusion-filler, inputs: {{markers: tracker/markers, skeleton: joints/skeleton}}}}
+  recorder: {{plugin: recorder, inputs: {{markers: filler/markers}}, config: {{path: {tmp_path / 'out.c3d'}}}}}
+""")
+    run = start(["run", str(path), "--duration", "90"], tmp_path)
+    for victim, at in (("clusterer", 2), ("joints", 3), ("filler", 4)):
+        wait_for_frames(free_endpoint, prefix, "recorder", at * RATE)
+        os.kill(worker_pid(prefix, victim), signal.SIGKILL)
+    out, _ = run.communicate(timeout=120)
+    assert run.returncode == 0, out
+    for victim in ("clusterer", "joints", "filler"):
+        assert f"[{victim}] stopped (exit code -9); restart 1" in out, out
+    # The tracker's frames are complete (no dropout): the filler passes them through unchanged.
+    assert_one_restart_gap(tmp_path / "out.c3d", frames, "filler", before=4 * RATE)
+    assert not workers_of(prefix)
