@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import tempfile
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TypeVar
 
@@ -72,11 +73,18 @@ def refuse_absurd(data: MarkerData, path: str | Path) -> None:
 
 
 def distinct_output(output: str | Path, *inputs: str | Path) -> Path:
-    """The output path, refused when it is one of the inputs (a command never overwrites what it reads)."""
+    """The output path, refused before any work is done when it is one of the inputs (a command never overwrites what
+    it reads) or when its folder cannot be made or written; the folder exists on return."""
     out = Path(output)
     for source in inputs:
         if source and out.resolve() == Path(source).resolve():
             raise MocapflowError(f"{out}: the output would overwrite an input; choose another path")
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryFile(dir=out.parent):
+            pass
+    except OSError as exc:
+        raise MocapflowError(f"{out}: cannot write there ({exc.strerror or exc})") from None
     return out
 
 

@@ -79,7 +79,6 @@ def run(args: argparse.Namespace) -> int:
     skeleton = calibrate(data.positions, data.labels, data.rate, segments=args.segments, method=args.method,
                          joint_method=args.joints, name=args.name or Path(args.inputs[0]).stem, progress=Reporter())
     elapsed = time.perf_counter() - start
-    out.parent.mkdir(parents=True, exist_ok=True)
     write_skeleton(out, skeleton)
     print(summary(skeleton))
     trials = f" of {len(args.inputs)} trials" if len(args.inputs) > 1 else ""

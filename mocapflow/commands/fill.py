@@ -76,7 +76,6 @@ def run(args: argparse.Namespace) -> int:
     extra = dict(data.extra)
     for name, track in centres.items():
         extra[name if name not in data.labels else f"joint_{name}"] = track
-    out.parent.mkdir(parents=True, exist_ok=True)
     write_markers(out, MarkerData(positions=positions, labels=data.labels, rate=data.rate,
                                   first_frame=data.first_frame, flags=flags, extra=extra))
     counts = np.bincount(flags.ravel(), minlength=len(FillCase))

@@ -44,6 +44,7 @@ def run(args: argparse.Namespace) -> int:
     from mocapflow.progress import progress
 
     config = _config(args)
+    out = distinct_output(args.output, args.input)
     data = read_chosen(args.input, args)
     points = data.positions
     if not np.isfinite(points).all(axis=2).any():
@@ -51,8 +52,6 @@ def run(args: argparse.Namespace) -> int:
     tracks, labels = label_sequence(progress(points, len(points), "label"), data.rate, config)
     if not labels:
         raise MocapflowError(f"{args.input}: no point lived long enough to be a marker (see --confirm)")
-    out = distinct_output(args.output, args.input)
-    out.parent.mkdir(parents=True, exist_ok=True)
     write_markers(out, MarkerData(positions=tracks, labels=labels, rate=data.rate, first_frame=data.first_frame))
     given = int(np.isfinite(points).all(axis=2).sum())
     kept = int(np.isfinite(tracks).all(axis=2).sum())

@@ -8,7 +8,7 @@ from typing import Any
 
 import numpy as np
 
-from mocapflow.commands import settings
+from mocapflow.commands import distinct_output, settings
 from mocapflow.errors import MocapflowError
 
 
@@ -41,12 +41,11 @@ def run(args: argparse.Namespace) -> int:
     config = settings(SimulatorConfig, args.overrides)
     if not 1 <= args.frames <= MAX_FRAMES:
         raise MocapflowError(f"--frames {args.frames}: must be between 1 and {MAX_FRAMES:,}")
+    out = distinct_output(args.output, config.bvh or "")
     try:
         rec = simulate(config, args.frames, read_bvh(config.bvh) if config.bvh else None, progress=Reporter())
     except MotionError as exc:
         raise MocapFileError(f"{config.bvh}: {exc}") from None
-    out = Path(args.output)
-    out.parent.mkdir(parents=True, exist_ok=True)
     truth: dict[str, Any] = {
         "labels": np.array(rec.labels), "true_positions": rec.true_positions, "visible": rec.visible,
         "joint_names": np.array(rec.joint_names), "joint_centres": rec.joint_centres,

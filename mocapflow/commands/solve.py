@@ -53,7 +53,6 @@ def run(args: argparse.Namespace) -> int:
         pose = solve(skeleton, data.positions, data.labels, progress=Reporter())
     except ValueError as exc:
         raise MocapflowError(f"{args.skeleton}: {exc}") from None
-    out.parent.mkdir(parents=True, exist_ok=True)
     if out.suffix.lower() == ".json":
         document = {
             "skeleton": skeleton.name, "rate": data.rate, "first_frame": data.first_frame, "units": "mm",
