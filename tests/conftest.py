@@ -22,6 +22,15 @@ def run_cli(*args: str | Path, timeout: float = 120) -> subprocess.CompletedProc
     return subprocess.run([*CLI, *map(str, args)], capture_output=True, text=True, timeout=timeout, check=False)
 
 
+def graph_file(folder: Path, stem: str, endpoint: str, nodes: str) -> tuple[Path, str]:
+    """The graph file ``folder/stem.yaml`` of the YAML ``nodes`` (its lines under ``nodes:``), run with an embedded
+    router on ``endpoint``; its name, and so its key prefix, is unique to the test. Returns the path and the prefix."""
+    name = f"{stem}{endpoint.rsplit(':', 1)[1]}"
+    path = folder / f"{stem}.yaml"
+    path.write_text(f'name: {name}\nzenoh: {{listen: ["{endpoint}"]}}\nnodes:\n{nodes.strip(chr(10))}\n')
+    return path, f"mocapflow/{name}"
+
+
 def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))

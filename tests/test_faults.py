@@ -15,6 +15,7 @@ import numpy as np
 import orjson
 import pytest
 import zenoh
+from conftest import graph_file
 from test_runtime import RATE, read_c3d, start, wait_for_frames, worker_pid, workers_of
 
 from mocapflow.io.framelog import scan
@@ -47,18 +48,12 @@ class Glitchy(SimulatorNode):
 
 def write_graph(tmp_path: Path, endpoint: str, name: str, frames: int, plugin: str = "simulator",
                 relay: bool = False) -> tuple[Path, str]:
-    name = f"{name}{endpoint.rsplit(':', 1)[1]}"
     source = "relay" if relay else "tracker"
-    path = tmp_path / f"{name}.yaml"
-    path.write_text(f"""
-name: {name}
-zenoh: {{listen: ["{endpoint}"]}}
-nodes:
+    return graph_file(tmp_path, name, endpoint, f"""
   tracker: {{plugin: "{plugin}", config: {{rig: human, rate: {RATE}, seed: 3, frames: {frames}}}}}
 {"  relay: {plugin: relay, inputs: {markers: tracker/markers}}" if relay else ""}
   recorder: {{plugin: recorder, inputs: {{markers: {source}/markers}}, config: {{path: {tmp_path / 'out.c3d'}}}}}
 """)
-    return path, f"mocapflow/{name}"
 
 
 def truth(frames: int) -> np.ndarray:
@@ -203,13 +198,7 @@ def test_replay_reads_what_a_killed_record_left(tmp_path: Path, free_endpoint: s
 
 def test_a_restarted_labeller_keeps_every_identity(tmp_path: Path, free_endpoint: str) -> None:
     frames = 12 * RATE
-    name = f"lab{free_endpoint.rsplit(':', 1)[1]}"
-    prefix = f"mocapflow/{name}"
-    path = tmp_path / "g.yaml"
-    path.write_text(f"""
-name: {name}
-zenoh: {{listen: ["{free_endpoint}"]}}
-nodes:
+    path, prefix = graph_file(tmp_path, "lab", free_endpoint, f"""
   tracker: {{plugin: simulator, config: {{rig: human, rate: {RATE}, seed: 3, frames: {frames}, unlabelled: true}}}}
   labeller: {{plugin: labeller, inputs: {{markers: tracker/markers}}}}
   recorder: {{plugin: recorder, inputs: {{markers: labeller/markers}}, config: {{path: {tmp_path / 'out.c3d'}}}}}
@@ -257,17 +246,12 @@ def test_record_and_echo_receive_the_cached_models(tmp_path: Path, free_endpoint
     sim = Simulator(SimulatorConfig(rig="rods", rate=RATE, seed=3))
     reference = simulate(SimulatorConfig(rig="rods", rate=RATE, seed=3, noise_mm=0.0), 1).true_positions[0]
     (tmp_path / "rods.json").write_text(truth_skeleton(sim.rig, reference).model_dump_json())
-    name = f"mod{free_endpoint.rsplit(':', 1)[1]}"
-    prefix = f"mocapflow/{name}"
-    (tmp_path / "g.yaml").write_text(f"""
-name: {name}
-zenoh: {{listen: ["{free_endpoint}"]}}
-nodes:
+    path, prefix = graph_file(tmp_path, "mod", free_endpoint, f"""
   tracker: {{plugin: simulator, config: {{rig: rods, rate: {RATE}, seed: 3}}}}
   joints: {{plugin: joints-closed-form, inputs: {{markers: tracker/markers}},
             config: {{skeleton: {tmp_path / 'rods.json'}, refine: false}}}}
 """)
-    run = start(["run", str(tmp_path / "g.yaml"), "--duration", "60"], tmp_path)
+    run = start(["run", str(path), "--duration", "60"], tmp_path)
     cli = [sys.executable, "-m", "mocapflow.cli"]
     try:
         wait_for_frames(free_endpoint, prefix, "joints", 2 * RATE)  # the skeleton was published long before
@@ -358,15 +342,11 @@ def test_a_killed_stage_loses_only_its_restart_gap(tmp_path: Path, free_endpoint
 
 
 def test_a_live_run_that_never_poses_a_frame_fails(tmp_path: Path, free_endpoint: str) -> None:
-    name = f"nosk{free_endpoint.rsplit(':', 1)[1]}"
-    (tmp_path / "g.yaml").write_text(f"""
-name: {name}
-zenoh: {{listen: ["{free_endpoint}"]}}
-nodes:
+    path, _ = graph_file(tmp_path, "nosk", free_endpoint, f"""
   tracker: {{plugin: simulator, config: {{rig: human, rate: {RATE}, frames: {2 * RATE}}}}}
   skeleton: {{plugin: skeleton, inputs: {{markers: tracker/markers}}}}
 """)
-    run = start(["run", str(tmp_path / "g.yaml"), "--duration", "60", "--summary", str(tmp_path / "s.json")], tmp_path)
+    run = start(["run", str(path), "--duration", "60", "--summary", str(tmp_path / "s.json")], tmp_path)
     out, _ = run.communicate(timeout=90)
     assert run.returncode == 1, out
     assert f"no skeleton in {2 * RATE} frames: no skeleton model arrived, no pose published" in out
@@ -378,13 +358,7 @@ def test_killed_model_stages_cost_no_frame_and_a_killed_filler_one_gap(tmp_path:
     """The clusterer and the joint estimator only refresh models: killing them loses no frame of the filled stream.
     Killing the filler loses the frames of its own restart gap, and nothing else."""
     frames = 10 * RATE
-    name = f"mdl{free_endpoint.rsplit(':', 1)[1]}"
-    prefix = f"mocapflow/{name}"
-    path = tmp_path / "g.yaml"
-    path.write_text(f"""
-name: {name}
-zenoh: {{listen: ["{free_endpoint}"]}}
-nodes:
+    path, prefix = graph_file(tmp_path, "mdl", free_endpoint, f"""
   tracker: {{plugin: simulator, config: {{rig: human, rate: {RATE}, seed: 3, frames: {frames}}}}}
   clusterer: {{plugin: clusterer-spectral, inputs: {{markers: tracker/markers}}}}
   joints: {{plugin: joints-closed-form, inputs: {{markers: tracker/markers, segments: clusterer/segments}}}}

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import CLI
+from conftest import CLI, graph_file
 
 from mocapflow.errors import MocapFileError
 from mocapflow.io.recording import RecordedSample, RecordingWriter, read_recording
@@ -26,17 +26,12 @@ def wait_for_line(proc: subprocess.Popen[str], text: str) -> None:
 
 
 def test_replay_reproduces_a_live_run(tmp_path: Path, free_endpoint: str) -> None:
-    name = f"rec{free_endpoint.rsplit(':', 1)[1]}"
-    graph = tmp_path / "g.yaml"
-    graph.write_text(f"""
-name: {name}
-zenoh: {{listen: ["{free_endpoint}"]}}
-nodes:
-  tracker: {{plugin: simulator, config: {{rig: rods, rate: 240, frames: 720, dropout_rate: 2}}}}
-  relay: {{plugin: relay, inputs: {{markers: tracker/markers}}}}
+    graph, prefix = graph_file(tmp_path, "rec", free_endpoint, """
+  tracker: {plugin: simulator, config: {rig: rods, rate: 240, frames: 720, dropout_rate: 2}}
+  relay: {plugin: relay, inputs: {markers: tracker/markers}}
 """)
     live = tmp_path / "live.mcap"
-    rec = subprocess.Popen([*CLI, "record", f"mocapflow/{name}/*/markers", "-o", str(live), "--connect",
+    rec = subprocess.Popen([*CLI, "record", f"{prefix}/*/markers", "-o", str(live), "--connect",
                             free_endpoint, "--duration", "60"], stdout=subprocess.PIPE, text=True)
     run = subprocess.Popen([*CLI, "run", str(graph)], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     wait_for_line(rec, "recording")
@@ -51,7 +46,7 @@ nodes:
     # replay into a fresh router while recording again
     with open_router([free_endpoint]):
         again = tmp_path / "again.mcap"
-        rec2 = subprocess.Popen([*CLI, "record", f"mocapflow/{name}/**", "-o", str(again), "--connect",
+        rec2 = subprocess.Popen([*CLI, "record", f"{prefix}/**", "-o", str(again), "--connect",
                                  free_endpoint], stdout=subprocess.PIPE, text=True)
         wait_for_line(rec2, "recording")
         time.sleep(0.5)

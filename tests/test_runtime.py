@@ -14,7 +14,7 @@ import numpy as np
 import orjson
 import pytest
 import zenoh
-from conftest import CLI
+from conftest import CLI, graph_file
 
 from mocapflow.mocap.simulator import Simulator, SimulatorConfig
 from mocapflow.runtime.session import open_client
@@ -26,16 +26,10 @@ RATE = 240
 
 def graph(tmp_path: Path, endpoint: str, extra_tracker: str = "", name: str = "rt") -> tuple[Path, str]:
     """A simulator -> recorder graph; its name (and key prefix) is unique to this test run."""
-    name = f"{name}{endpoint.rsplit(':', 1)[1]}"
-    path = tmp_path / f"{name}.yaml"
-    path.write_text(f"""
-name: {name}
-zenoh: {{listen: ["{endpoint}"]}}
-nodes:
+    return graph_file(tmp_path, name, endpoint, f"""
   tracker: {{plugin: simulator, config: {{rig: human, rate: {RATE}, seed: 3{extra_tracker}}}}}
   recorder: {{plugin: recorder, inputs: {{markers: tracker/markers}}, config: {{path: {tmp_path / 'out.c3d'}}}}}
 """)
-    return path, f"mocapflow/{name}"
 
 
 def start(args: list[str], cwd: Path) -> subprocess.Popen[str]:
@@ -210,13 +204,7 @@ def test_model_reaches_a_node_that_starts_late(tmp_path: Path, free_endpoint: st
     reference = simulate(SimulatorConfig(rig="rods", rate=RATE, seed=3, noise_mm=0.0), 1).true_positions[0]
     skeleton_file = tmp_path / "rods.json"
     skeleton_file.write_text(truth_skeleton(sim.rig, reference).model_dump_json())
-    name = f"late{free_endpoint.rsplit(':', 1)[1]}"
-    prefix = f"mocapflow/{name}"
-    path = tmp_path / "late.yaml"
-    path.write_text(f"""
-name: {name}
-zenoh: {{listen: ["{free_endpoint}"]}}
-nodes:
+    path, prefix = graph_file(tmp_path, "late", free_endpoint, f"""
   tracker: {{plugin: simulator, config: {{rig: rods, rate: {RATE}, seed: 3, frames: {8 * RATE}}}}}
   joints: {{plugin: joints-closed-form, inputs: {{markers: tracker/markers}},
             config: {{skeleton: {skeleton_file}, refine: false}}}}
