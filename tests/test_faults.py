@@ -376,3 +376,15 @@ def test_killed_model_stages_cost_no_frame_and_a_killed_filler_one_gap(tmp_path:
     # The tracker's frames are complete (no dropout): the filler passes them through unchanged.
     assert_one_restart_gap(tmp_path / "out.c3d", frames, "filler", before=4 * RATE)
     assert not workers_of(prefix)
+
+
+def test_a_recorder_path_under_a_file_fails_the_run_at_start_in_one_line(tmp_path: Path, free_endpoint: str) -> None:
+    (tmp_path / "afile").write_text("")
+    path, _ = graph_file(tmp_path, "under", free_endpoint, f"""
+  tracker: {{plugin: simulator, config: {{rig: rods, rate: {RATE}}}}}
+  recorder: {{plugin: recorder, inputs: {{markers: tracker/markers}}, config: {{path: afile/out.c3d}}}}
+""")
+    out, _ = start(["run", str(path), "--duration", "60"], tmp_path).communicate(timeout=90)
+    assert "[recorder] ERROR node recorder could not start: afile/out.c3d.part: cannot record there: afile is a " \
+           "file, not a folder" in out, out
+    assert "failed: recorder\n" in out and "tracker       simulator           finished" in out, out

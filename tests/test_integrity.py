@@ -159,6 +159,12 @@ def test_commands_refuse_absurd_data(tmp_path: Path) -> None:
     write_markers(tmp_path / "spike.c3d", MarkerData(positions=positions, labels=list("ABCD"), rate=100))
     write_markers(tmp_path / "fast.trc", MarkerData(positions=positions[:, :, :] * 0 + 1, labels=list("ABCD"),
                                                     rate=1e6))
+    write_markers(tmp_path / "wide.c3d", MarkerData(positions=np.zeros((5, 600, 3)),
+                                                    labels=[f"M{i}" for i in range(600)], rate=100))
+    done = subprocess.run([sys.executable, "-m", "mocapflow.cli", "calibrate", "wide.c3d", "-o", "out.json"],
+                          cwd=tmp_path, capture_output=True, text=True, timeout=60)
+    assert done.returncode == 2 and len(done.stderr.splitlines()) == 1, done.stderr
+    assert "600 markers: calibrate takes at most 500" in done.stderr
     for name, message in (("spike.c3d", "1 samples beyond 100 m from the origin (first: C at frame"),
                           ("fast.trc", "a rate of 1e+06 Hz is beyond any tracker")):
         for command, output in (("fill", "out.c3d"), ("calibrate", "out.json"), ("label", "out.c3d")):

@@ -10,6 +10,7 @@ dropped when the log is opened again; a restarted recorder of the same run appen
 
 from __future__ import annotations
 
+import errno
 import struct
 import zlib
 from collections.abc import Iterator
@@ -74,6 +75,15 @@ class FrameLog:
     def __init__(self, path: str | Path, run: str) -> None:
         self.path = Path(path)
         self.set_aside: Path | None = None
+        try:
+            self._open(run)
+        except OSError as exc:
+            raise MocapFileError(f"{self.path}: cannot record there: {exc.strerror or exc}") from None
+
+    def _open(self, run: str) -> None:
+        blocker = next((folder for folder in self.path.parents if folder.exists() and not folder.is_dir()), None)
+        if blocker is not None:
+            raise NotADirectoryError(errno.ENOTDIR, f"{blocker} is a file, not a folder")
         self.path.parent.mkdir(parents=True, exist_ok=True)
         if self.path.exists():
             try:

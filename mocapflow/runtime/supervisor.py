@@ -87,7 +87,7 @@ class Supervisor:
             if proc.popen is None or proc.state != "running" or proc.popen.poll() is None:
                 continue
             code = proc.exit_code = proc.popen.returncode
-            if code == 0:
+            if code == 0 or (self.stopping and code == -signal.SIGTERM):  # ended by a stop request, if still starting
                 proc.state = "finished"
                 continue
             if now - proc.started_at > HEALTHY_S:
