@@ -21,7 +21,6 @@ from typing import Any, Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from mocapflow.runtime.node import Publish
 from mocapflow.trackers.live import RESUME_GAP_S, LabelRows, LiveTracker
 
 OCCLUDED = 0x01
@@ -63,40 +62,41 @@ class NatNetConfig(BaseModel):
                                       "frame (for replays; none: keep waiting)")
 
 
-class NatNetTracker(LiveTracker):
+class NatNetTracker(LiveTracker[NatNetConfig]):
     """Markers streamed live by OptiTrack Motive (NatNet, through the natnet package)."""
 
     Config = NatNetConfig
 
-    def __init__(self, config: NatNetConfig, publish: Publish, name: str = "tracker") -> None:
-        super().__init__(config, publish, name)
+    def setup(self) -> None:
+        super().setup()
         from natnet import NatNetClient
 
-        self.end_after_s = config.end_after_s
+        self.end_after_s = self.config.end_after_s
         self.names: dict[int, str] = {}
         self._asked = time.monotonic()
         self._first: Any = None
         self._held: list[tuple[Any, int]] = []  # labelled frames that came before the names
-        self._hold_until = time.monotonic() + config.timeout_s
+        self._hold_until = time.monotonic() + self.config.timeout_s
         self._hold_lock = threading.RLock()
+        config = self.config
         self.client = NatNetClient(server_ip_address=config.server, local_ip_address=config.local,
                                    multicast_address=config.multicast_address, command_port=config.command_port,
                                    data_port=config.data_port, use_multicast=config.multicast)
         self.client.on_data_description_received_event.handlers.append(self._on_descriptions)
         self.client.on_data_frame_received_event.handlers.append(self._on_frame)
         try:
-            self.client.connect(timeout=config.timeout_s)
+            self.client.connect(timeout=self.config.timeout_s)
         except TimeoutError:
-            raise ConnectionError(f"no NatNet server answered at {self.where} within {config.timeout_s:g} s (is "
+            raise ConnectionError(f"no NatNet server answered at {self.where} within {self.config.timeout_s:g} s (is "
                                   "Motive streaming, with this transmission type?)") from None
         except OSError as exc:
             raise ConnectionError(f"NatNet at {self.where}: {exc}") from None
         enlarge_receive_buffers(self.client)
         self.client.request_modeldef()
-        self.rate = config.rate or 0.0
+        self.rate = self.config.rate or 0.0
         self.client.run_async()
-        deadline = time.monotonic() + config.timeout_s
-        while (self.numbers.last is None or (config.markers == "labelled" and not self.names)) \
+        deadline = time.monotonic() + self.config.timeout_s
+        while (self.numbers.last is None or (self.config.markers == "labelled" and not self.names)) \
                 and time.monotonic() < deadline:
             time.sleep(0.01)
         if self.numbers.last is None:
@@ -104,7 +104,8 @@ class NatNetTracker(LiveTracker):
             raise ConnectionError(f"NatNet server at {self.where} streams no frames (is streaming enabled in Motive?)")
         info = self.client.server_info
         self.log.info("NatNet at %s: %s, NatNet %s, %g Hz, %s markers", self.where,
-                      info.application_name if info else "?", self.client.protocol_version, self.rate, config.markers)
+                      info.application_name if info else "?", self.client.protocol_version, self.rate,
+                      self.config.markers)
 
     @property
     def where(self) -> str:

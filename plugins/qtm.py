@@ -19,7 +19,6 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from mocapflow.runtime.node import Publish
 from mocapflow.trackers.live import LabelRows, LiveTracker
 
 UNIT_MM = {"mm": 1.0, "cm": 10.0, "m": 1000.0}
@@ -51,14 +50,14 @@ def read_parameters(xml: bytes | str) -> tuple[float, list[str]]:
     return float(frequency), [label.findtext("Name") or "" for label in root.findall("The_3D/Label")]
 
 
-class QtmTracker(LiveTracker):
+class QtmTracker(LiveTracker[QtmConfig]):
     """Markers streamed live by Qualisys QTM (real-time protocol, through Qualisys's qtm-rt SDK)."""
 
     Config = QtmConfig
 
-    def __init__(self, config: QtmConfig, publish: Publish, name: str = "tracker") -> None:
-        super().__init__(config, publish, name)
-        self.scale = UNIT_MM[config.units]
+    def setup(self) -> None:
+        super().setup()
+        self.scale = UNIT_MM[self.config.units]
         self.labels: list[str] = []
         self._loop = asyncio.new_event_loop()
         self._stop = asyncio.Event()
@@ -67,13 +66,13 @@ class QtmTracker(LiveTracker):
         self._thread = threading.Thread(target=self._loop.run_until_complete, args=(self._run(),), daemon=True,
                                         name="qtm")
         self._thread.start()
-        if not self._ready.wait(config.timeout_s * 3):
-            self._failure = ConnectionError(f"{self.where} did not answer within {config.timeout_s * 3:g} s")
+        if not self._ready.wait(self.config.timeout_s * 3):
+            self._failure = ConnectionError(f"{self.where} did not answer within {self.config.timeout_s * 3:g} s")
         if self._failure is not None:
             self.finish()
             raise self._failure
-        self.log.info("QTM at %s:%d: %g Hz, %s, %d labels", config.host, config.port, self.rate, config.component,
-                      len(self.labels))
+        self.log.info("QTM at %s:%d: %g Hz, %s, %d labels", self.config.host, self.config.port, self.rate,
+                      self.config.component, len(self.labels))
 
     @property
     def where(self) -> str:

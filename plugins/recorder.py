@@ -9,7 +9,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator
 from mocapflow.io.framelog import FrameLog, part_path
 from mocapflow.io.recorded import PORTS, convert_log
 from mocapflow.messages import MarkerFrame, Pose, encode
-from mocapflow.runtime.node import Input, Node, Publish
+from mocapflow.runtime.node import Input, Node
 
 
 class RecorderConfig(BaseModel):
@@ -25,7 +25,7 @@ class RecorderConfig(BaseModel):
         return path
 
 
-class Recorder(Node):
+class Recorder(Node[RecorderConfig]):
     """Writes every received frame at its frame number; frames that never arrived are left missing (NaN). Joint
     centres become one extra point per joint name ever received (the skeleton may change during a run), missing in
     frames whose pose lacks that joint.
@@ -40,9 +40,8 @@ class Recorder(Node):
         "pose": Input(Pose, required=False, doc="solved poses: joint centres are written as extra points"),
     }
 
-    def __init__(self, config: RecorderConfig, publish: Publish, name: str = "recorder") -> None:
-        super().__init__(config, publish, name)
-        self.log_file = FrameLog(part_path(config.path), self.run_id)  # fails at start on a path it cannot write
+    def setup(self) -> None:
+        self.log_file = FrameLog(part_path(self.config.path), self.run_id)  # fails at start on a path it cannot write
         if self.log_file.set_aside is not None:
             self.log.warning("an unfinished recording of another run is kept as %s", self.log_file.set_aside)
         if self.log_file.resumed:

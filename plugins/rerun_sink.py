@@ -10,7 +10,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 
 from mocapflow.io.scene import Scene, close_stream, open_stream
 from mocapflow.messages import MarkerFrame, Message, Pose, Segments, Skeleton
-from mocapflow.runtime.node import Input, Node, Publish
+from mocapflow.runtime.node import Input, Node
 
 
 class RerunConfig(BaseModel):
@@ -44,7 +44,7 @@ class RerunConfig(BaseModel):
         return self
 
 
-class RerunSink(Node):
+class RerunSink(Node[RerunConfig]):
     """Draws markers (coloured by segment, and by flag where estimated), rays, joint centres and bones at up to
     ``rate`` frames a second. Only the latest frame of each input is drawn: frames that queued while drawing are
     skipped in one go, so the viewer never holds the pipeline back."""
@@ -57,9 +57,9 @@ class RerunSink(Node):
         "segments": Input(Segments, required=False, state=True, doc="marker colours by segment"),
     }
 
-    def __init__(self, config: RerunConfig, publish: Publish, name: str = "viewer") -> None:
-        super().__init__(config, publish, name)
-        self.stream = open_stream(name, spawn=config.spawn, connect=config.connect, serve=config.serve,
+    def setup(self) -> None:
+        config = self.config
+        self.stream = open_stream(self.name, spawn=config.spawn, connect=config.connect, serve=config.serve,
                                   save=config.save, memory_limit=config.memory_limit, grpc_port=config.grpc_port,
                                   web_port=config.web_port)
         self.scene = Scene(self.stream, up=config.up, ray_length_mm=config.ray_length_mm)

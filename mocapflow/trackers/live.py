@@ -13,7 +13,7 @@ import numpy as np
 
 from mocapflow.io.markerdata import clean_labels
 from mocapflow.messages import MarkerFrame
-from mocapflow.runtime.node import Node, Output, Publish
+from mocapflow.runtime.node import ConfigT, Node, Output
 
 RESUME_GAP_S = 1.0
 """A silence this long is a reconnection: the tracker may have restarted its frame count and its clock."""
@@ -85,15 +85,14 @@ class LabelRows:
         return clean_labels(raw, strip_prefix=True)
 
 
-class LiveTracker(Node):
+class LiveTracker(Node[ConfigT]):
     """Base of a push-driven source: the vendor client's thread calls ``push`` for each frame; ``emit`` publishes the
     queued frames in order, waiting at most ``IDLE_WAIT_S`` for one so that a stop request is seen promptly."""
 
     paced = False
     outputs = {"markers": Output(MarkerFrame, doc="labelled markers, or an unlabelled point cloud")}
 
-    def __init__(self, config: object, publish: Publish, name: str = "tracker") -> None:
-        super().__init__(config, publish, name)
+    def setup(self) -> None:
         self.clock = TrackerClock()
         self.numbers = FrameNumbers()
         self.rows = LabelRows()
