@@ -41,7 +41,7 @@ def cli(args: list[str], log: Path, cwd: Path) -> subprocess.Popen[bytes]:
                                 stderr=subprocess.STDOUT)
 
 
-def wait_for(what: str, check: Callable[[], object], timeout: float = 20.0) -> object:
+def wait_for(what: str, check: Callable[[], object], timeout: float = 60.0) -> object:
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         found = check()

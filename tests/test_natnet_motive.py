@@ -112,7 +112,9 @@ def test_motive_session_decodes_to_sample_clients_values(markers: str, motive: P
     capture = np.array([m.capture_ns for m in published], dtype=np.int64)
     tracker = np.array([round(stamps[m.frame] * 1e9) for m in published], dtype=np.int64)
     offsets = capture - tracker
-    assert (np.diff(offsets) <= 0).all()  # the offset only tightens within the window (the session is 4.3 s long)
+    # Frame-to-frame timing is Motive's, free of network jitter: the offset moves only when a packet arrives faster
+    # than all before it (or, on a machine so busy that the 4.3 s session takes longer, when the window moves on).
+    assert (np.diff(offsets) == 0).mean() > 0.9, np.diff(offsets)
 
 
 def serve_in_thread(recording: object, port: int) -> tuple[threading.Thread, asyncio.AbstractEventLoop]:

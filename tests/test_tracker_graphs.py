@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 from conftest import CLI, free_port
 from scipy.optimize import linear_sum_assignment
+from test_runtime import wait_for_frames
 from trackers import Server, graph_file, run_graph
 
 from mocapflow.io.markers import MarkerData, read_markers, write_markers
@@ -120,7 +121,8 @@ def test_server_restarted_mid_stream_is_reconnected(protocol: str, tmp_path: Pat
     run = subprocess.Popen([*CLI, "run", str(graph), "--duration", "150", "--summary", str(tmp_path / "s.json")],
                            cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
-        time.sleep(6)  # the graph starts, and part of the file streams
+        wait_for_frames(free_endpoint, f"mocapflow/rs{protocol[0]}{free_endpoint.rsplit(':', 1)[1]}", "recorder",
+                        len(data.positions) // 2)  # the graph starts, and part of the file streams
         server.stop()
         time.sleep(2)
         server = Server(protocol, path, port)  # plays the file again from its first frame, once
