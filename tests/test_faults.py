@@ -67,16 +67,17 @@ def assert_real_frames(points: np.ndarray, expected: np.ndarray, rows: np.ndarra
 
 
 def assert_one_restart_gap(recording: Path, frames: int, victim: str, before: int = 1) -> None:
-    """The recording holds every simulated frame, unchanged, but those of one gap (at least ``before`` frames in)
-    while ``victim`` restarted; prints the gap."""
+    """The recording holds every simulated frame, unchanged, but those of at most one gap (at least ``before`` frames
+    in) while ``victim`` restarted; prints the gap. (On a machine busy enough that the victim had handled every frame
+    the source sent before it was killed, nothing is lost; if the source had ended, the gap runs to the end.)"""
     points, *_ = read_c3d(recording)
-    seen = ~np.isnan(points[:, 0, 0])
-    edges = np.flatnonzero(np.diff(seen.astype(int)))
-    assert seen[0] and seen[-1] and len(edges) == 2 and edges[0] + 1 >= before, edges
     assert points.shape[0] == frames
+    seen = ~np.isnan(points[:, 0, 0])
+    missing = np.flatnonzero(~seen)
+    assert seen[:before].all() and seen[0], missing[:10]
+    assert len(missing) == 0 or missing[-1] - missing[0] + 1 == len(missing), missing  # one run of frames
     assert_real_frames(points, truth(frames), np.flatnonzero(seen))
-    gap = edges[1] - edges[0]
-    print(f"{victim} restart gap: {gap} frames ({gap / RATE:.2f} s at {RATE} Hz)")
+    print(f"{victim} restart gap: {len(missing)} frames ({len(missing) / RATE:.2f} s at {RATE} Hz)")
 
 
 def test_an_attacker_can_neither_end_nor_corrupt_a_stream(tmp_path: Path, free_endpoint: str) -> None:

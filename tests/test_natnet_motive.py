@@ -172,7 +172,7 @@ def test_recorded_session_reaches_the_recorder_with_every_frame(motive: Path, tm
                                                                  free_endpoint: str) -> None:
     port = free_port()
     graph = graph_file(tmp_path, free_endpoint, "motive", {
-        "tracker": {"plugin": "natnet", "config": {"command_port": port, "multicast": False, "end_after_s": 2.0}},
+        "tracker": {"plugin": "natnet", "config": {"command_port": port, "multicast": False, "end_after_s": 5.0}},
         "recorder": {"plugin": "recorder", "inputs": {"markers": "tracker/markers"},
                      "config": {"path": str(tmp_path / "motive.trc")}},
     })

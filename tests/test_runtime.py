@@ -172,19 +172,20 @@ def test_a_port_in_use_is_one_line_naming_it(tmp_path: Path, free_endpoint: str)
 
 def test_introspection_commands_see_a_live_run(tmp_path: Path, free_endpoint: str) -> None:
     path, prefix = graph(tmp_path, free_endpoint, name="rn")
-    run = start(["run", str(path), "--duration", "12"], tmp_path)
+    run = start(["run", str(path), "--duration", "120"], tmp_path)
     try:
         worker_pid(prefix, "recorder")
         time.sleep(2)
         cli = CLI
-        nodes = subprocess.run([*cli, "nodes", "--connect", free_endpoint, "--prefix", prefix],
-                               capture_output=True, text=True, timeout=30)
+        nodes = subprocess.run([*cli, "nodes", "--connect", free_endpoint, "--prefix", prefix, "--timeout", "30"],
+                               capture_output=True, text=True, timeout=90)
         assert f"{prefix}/tracker" in nodes.stdout and f"{prefix}/recorder" in nodes.stdout, nodes.stdout
-        echo = subprocess.run([*cli, "echo", f"{prefix}/tracker/markers", "-n", "2", "--connect", free_endpoint],
-                              capture_output=True, text=True, timeout=30)
+        echo = subprocess.run([*cli, "echo", f"{prefix}/tracker/markers", "-n", "2", "--connect", free_endpoint,
+                               "--timeout", "30"],
+                              capture_output=True, text=True, timeout=90)
         assert echo.stdout.count("application/json;mocapflow/MarkerFrame") == 2 and "positions:" in echo.stdout
         hz = subprocess.run([*cli, "hz", f"{prefix}/tracker/markers", "-n", "1", "--window", "2", "--connect",
-                             free_endpoint], capture_output=True, text=True, timeout=30)
+                             free_endpoint, "--timeout", "30"], capture_output=True, text=True, timeout=90)
         # the rate itself depends on how busy the machine is: only that messages were counted and timed is checked
         assert hz.returncode == 0 and hz.stdout.startswith(f"{prefix}/tracker/markers: "), hz.stdout
         assert int(hz.stdout.split("n=")[1].split(")")[0]) > 1 and float(hz.stdout.split(": ")[1].split()[0]) > 0
@@ -192,6 +193,7 @@ def test_introspection_commands_see_a_live_run(tmp_path: Path, free_endpoint: st
             replies = list(session.get(f"{prefix}/_schema/MarkerFrame", timeout=5))
         assert replies and b'"$id":"mocapflow/MarkerFrame"' in replies[0].ok.payload.to_bytes()
     finally:
+        run.send_signal(signal.SIGINT)
         out, _ = run.communicate(timeout=60)
     assert run.returncode == 0, out
 

@@ -29,7 +29,7 @@ def tracker(protocol: str, port: int, unlabelled: bool = False) -> dict:
     if protocol == "qtm":
         config = {"port": port, "end_with_capture": True, "component": "3dnolabels" if unlabelled else "3d"}
     else:
-        config = {"command_port": port, "multicast": False, "end_after_s": 2.0,
+        config = {"command_port": port, "multicast": False, "end_after_s": 5.0,
                   "markers": "unlabelled" if unlabelled else "labelled"}
     return {"plugin": protocol, "config": config}
 
@@ -138,7 +138,7 @@ def test_server_restarted_mid_stream_is_reconnected(protocol: str, tmp_path: Pat
     stats = json.loads((tmp_path / "s.json").read_text())["recorder"]
     live = read_markers(tmp_path / "live.c3d")
     received = np.isfinite(live.positions).any(axis=(1, 2))
-    assert stats["frames_in"] == received.sum() > len(data.positions)  # part of the file, then all of it
+    assert stats["frames_in"] == received.sum() > len(data.positions), out  # part of the file, then all of it
     assert stats["drops"] > 100, stats  # the frames of the silence (two seconds and more at 120 Hz)
     assert stats["errors"] == 0, stats  # never a frame number at or below the one before
     assert received.sum() + stats["drops"] == len(live.positions)
