@@ -117,6 +117,7 @@ def test_conversion_keeps_the_first_copy_and_leaves_out_implausible_frames(tmp_p
     np.testing.assert_allclose(data.extra["hip"][3], [1, 2, 3])
 
 
+@pytest.mark.integration
 def test_a_blinded_tracker_does_not_change_identities() -> None:
     """Half a second of frames with no point at all (every camera blinded), then the markers again: the labeller
     node finds them by their layouts instead of opening new tracks."""
@@ -148,6 +149,7 @@ def test_a_blinded_tracker_does_not_change_identities() -> None:
     assert kept >= markers // 2 and len(out[-1].labels) <= 2 * markers, (kept, len(out[-1].labels))
 
 
+@pytest.mark.integration
 def test_commands_refuse_absurd_data(tmp_path: Path) -> None:
     import subprocess
     import sys
@@ -202,6 +204,7 @@ def test_a_wild_sample_does_not_move_other_markers(spike_mm: float) -> None:
         assert error < 20.0 and flags[f, m] >= 2 and np.linalg.norm(filled[f, m] - rec.true_positions[f, m]) < 20.0
 
 
+@pytest.mark.integration
 def test_a_ten_frame_spike_does_not_change_the_calibrated_model(tmp_path: Path) -> None:
     """Ten frames of one marker 3 m off (a reflection): calibrate leaves them out and finds the segments and the
     topology of the clean recording; without that step, the segments differ."""

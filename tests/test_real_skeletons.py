@@ -25,6 +25,7 @@ from mocapflow.mocap.simulator import SimRecording, SimulatorConfig, forward_kin
 from mocapflow.mocap.solve import solve  # noqa: E402
 
 
+@pytest.mark.integration
 @pytest.mark.parametrize("name", FILES)
 def test_real_recording_gives_an_anatomical_skeleton(name: str, real_file: Callable[[str], Path]) -> None:
     data = read_markers(real_file(name))
@@ -98,6 +99,7 @@ def _cmu_like(seed: int = 3, hidden: float = 0.2) -> tuple[np.ndarray, list[str]
     return positions, labels, segment_of, rec
 
 
+@pytest.mark.integration
 def test_simulated_markers_on_joints_two_per_segment_and_occluded() -> None:
     """The hard case of real marker sets, where the truth is known: segments, tree and joint centres."""
     positions, labels, segment_of, rec = _cmu_like()

@@ -232,6 +232,7 @@ def test_noise_has_the_configured_sd() -> None:
     np.testing.assert_array_equal(quiet.positions, quiet.true_positions)
 
 
+@pytest.mark.integration
 def test_soft_tissue_artefact_is_smooth_bounded_and_moves_no_joint() -> None:
     rigid = simulate(SimulatorConfig(noise_mm=0.0), 2400)
     soft = simulate(SimulatorConfig(noise_mm=0.0, skin_mm=10.0), 2400)
@@ -294,6 +295,7 @@ def runs(hidden: np.ndarray) -> np.ndarray:
     return (stops[1] - starts[1])[whole]
 
 
+@pytest.mark.integration
 def test_short_dropouts_follow_the_configured_rate() -> None:
     rate, seconds, per_s = 60.0, 200, 2.0
     rec = simulate(SimulatorConfig(rate=rate, dropout_rate=per_s, noise_mm=0.0), int(seconds * rate))
@@ -307,6 +309,7 @@ def test_short_dropouts_follow_the_configured_rate() -> None:
     assert lengths.min() >= 2 and 4 <= np.median(lengths) <= 8
 
 
+@pytest.mark.integration
 def test_long_gaps_and_hidden_segments_follow_the_configured_rates() -> None:
     rate, seconds = 30.0, 300
     rec = simulate(SimulatorConfig(rate=rate, long_gaps=3.0, hidden_segments=["left_shank", "head"], noise_mm=0.0),
@@ -410,6 +413,7 @@ def test_no_cameras_is_the_simulator_without_a_camera_model(unlabelled: bool) ->
     assert simulate(SimulatorConfig(**BUSY), 5).rays is None
 
 
+@pytest.mark.integration
 def test_single_camera_markers_arrive_as_rays_through_their_noisy_positions() -> None:
     noise = 0.5
     config = SimulatorConfig(cameras=4, rate=60, noise_mm=noise, seed=3, hidden_segments=["left_forearm"])
@@ -473,6 +477,7 @@ def test_one_camera_gives_no_points_and_the_camera_misses_markers_at_random() ->
     assert not none_points.any() and np.isnan(none_rays).all()
 
 
+@pytest.mark.integration
 def test_more_cameras_see_more() -> None:
     """2C cameras include the C cameras of the smaller ring: every marker seen as a point stays a point, every marker
     observed at all stays observed, and the share of rays and missing markers falls."""
@@ -507,6 +512,7 @@ def test_capsules_sit_just_inside_the_markers() -> None:
             assert 0.6 * skin.min() < sim.capsule_radii[s] < 0.95 * skin.min(), (name, rig.segments[s])
 
 
+@pytest.mark.integration
 def test_a_line_of_sight_through_a_capsule_hides_the_marker() -> None:
     """One camera, no noise: a marker is a ray exactly when, by brute force over points every 0.5 mm along every
     capsule's axis, its line of sight (beyond the first 5 mm) misses every capsule and the marker is in the camera's
