@@ -412,3 +412,34 @@ def test_a_filler_taking_on_new_markers_keeps_what_it_holds(rec: SimRecording, s
     assert (got.flags[-1] >= FillCase.OBSERVED) and np.isfinite(got.positions[-1]).all()
     with pytest.raises(ValueError, match="do not extend"):
         grown.grow(labels[::-1])
+
+
+def test_twist_reference_is_the_steadiest_neighbour() -> None:
+    """A middle segment whose twist about its own axis swings against its parent but holds against its child (a
+    hinge below, a ball above): the twist statistics rank the child steadier, whichever joint is listed first."""
+    from scipy.spatial.transform import Rotation
+
+    from mocapflow.mocap.filling.twist import TwistSpread, twist_angles
+
+    rng = np.random.default_rng(3)
+    axes = np.tile([0.0, 0.0, 1.0], (3, 1))  # each segment's long axis, in its own frame
+    spread = TwistSpread({0: (0, 1), 1: (1, 2)}, axes, window=50)
+    for f in range(200):
+        parent = Rotation.from_rotvec(rng.normal(0, 0.5, 3)).as_matrix()
+        middle = parent @ Rotation.from_euler("zx", [0.8 * np.sin(f / 7), 0.5 * np.sin(f / 11)]).as_matrix()
+        child = middle @ Rotation.from_euler("x", 1.0 * np.sin(f / 5)).as_matrix()  # a hinge across the axis
+        spread.update(np.stack([parent, middle, child]), np.ones(3, dtype=bool))
+    assert spread.spread(1, 1) < 0.01 < spread.spread(1, 0)
+    # the twist about an axis is what is left of a rotation once the axis is swung back: a pure swing has none
+    swung = Rotation.from_rotvec([0.7, -0.3, 0.0]).as_matrix()
+    assert abs(twist_angles(swung[None], np.eye(3)[None], axes[:1])[0]) < 1e-9
+    twisted = swung @ Rotation.from_euler("z", 0.4).as_matrix()
+    assert twist_angles(twisted[None], np.eye(3)[None], axes[:1])[0] == pytest.approx(0.4)
+
+
+def test_spread_is_unknown_before_any_sample() -> None:
+    from mocapflow.mocap.filling.twist import TwistSpread
+
+    spread = TwistSpread({3: (0, 1)}, np.tile([0.0, 0.0, 1.0], (2, 1)), window=10)
+    spread.update(np.tile(np.eye(3), (2, 1, 1)), np.array([True, False]))
+    assert spread.spread(0, 3) == np.inf

@@ -21,6 +21,7 @@ from mocapflow.mocap.filling.config import (
 )
 from mocapflow.mocap.filling.geometry import nearest_on_circle, project_on_rays, swing, unit
 from mocapflow.mocap.filling.learner import SkeletonLearner, is_complete
+from mocapflow.mocap.filling.twist import TwistSpread, segment_axes
 from mocapflow.mocap.kalman import ConstantVelocityBank
 from mocapflow.mocap.markerset import added
 from mocapflow.mocap.model import SkeletonModel
@@ -76,6 +77,8 @@ class GapFiller:
         self._holds: dict[int, Hold] = {}
         self._held: set[int] = set()  # segments whose hold was used this frame
         self._given: SkeletonModel | None = None  # the model given from outside, if any
+        self._twist: TwistSpread | None = None
+        self._frame = 0
         if skeleton is not None:
             self.set_skeleton(skeleton)
         elif cfg.learn:
@@ -126,8 +129,11 @@ class GapFiller:
     def _adopt(self, skeleton: SkeletonModel) -> None:
         self._model = skeleton
         self._holds = {}
-        self.body = Body(skeleton, self.labels)
-        s = len(self.body.members)
+        self.body = body = Body(skeleton, self.labels)
+        s = len(body.members)
+        self._twist = TwistSpread(
+            {j: (jt.parent, jt.child) for j, jt in enumerate(body.joints) if jt is not None},
+            segment_axes(body.offsets, body.links), self.config.twist_window_s * self.rate / self.config.learn_stride)
         self._pose_r = np.zeros((2, s, 3, 3))
         self._pose_t = np.zeros((2, s, 3))
         self._pose_ok = np.zeros((2, s), dtype=bool)
@@ -202,10 +208,23 @@ class GapFiller:
             else:  # the constraint's own poses around the gaps, so estimates cannot creep through the filter's lag
                 self._pose_r[0], self._pose_t[0], self._pose_ok[0], self._pose_fresh[0] = poses
             centres = self._centres_later(z, flags)
+            self._frame += 1
+            if self._frame % self.config.learn_stride == 0:
+                self._sample_twists(z, seen)
         if self._learner is not None:  # a new model is taken up from the next frame, so the result and
             # ``joint_names`` keep describing the same body until then
             self._pending = self._learner.observe(z, seen, flags, body, self._current_poses) or self._pending
         return FillResult(positions=z, flags=flags, joint_centres=centres)
+
+    def _sample_twists(self, z: np.ndarray, seen: np.ndarray) -> None:
+        """Feed the twist statistics with the segments whose markers were all observed this frame."""
+        body = self.body
+        assert body is not None and self._twist is not None
+        if not self._twist.slot:
+            return
+        segments = np.arange(len(body.members))
+        r, _, complete = self._fitted_poses_for(body, np.where(seen[:, None], z, np.nan), segments)
+        self._twist.update(r, complete)
 
     def _outliers(self, z: np.ndarray, seen: np.ndarray) -> np.ndarray:
         """Samples of markers seen in the previous frame that are ``outlier_mm`` or more from their prediction: no
@@ -353,10 +372,14 @@ class GapFiller:
                 seen_rows, seen_offsets, seen_names, miss, hit = layout.parts[k]
                 nv = int(seg_vis[k])
                 links = [link for link in body.links[k] if posed[link[1]]]
-                reference = None  # the first posed neighbour, preferring one placed with its own markers seen
-                for _, other, _, _ in links:
-                    if self._pose_ok[0, other] and (reference is None or seen_posed[other] > seen_posed[reference[0]]):
-                        reference = (other, r_all[other], self._pose_r[0, other])
+                reference = None  # a posed neighbour, preferring one placed with its own markers seen, then the
+                best = (True, np.inf)  # one whose twist relative to this segment has varied least
+                for j, other, _, _ in links:
+                    if not self._pose_ok[0, other]:
+                        continue
+                    rank = (not seen_posed[other], self._twist.spread(k, j) if self._twist else np.inf)
+                    if reference is None or rank < best:
+                        best, reference = rank, (other, r_all[other], self._pose_r[0, other])
                 if not (nv == 0 or cfg.joint_anchors == "partial"):
                     links = []
                 m = nv + len(links)
