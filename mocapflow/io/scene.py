@@ -18,7 +18,7 @@ from typing import TYPE_CHECKING, Final
 import numpy as np
 
 from mocapflow.messages import MarkerFrame, Message, NodeStats, Pose, Segments, Skeleton
-from mocapflow.mocap.filler import FillCase
+from mocapflow.mocap.flags import FillCase
 from mocapflow.mocap.model import SkeletonModel
 
 if TYPE_CHECKING:

@@ -37,7 +37,9 @@ Changes to the thesis, each backed by its results (tables 6.1-6.6) or needed for
   (``coast_decay_s``) and is given up after ``extrapolate_max_s``, rather than flying off for seconds.
 
 The filler never reads a future frame: ``update`` uses the current frame and its own state only, so filling a
-recording frame by frame (``fill_sequence``) gives exactly what a live stream would have given.
+recording frame by frame (``fill_sequence``) gives exactly what a live stream would have given. A file may also be
+filled both ways (``fill_both_ways``, ``mocapflow fill --offline``): the same filler run forwards and backwards, blended
+across each gap, which uses the frames after a gap as no live stream can.
 """
 
 
@@ -45,7 +47,7 @@ from mocapflow.mocap.filling.config import FillCase, FillerConfig, FillResult
 from mocapflow.mocap.filling.filter import GapFiller
 from mocapflow.mocap.filling.geometry import nearest_on_circle, project_on_rays
 from mocapflow.mocap.filling.learner import is_complete
-from mocapflow.mocap.filling.offline import FilledRecording, fill_recording, fill_sequence
+from mocapflow.mocap.filling.offline import FilledRecording, fill_both_ways, fill_recording, fill_sequence
 
-__all__ = ["FillCase", "FillResult", "FilledRecording", "FillerConfig", "GapFiller", "fill_recording", "fill_sequence",
-           "is_complete", "nearest_on_circle", "project_on_rays"]
+__all__ = ["FillCase", "FillResult", "FilledRecording", "FillerConfig", "GapFiller", "fill_both_ways", "fill_recording",
+           "fill_sequence", "is_complete", "nearest_on_circle", "project_on_rays"]
