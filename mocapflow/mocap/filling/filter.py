@@ -19,7 +19,7 @@ from mocapflow.mocap.filling.config import (
     FillerConfig,
     FillResult,
 )
-from mocapflow.mocap.filling.geometry import nearest_on_circle, project_on_rays, swing, unit
+from mocapflow.mocap.filling.geometry import nearest_on_circle, project_on_rays, slide_on_rays, swing, unit
 from mocapflow.mocap.filling.learner import SkeletonLearner, is_complete
 from mocapflow.mocap.filling.twist import TwistSpread, segment_axes
 from mocapflow.mocap.kalman import ConstantVelocityBank
@@ -284,7 +284,8 @@ class GapFiller:
                 self._extrapolated |= ok & ~anchored  # nothing holds it along its ray: there it coasts to rest
                 z[ok] = project_on_rays(guess[ok], rays[ok])
                 if body is not None and self.config.ray_distances:
-                    self._fit_rays(z, seen, rays, np.flatnonzero(ok & body.in_segment))
+                    slide_on_rays(z, seen, rays, np.flatnonzero(ok & body.in_segment), body.marker_seg,
+                                  body.members, body.offsets, (self.config.observed_sd / self.config.ray_sd) ** 2)
                 flags[ok] = FillCase.RAY
                 visible |= ok
         poses = None
@@ -307,37 +308,6 @@ class GapFiller:
         z[lone] = prior[lone]
         flags[lone] = CASE_KALMAN
         return poses
-
-    def _fit_rays(self, z: np.ndarray, seen: np.ndarray, rays: np.ndarray, rows: np.ndarray) -> None:
-        """Slide each single-camera marker along its ray to the point whose distances to the observed markers of its
-        segment best match the segment's shape, held near its projected estimate (a few Gauss-Newton steps on the
-        ray parameter). This is the line-circle (appendix D) and line-sphere (appendix E) solutions with the
-        projected estimate of 5.3.5 as a prior, which picks the right intersection and steadies the near-tangent
-        cases that made the thesis prefer the projection alone."""
-        body = self.body
-        assert body is not None
-        prior_weight = (self.config.observed_sd / self.config.ray_sd) ** 2
-        for i in rows:
-            k = body.marker_seg[i]
-            members = body.members[k]
-            vis = seen[members]
-            if not vis.any():
-                continue
-            slot = int(np.flatnonzero(members == i)[0])
-            anchors = z[members[vis]]
-            radii = np.linalg.norm(body.offsets[k][vis] - body.offsets[k][slot], axis=1)
-            origin, direction = rays[i, :3], unit(rays[i, 3:])
-            start = float((z[i] - origin) @ direction)
-            ray_s = start
-            for _ in range(5):
-                diff = origin + ray_s * direction - anchors
-                dist = np.maximum(np.linalg.norm(diff, axis=1), 1e-9)
-                grad = diff @ direction / dist
-                step = -((dist - radii) @ grad + prior_weight * (ray_s - start)) / (grad @ grad + prior_weight)
-                ray_s += step
-                if abs(step) < 1e-4:
-                    break
-            z[i] = origin + ray_s * direction
 
     def _constrain(
         self, filled: np.ndarray, visible: np.ndarray, prior: np.ndarray, targets: np.ndarray, near: np.ndarray,
