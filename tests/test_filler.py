@@ -70,7 +70,7 @@ def joint_error(rec: SimRecording, centres: np.ndarray, joints: list[str]) -> fl
     ("two missing", [("left_forearm", 0), ("left_forearm", 1)], FillCase.TWO_MISSING, 4.0,
      ["left_elbow", "left_wrist"], 3.0),
     ("all missing, neighbours visible", [("left_shank", i) for i in range(4)], FillCase.VIA_JOINT, 6.0,
-     ["left_knee", "left_ankle"], 3.0),
+     ["left_knee", "left_ankle"], 3.0),  # by its joints alone: the learnt model is tested on its own
     ("one on each of two segments", [("right_thigh", 0), ("right_shank", 1)], FillCase.ONE_MISSING, 3.0,
      ["right_knee"], 3.0),
 ])
@@ -78,7 +78,7 @@ def test_case_error_against_truth(rec: SimRecording, skeleton: SkeletonModel, ca
                                   hidden: list[tuple[str, int]], code: FillCase, bound_mm: float, joints: list[str],
                                   cor_mm: float) -> None:
     names = [markers(skeleton, seg)[i] for seg, i in hidden]
-    out, flags, centres, idx = fill_gap(rec, skeleton, names)
+    out, flags, centres, idx = fill_gap(rec, skeleton, names, config=FillerConfig(kinematic_model=False))
     assert (flags[GAP][:, idx] == code).all(), case
     assert gap_error(rec, out, idx) < bound_mm
     assert joint_error(rec, centres, joints) < cor_mm
@@ -486,3 +486,39 @@ def test_offline_fill_uses_both_sides_and_fills_every_sample(tmp_path: Path, rec
     np.testing.assert_allclose(read_markers(out).positions, causal, atol=0.01)
     with pytest.raises(ValueError, match="offline"):
         FillerNodeConfig.model_validate({"offline": True})
+
+
+def test_kinematic_model_falls_back_outside_what_it_learnt() -> None:
+    """The learnt regression answers for a configuration like those it learnt from, and refuses (None: the filler
+    falls back to its joints) one beyond them."""
+    from scipy.spatial.transform import Rotation
+
+    from mocapflow.mocap.filling.kinematic import KinematicModel, relative
+
+    angles = np.radians(40) * np.sin(np.arange(300) / 9)  # a knee flexing through +-40 deg
+    r = np.stack([np.tile(np.eye(3), (300, 1, 1)), Rotation.from_euler("x", angles[:, None]).as_matrix()], axis=1)
+    t = np.stack([np.zeros((300, 3)), np.tile([0.0, 0.0, -400.0], (300, 1))], axis=1)
+    features = relative(r, t)
+    targets = np.stack([np.sin(angles / 2) * 200, np.cos(angles / 2) * -200], axis=1)  # where a hidden marker is
+    model = KinematicModel(features, targets)
+    inside = relative(np.stack([np.eye(3), Rotation.from_euler("x", 0.3).as_matrix()])[None], t[:1])[0]
+    assert np.abs(model(inside) - [np.sin(0.15) * 200, np.cos(0.15) * -200]).max() < 3.0
+    beyond = relative(np.stack([np.eye(3), Rotation.from_euler("x", 1.6).as_matrix()])[None], t[:1])[0]
+    assert model(beyond) is None
+    sideways = relative(np.stack([np.eye(3), Rotation.from_euler("y", 0.5).as_matrix()])[None], t[:1])[0]
+    assert model(sideways) is None
+
+
+def test_a_hidden_segment_is_placed_by_its_learnt_model_and_by_its_joints_when_that_has_not_seen_the_motion(
+        rec: SimRecording, skeleton: SkeletonModel) -> None:
+    """A whole shank hidden with thigh and foot visible: the learnt model places it (its own flag) while the motion
+    is like the last seconds', the joints when the novelty test says it is not; both stay close to the truth."""
+    names = markers(skeleton, "left_shank")
+    out, flags, _, idx = fill_gap(rec, skeleton, names)
+    codes = flags[GAP][:, idx]
+    assert (codes == FillCase.LEARNT).mean() > 0.5
+    assert (codes == FillCase.VIA_JOINT).any()
+    assert set(np.unique(codes)) == {FillCase.LEARNT, FillCase.VIA_JOINT}
+    assert gap_error(rec, out, idx) < 3.0
+    rules, rule_flags, _, _ = fill_gap(rec, skeleton, names, config=FillerConfig(kinematic_model=False))
+    assert (rule_flags[GAP][:, idx] == FillCase.VIA_JOINT).all()

@@ -20,6 +20,7 @@ from mocapflow.mocap.filling.config import (
     FillResult,
 )
 from mocapflow.mocap.filling.geometry import nearest_on_circle, project_on_rays, slide_on_rays, swing, unit
+from mocapflow.mocap.filling.kinematic import LearntPlacement
 from mocapflow.mocap.filling.learner import SkeletonLearner, is_complete
 from mocapflow.mocap.filling.twist import TwistSpread, segment_axes
 from mocapflow.mocap.kalman import ConstantVelocityBank
@@ -61,7 +62,8 @@ class GapFiller:
         self._coast_gain = np.exp(-dt / cfg.coast_decay_s) if cfg.coast_decay_s else 1.0
         self._max_coast = round(cfg.extrapolate_max_s * self.rate) if cfg.extrapolate_max_s else None
         self._variance = np.array([1.0, cfg.observed_sd, 1.0, cfg.rigid_sd, cfg.offset_sd, cfg.joint_sd,
-                                   cfg.rotor_sd, cfg.ray_sd]) ** 2  # per FillCase; unused where nothing is measured
+                                   cfg.rotor_sd, cfg.ray_sd, cfg.kinematic_sd]) ** 2  # per FillCase (unused where
+        # nothing is measured)
         self._unmeasured = np.zeros(n, dtype=np.int64)  # frames since a marker was last seen or anchored
         self._extrapolated = np.zeros(n, dtype=bool)  # this frame: predicted from its past alone (a constant rotor
         # with no anchor, or its filter along its ray)
@@ -78,6 +80,9 @@ class GapFiller:
         self._held: set[int] = set()  # segments whose hold was used this frame
         self._given: SkeletonModel | None = None  # the model given from outside, if any
         self._twist: TwistSpread | None = None
+        self._kinematic = LearntPlacement(0, 1, 1, cfg.novelty)
+        self._kinematic_weight = cfg.joint_weight * (cfg.joint_sd / cfg.kinematic_sd) ** 2  # a learnt marker's
+        # weight in a fit, next to a joint's
         self._frame = 0
         if skeleton is not None:
             self.set_skeleton(skeleton)
@@ -134,6 +139,9 @@ class GapFiller:
         self._twist = TwistSpread(
             {j: (jt.parent, jt.child) for j, jt in enumerate(body.joints) if jt is not None},
             segment_axes(body.offsets, body.links), self.config.twist_window_s * self.rate / self.config.learn_stride)
+        samples = self.rate / self.config.learn_stride  # per second
+        self._kinematic = LearntPlacement(s, max(2, round(self.config.kinematic_window_s * samples)),
+                                          round(self.config.min_joint_s * samples), self.config.novelty)
         self._pose_r = np.zeros((2, s, 3, 3))
         self._pose_t = np.zeros((2, s, 3))
         self._pose_ok = np.zeros((2, s), dtype=bool)
@@ -204,27 +212,30 @@ class GapFiller:
             self._pose_fresh[1] = self._pose_fresh[0]
             if poses is None:  # no segment lost a marker: the fit waits until a gap or a reader needs it
                 self._pose_fresh[0] = False
-                self._holds.clear()  # a later gap starts its own holds
+                self._holds.clear()  # a later gap starts its own holds and models
+                self._kinematic.forget()
             else:  # the constraint's own poses around the gaps, so estimates cannot creep through the filter's lag
                 self._pose_r[0], self._pose_t[0], self._pose_ok[0], self._pose_fresh[0] = poses
             centres = self._centres_later(z, flags)
             self._frame += 1
             if self._frame % self.config.learn_stride == 0:
-                self._sample_twists(z, seen)
+                self._sample_poses(z, seen)
         if self._learner is not None:  # a new model is taken up from the next frame, so the result and
             # ``joint_names`` keep describing the same body until then
             self._pending = self._learner.observe(z, seen, flags, body, self._current_poses) or self._pending
         return FillResult(positions=z, flags=flags, joint_centres=centres)
 
-    def _sample_twists(self, z: np.ndarray, seen: np.ndarray) -> None:
-        """Feed the twist statistics with the segments whose markers were all observed this frame."""
+    def _sample_poses(self, z: np.ndarray, seen: np.ndarray) -> None:
+        """Feed the twist statistics and the pose history with the segments whose markers were all observed this
+        frame."""
         body = self.body
         assert body is not None and self._twist is not None
         if not self._twist.slot:
             return
         segments = np.arange(len(body.members))
-        r, _, complete = self._fitted_poses_for(body, np.where(seen[:, None], z, np.nan), segments)
+        r, t, complete = self._fitted_poses_for(body, np.where(seen[:, None], z, np.nan), segments)
         self._twist.update(r, complete)
+        self._kinematic.history.add(r, t, complete)
 
     def _outliers(self, z: np.ndarray, seen: np.ndarray) -> np.ndarray:
         """Samples of markers seen in the previous frame that are ``outlier_mm`` or more from their prediction: no
@@ -292,11 +303,13 @@ class GapFiller:
         if body is not None:
             targets = ~visible & body.in_segment
             self._held = set()
+            self._kinematic.start_frame()
             est, codes, (r, t, posed) = self._constrain(z, visible, prior, targets, near, keep=True)
             fresh = np.zeros(len(body.members), dtype=bool)
             fresh[near] = True
             poses = r, t, posed, fresh
             self._holds = {k: hold for k, hold in self._holds.items() if k in self._held}
+            self._kinematic.end_frame()
             done = targets & np.isfinite(est).all(axis=1)
             if self._max_coast is not None:
                 done &= ~self._extrapolated | (self._unmeasured < self._max_coast)
@@ -350,6 +363,9 @@ class GapFiller:
                     rank = (not seen_posed[other], self._twist.spread(k, j) if self._twist else np.inf)
                     if reference is None or rank < best:
                         best, reference = rank, (other, r_all[other], self._pose_r[0, other])
+                learnt = None if nv or not cfg.kinematic_model else self._kinematic.points(
+                    k, [other for _, other, _, _ in links if seen_posed[other]], reference and reference[0],
+                    body.offsets[k], r_all, t_all)
                 if not (nv == 0 or cfg.joint_anchors == "partial"):
                     links = []
                 m = nv + len(links)
@@ -360,6 +376,9 @@ class GapFiller:
                 for i, (_, other, own, theirs) in enumerate(links, start=nv):
                     p[i], a[i], w[i] = r_all[other] @ theirs + t_all[other], own, cfg.joint_weight
                 anchors = tuple(seen_names + [("joint", j) for j, *_ in links])
+                if learnt is not None:  # the learnt markers join the joints: they fix the twist the joints leave
+                    p, a = np.concatenate([p, learnt]), np.concatenate([a, body.offsets[k]])
+                    w = np.concatenate([w, np.full(len(learnt), self._kinematic_weight)])
                 via_seen = any(seen_posed[other] for _, other, _, _ in links)
                 pending.remove(k)
                 progress = True
@@ -368,7 +387,9 @@ class GapFiller:
                     continue
                 r, t, points_on_circle = placed
                 est[miss] = (points_on_circle if points_on_circle is not None else body.offsets[k] @ r.T + t)[hit]
-                if seg_vis[k] >= 2:
+                if learnt is not None:
+                    codes[miss] = FillCase.LEARNT
+                elif seg_vis[k] >= 2:
                     codes[miss] = FillCase.ONE_MISSING
                 elif seg_vis[k] == 1:
                     codes[miss] = FillCase.TWO_MISSING

@@ -68,3 +68,55 @@ class KinematicModel:
         if not np.isfinite(features).all() or self.distance(features) > self.limit:
             return None
         return self.target_mean + ((features - self.mean) / self.scale) @ self.weights
+
+
+class LearntPlacement:
+    """The kinematic models of the hidden segments: each learnt when its gap starts (or when its visible neighbours
+    change) from the pose history, kept while the segment stays hidden, and asked for the segment's pose each
+    frame.
+
+    ``history`` takes the segments' poses at sampled frames; ``least`` samples are needed to learn a model.
+    """
+
+    def __init__(self, segments: int, length: int, least: int, novelty: float) -> None:
+        self.history = PoseHistory(segments, length)
+        self.least = least
+        self.novelty = novelty
+        self.models: dict[int, tuple[tuple[int, ...], KinematicModel | None]] = {}
+        self.asked: set[int] = set()  # segments whose model was asked for this frame
+
+    def start_frame(self) -> None:
+        self.asked = set()
+
+    def end_frame(self) -> None:
+        """Forget the models of the segments no longer hidden."""
+        self.models = {k: model for k, model in self.models.items() if k in self.asked}
+
+    def forget(self) -> None:
+        self.models = {}
+
+    def points(self, k: int, neighbours: list[int], reference: int | None, offsets: np.ndarray, r: np.ndarray,
+               t: np.ndarray) -> np.ndarray | None:
+        """(M, 3) the markers of the hidden segment ``k`` (at ``offsets`` in its frame) from the poses ``r``, ``t``
+        of this frame's segments: its markers in the frame of one of its ``neighbours`` placed with their own
+        markers (``reference`` when it is one of them) regressed on the others' poses in that frame. None: fewer
+        than two such neighbours, too little history, or a configuration new to the model."""
+        if len(neighbours) < 2:
+            return None
+        ref = reference if reference in neighbours else neighbours[0]
+        order = [ref, *sorted(other for other in neighbours if other != ref)]
+        key = tuple(order)
+        self.asked.add(k)
+        cached = self.models.get(k)
+        if cached is None or cached[0] != key:
+            past_r, past_t = self.history.samples([k, *order])
+            model = None
+            if len(past_r) >= max(self.least, 48 * (len(order) - 1)):  # 4 samples per feature
+                world = offsets @ np.swapaxes(past_r[:, 0], 1, 2) + past_t[:, :1]  # (K, M, 3)
+                local = (world - past_t[:, 1:2]) @ past_r[:, 1]  # in the reference's frame
+                model = KinematicModel(relative(past_r[:, 1:], past_t[:, 1:]), local.reshape(len(past_r), -1),
+                                       novelty=self.novelty)
+            cached = self.models[k] = (key, model)
+        model = cached[1]
+        predicted = None if model is None else model(relative(r[order], t[order]))
+        return None if predicted is None else predicted.reshape(-1, 3) @ r[ref].T + t[ref]
