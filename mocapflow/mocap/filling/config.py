@@ -40,6 +40,9 @@ class FillerConfig(BaseModel):
         "joint", description="rotation of a segment placed through a single anchor: keep its rotation relative to "
         "the posed neighbour (joint angles held), or turn on by its last rotor in the world (the thesis's constant "
         "rotor)")
+    pose_sample_hz: float = Field(
+        10.0, gt=0, description="rate at which the segments' poses are sampled for the twist statistics and the "
+        "kinematic models (the frame rate at most)")
     twist_window_s: float = Field(
         5.0, gt=0, description="seconds over which each segment's twist relative to each neighbour is averaged: a "
         "segment placed through its joints holds its twist relative to the neighbour it varied least with")

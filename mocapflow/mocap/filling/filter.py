@@ -84,6 +84,7 @@ class GapFiller:
         self._kinematic_weight = cfg.joint_weight * (cfg.joint_sd / cfg.kinematic_sd) ** 2  # a learnt marker's
         # weight in a fit, next to a joint's
         self._frame = 0
+        self._every = max(1, round(self.rate / cfg.pose_sample_hz))  # frames between two samples of the poses
         if skeleton is not None:
             self.set_skeleton(skeleton)
         elif cfg.learn:
@@ -138,8 +139,8 @@ class GapFiller:
         s = len(body.members)
         self._twist = TwistSpread(
             {j: (jt.parent, jt.child) for j, jt in enumerate(body.joints) if jt is not None},
-            segment_axes(body.offsets, body.links), self.config.twist_window_s * self.rate / self.config.learn_stride)
-        samples = self.rate / self.config.learn_stride  # per second
+            segment_axes(body.offsets, body.links), self.config.twist_window_s * self.rate / self._every)
+        samples = self.rate / self._every  # per second
         self._kinematic = LearntPlacement(s, max(2, round(self.config.kinematic_window_s * samples)),
                                           round(self.config.min_joint_s * samples), self.config.novelty)
         self._pose_r = np.zeros((2, s, 3, 3))
@@ -218,7 +219,7 @@ class GapFiller:
                 self._pose_r[0], self._pose_t[0], self._pose_ok[0], self._pose_fresh[0] = poses
             centres = self._centres_later(z, flags)
             self._frame += 1
-            if self._frame % self.config.learn_stride == 0:
+            if self._frame % self._every == 0:
                 self._sample_poses(z, seen)
         if self._learner is not None:  # a new model is taken up from the next frame, so the result and
             # ``joint_names`` keep describing the same body until then

@@ -111,7 +111,7 @@ class LearntPlacement:
         if cached is None or cached[0] != key:
             past_r, past_t = self.history.samples([k, *order])
             model = None
-            if len(past_r) >= max(self.least, 48 * (len(order) - 1)):  # 4 samples per feature
+            if len(past_r) >= max(self.least, 24 * (len(order) - 1)):  # 2 samples per feature
                 world = offsets @ np.swapaxes(past_r[:, 0], 1, 2) + past_t[:, :1]  # (K, M, 3)
                 local = (world - past_t[:, 1:2]) @ past_r[:, 1]  # in the reference's frame
                 model = KinematicModel(relative(past_r[:, 1:], past_t[:, 1:]), local.reshape(len(past_r), -1),

@@ -28,20 +28,13 @@ def segment_axes(offsets: list[np.ndarray], links: list[list[tuple[int, int, np.
 
 def twist_angles(r_seg: np.ndarray, r_ref: np.ndarray, axes: np.ndarray) -> np.ndarray:
     """(K,) the twist (rad) of each segment's rotation relative to its reference, ``r_ref^T r_seg``, about its
-    ``axes`` (K, 3) in its own frame: the relative rotation with the least swing that keeps the axis removed."""
-    rel = np.swapaxes(r_ref, -1, -2) @ r_seg  # (K, 3, 3) segment frame -> reference frame
-    moved = (rel @ axes[..., None])[..., 0]  # where the axis points in the reference frame
-    # a vector perpendicular to the axis, carried by the relative rotation, then swung back onto the axis's plane
-    helper = np.where(np.abs(axes[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
-    perp = np.cross(axes, helper)
-    perp /= np.linalg.norm(perp, axis=1, keepdims=True)
-    carried = (rel @ perp[..., None])[..., 0]
-    # the minimal swing from ``moved`` back to ``axes`` applied to ``carried`` (Rodrigues, half-way form)
-    c = np.einsum("ki,ki->k", moved, axes)
-    v = np.cross(moved, axes)
-    vx = np.cross(v, carried)
-    back = carried + vx + np.cross(v, vx) / np.maximum(1.0 + c, 1e-9)[:, None]
-    return np.arctan2(np.einsum("ki,ki->k", np.cross(perp, back), axes), np.einsum("ki,ki->k", perp, back))
+    ``axes`` (K, 3) in its own frame: the angle of the twist factor of its swing-twist split, ``2 atan2(v.u, w)`` for
+    the quaternion (w, v), written with the matrix's skew part and trace (both scaled by 4w) so that no quaternion is
+    formed."""
+    rel = np.swapaxes(r_ref, -1, -2) @ r_seg
+    skew = np.stack([rel[:, 2, 1] - rel[:, 1, 2], rel[:, 0, 2] - rel[:, 2, 0], rel[:, 1, 0] - rel[:, 0, 1]], axis=1)
+    trace = rel[:, 0, 0] + rel[:, 1, 1] + rel[:, 2, 2]
+    return 2.0 * np.arctan2((skew * axes).sum(axis=1), 1.0 + trace)
 
 
 class TwistSpread:
@@ -65,19 +58,14 @@ class TwistSpread:
 
     def update(self, r: np.ndarray, complete: np.ndarray) -> None:
         """Take one sample: the segments' rotations (S, 3, 3) and which were fitted to all their markers (S,)."""
-        if not len(self.pairs):
-            return
         use = complete[self.pairs].all(axis=1)
         if not use.any():
             return
         p, c = self.pairs[use, 0], self.pairs[use, 1]
-        for side, (seg, ref) in enumerate(((p, c), (c, p))):
-            angle = twist_angles(r[seg], r[ref], self.axes[seg])
-            sums = self.sums[use, side]
-            sums[:, 0] += self.gain * (1.0 - sums[:, 0])
-            sums[:, 1] += self.gain * (np.cos(angle) - sums[:, 1])
-            sums[:, 2] += self.gain * (np.sin(angle) - sums[:, 2])
-            self.sums[use, side] = sums
+        seg, ref = np.concatenate([p, c]), np.concatenate([c, p])
+        angle = twist_angles(r[seg], r[ref], self.axes[seg]).reshape(2, -1).T  # (J, 2): parent's, child's twist
+        sample = np.stack([np.ones_like(angle), np.cos(angle), np.sin(angle)], axis=-1)
+        self.sums[use] += self.gain * (sample - self.sums[use])
 
     def spread(self, segment: int, joint: int) -> float:
         """How much ``segment``'s twist has varied relative to the neighbour across ``joint``."""
