@@ -196,3 +196,10 @@ def joint_centres(body: Body, poses: tuple[np.ndarray, np.ndarray, np.ndarray], 
     centre = np.einsum("jk,jki->ji", weight, ends) / np.maximum(total, 1)[:, None]
     out[body.joint_usable] = np.where(total[:, None] > 0, centre, np.nan)
     return out
+
+
+def same_segments(a: Body, b: Body) -> bool:
+    """Whether two bodies have the same segments, markers and shapes (their poses in a frame are the same)."""
+    return len(a.members) == len(b.members) and all(
+        np.array_equal(ma, mb) and np.array_equal(oa, ob)
+        for ma, mb, oa, ob in zip(a.members, b.members, a.offsets, b.offsets, strict=True))

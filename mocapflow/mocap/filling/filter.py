@@ -9,7 +9,7 @@ from typing import NamedTuple
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from mocapflow.mocap.filling.body import Body, joint_centres
+from mocapflow.mocap.filling.body import Body, joint_centres, same_segments
 from mocapflow.mocap.filling.config import (
     CASE_KALMAN,
     CASE_MISSING,
@@ -135,14 +135,19 @@ class GapFiller:
     def _adopt(self, skeleton: SkeletonModel) -> None:
         self._model = skeleton
         self._holds = {}
-        self.body = body = Body(skeleton, self.labels)
+        old, self.body = self.body, Body(skeleton, self.labels)
+        body = self.body
         s = len(body.members)
-        self._twist = TwistSpread(
-            {j: (jt.parent, jt.child) for j, jt in enumerate(body.joints) if jt is not None},
-            segment_axes(body.offsets, body.links), self.config.twist_window_s * self.rate / self._every)
         samples = self.rate / self._every  # per second
-        self._kinematic = LearntPlacement(s, max(2, round(self.config.kinematic_window_s * samples)),
-                                          round(self.config.min_joint_s * samples), self.config.novelty)
+        twist = TwistSpread({j: (jt.parent, jt.child) for j, jt in enumerate(body.joints) if jt is not None},
+                            segment_axes(body.offsets, body.links), self.config.twist_window_s * samples)
+        kinematic = LearntPlacement(s, max(2, round(self.config.kinematic_window_s * samples)),
+                                    round(self.config.min_joint_s * samples), self.config.novelty)
+        if old is not None and same_segments(old, body):  # a learned model grew joints: what was sampled holds
+            kinematic.history = self._kinematic.history
+            if self._twist is not None and twist.slot.keys() == self._twist.slot.keys():
+                twist.sums = self._twist.sums
+        self._twist, self._kinematic = twist, kinematic
         self._pose_r = np.zeros((2, s, 3, 3))
         self._pose_t = np.zeros((2, s, 3))
         self._pose_ok = np.zeros((2, s), dtype=bool)
