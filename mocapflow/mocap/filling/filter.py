@@ -9,7 +9,7 @@ from typing import NamedTuple
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from mocapflow.mocap.filling.body import Body, joint_centres, same_segments
+from mocapflow.mocap.filling.body import Body, joint_centres
 from mocapflow.mocap.filling.config import (
     CASE_KALMAN,
     CASE_MISSING,
@@ -20,9 +20,8 @@ from mocapflow.mocap.filling.config import (
     FillResult,
 )
 from mocapflow.mocap.filling.geometry import nearest_on_circle, project_on_rays, slide_on_rays, swing, unit
-from mocapflow.mocap.filling.kinematic import LearntPlacement
 from mocapflow.mocap.filling.learner import SkeletonLearner, is_complete
-from mocapflow.mocap.filling.twist import TwistSpread, segment_axes
+from mocapflow.mocap.filling.memory import MotionMemory
 from mocapflow.mocap.kalman import ConstantVelocityBank
 from mocapflow.mocap.markerset import added
 from mocapflow.mocap.model import SkeletonModel
@@ -79,12 +78,9 @@ class GapFiller:
         self._holds: dict[int, Hold] = {}
         self._held: set[int] = set()  # segments whose hold was used this frame
         self._given: SkeletonModel | None = None  # the model given from outside, if any
-        self._twist: TwistSpread | None = None
-        self._kinematic = LearntPlacement(0, 1, 1, cfg.novelty)
+        self._memory: MotionMemory | None = None  # of the body in use
         self._kinematic_weight = cfg.joint_weight * (cfg.joint_sd / cfg.kinematic_sd) ** 2  # a learnt marker's
         # weight in a fit, next to a joint's
-        self._frame = 0
-        self._every = max(1, round(self.rate / cfg.pose_sample_hz))  # frames between two samples of the poses
         if skeleton is not None:
             self.set_skeleton(skeleton)
         elif cfg.learn:
@@ -135,19 +131,9 @@ class GapFiller:
     def _adopt(self, skeleton: SkeletonModel) -> None:
         self._model = skeleton
         self._holds = {}
-        old, self.body = self.body, Body(skeleton, self.labels)
-        body = self.body
-        s = len(body.members)
-        samples = self.rate / self._every  # per second
-        twist = TwistSpread({j: (jt.parent, jt.child) for j, jt in enumerate(body.joints) if jt is not None},
-                            segment_axes(body.offsets, body.links), self.config.twist_window_s * samples)
-        kinematic = LearntPlacement(s, max(2, round(self.config.kinematic_window_s * samples)),
-                                    round(self.config.min_joint_s * samples), self.config.novelty)
-        if old is not None and same_segments(old, body):  # a learned model grew joints: what was sampled holds
-            kinematic.history = self._kinematic.history
-            if self._twist is not None and twist.slot.keys() == self._twist.slot.keys():
-                twist.sums = self._twist.sums
-        self._twist, self._kinematic = twist, kinematic
+        self.body = Body(skeleton, self.labels)
+        s = len(self.body.members)
+        self._memory = MotionMemory(self.body, self.rate, self.config, self._memory)
         self._pose_r = np.zeros((2, s, 3, 3))
         self._pose_t = np.zeros((2, s, 3))
         self._pose_ok = np.zeros((2, s), dtype=bool)
@@ -213,35 +199,22 @@ class GapFiller:
         self._last[1] = self._last[0]
         self._last[0] = z
         centres: np.ndarray | Callable[[], np.ndarray] | None = None
-        if body is not None:
+        memory = self._memory
+        if body is not None and memory is not None:
             self._pose_r[1], self._pose_t[1], self._pose_ok[1] = self._pose_r[0], self._pose_t[0], self._pose_ok[0]
             self._pose_fresh[1] = self._pose_fresh[0]
             if poses is None:  # no segment lost a marker: the fit waits until a gap or a reader needs it
                 self._pose_fresh[0] = False
                 self._holds.clear()  # a later gap starts its own holds and models
-                self._kinematic.forget()
+                memory.kinematic.forget()
             else:  # the constraint's own poses around the gaps, so estimates cannot creep through the filter's lag
                 self._pose_r[0], self._pose_t[0], self._pose_ok[0], self._pose_fresh[0] = poses
             centres = self._centres_later(z, flags)
-            self._frame += 1
-            if self._frame % self._every == 0:
-                self._sample_poses(z, seen)
+            memory.observe(z, seen)
         if self._learner is not None:  # a new model is taken up from the next frame, so the result and
             # ``joint_names`` keep describing the same body until then
             self._pending = self._learner.observe(z, seen, flags, body, self._current_poses) or self._pending
         return FillResult(positions=z, flags=flags, joint_centres=centres)
-
-    def _sample_poses(self, z: np.ndarray, seen: np.ndarray) -> None:
-        """Feed the twist statistics and the pose history with the segments whose markers were all observed this
-        frame."""
-        body = self.body
-        assert body is not None and self._twist is not None
-        if not self._twist.slot:
-            return
-        segments = np.arange(len(body.members))
-        r, t, complete = self._fitted_poses_for(body, np.where(seen[:, None], z, np.nan), segments)
-        self._twist.update(r, complete)
-        self._kinematic.history.add(r, t, complete)
 
     def _outliers(self, z: np.ndarray, seen: np.ndarray) -> np.ndarray:
         """Samples of markers seen in the previous frame that are ``outlier_mm`` or more from their prediction: no
@@ -309,13 +282,15 @@ class GapFiller:
         if body is not None:
             targets = ~visible & body.in_segment
             self._held = set()
-            self._kinematic.start_frame()
+            memory = self._memory
+            assert memory is not None
+            memory.kinematic.start_frame()
             est, codes, (r, t, posed) = self._constrain(z, visible, prior, targets, near, keep=True)
             fresh = np.zeros(len(body.members), dtype=bool)
             fresh[near] = True
             poses = r, t, posed, fresh
             self._holds = {k: hold for k, hold in self._holds.items() if k in self._held}
-            self._kinematic.end_frame()
+            memory.kinematic.end_frame()
             done = targets & np.isfinite(est).all(axis=1)
             if self._max_coast is not None:
                 done &= ~self._extrapolated | (self._unmeasured < self._max_coast)
@@ -337,7 +312,8 @@ class GapFiller:
         one; the others are left unknown): fitted to their visible markers when three or more are, else as placed
         here. ``keep`` stores the two-anchor holds (off for the single-camera pass)."""
         body = self.body
-        assert body is not None
+        memory = self._memory
+        assert body is not None and memory is not None
         cfg = self.config
         n = len(self.labels)
         est = np.full((n, 3), np.nan)
@@ -366,10 +342,10 @@ class GapFiller:
                 for j, other, _, _ in links:
                     if not self._pose_ok[0, other]:
                         continue
-                    rank = (not seen_posed[other], self._twist.spread(k, j) if self._twist else np.inf)
+                    rank = (not seen_posed[other], memory.twist.spread(k, j))
                     if reference is None or rank < best:
                         best, reference = rank, (other, r_all[other], self._pose_r[0, other])
-                learnt = None if nv or not cfg.kinematic_model else self._kinematic.points(
+                learnt = None if nv or not cfg.kinematic_model else memory.kinematic.points(
                     k, [other for _, other, _, _ in links if seen_posed[other]], reference and reference[0],
                     body.offsets[k], r_all, t_all)
                 if not (nv == 0 or cfg.joint_anchors == "partial"):
