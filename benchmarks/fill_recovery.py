@@ -2,11 +2,11 @@
 literature: mocapflow causal and offline next to Burke & Lasenby's low-dimensional Kalman smoother, Gløersen &
 Federolf's PCA reconstruction, and linear and spline interpolation.
 
-Run: python benchmarks/fill_recovery.py [--runs N] [--gap 2 --gap 0.5] [--file NAME]. Per CMU recording of the shared
-data folder and gap length, each run deletes, in 5 markers drawn at random, 1 to 10 gaps each (drawn at random,
-starting anywhere, frame 0 included; gaps of a marker may overlap), fills the recording with every method, and
-scores the mean distance (mm) between the filled and the deleted samples; samples a method leaves unfilled are
-counted apart (``unfilled``) and left out of its mean.
+Run: python benchmarks/fill_recovery.py [--runs N] [--gap 2 --gap 0.5] [--file NAME] [--plot PNG]. Per CMU
+recording of the shared data folder and gap length, each run deletes, in 5 markers drawn at random, 1 to 10 gaps each
+(drawn at random, starting anywhere, frame 0 included; gaps of a marker may overlap), fills the recording with every
+method, and scores the mean distance (mm) between the filled and the deleted samples; samples a method leaves unfilled
+are counted apart (``unfilled``) and left out of its mean.
 
 mocapflow runs with a skeleton calibrated (``mocapflow calibrate``) on the recording with its gaps, as a user would
 have it: ``causal`` is the live filler frame by frame, ``offline`` the same filler both ways (``fill --offline``).
@@ -65,6 +65,7 @@ def main() -> None:
     parser.add_argument("--gap", type=float, action="append", help="gap length in s (repeatable; default 2 and 0.5)")
     parser.add_argument("--file", choices=FILES, action="append", help="only this file (repeatable)")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--plot", help="also draw the table as bars (log scale) into this PNG")
     args = parser.parse_args()
     start = time.perf_counter()
     rows = []
@@ -97,6 +98,31 @@ def main() -> None:
         print(f"{file:<34}{gap_s:>6g}{deleted:>9}" + "".join(
             f"{f'{e:.1f} ({u})':>16}" for e, u in (scores[m] for m in METHODS)))
     print(f"({time.perf_counter() - start:.0f} s wall)")
+    if args.plot:
+        plot(rows, args.plot)
+
+
+def plot(rows: list[tuple[str, float, int, dict[str, tuple[float, int]]]], path: str) -> None:
+    """Mean error per method, one group of bars per file and gap length, log scale."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(11, 4.2))
+    width = 0.8 / len(METHODS)
+    for k, method in enumerate(METHODS):
+        ax.bar(np.arange(len(rows)) + (k - (len(METHODS) - 1) / 2) * width, [r[3][method][0] for r in rows], width,
+               label=method)
+    ax.set_xticks(np.arange(len(rows)), [f"{r[0].removeprefix('cmu_').removesuffix('.c3d')}\n{r[1]:g} s gaps"
+                                         for r in rows], fontsize=8)
+    ax.set_yscale("log")
+    ax.set_ylabel("mean error of the deleted samples (mm)")
+    ax.set_title("MocapRecovery protocol (5 markers, 1-10 gaps each) on the CMU recordings")
+    ax.legend(ncol=len(METHODS), fontsize=8)
+    ax.grid(axis="y", which="both", alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
 
 
 if __name__ == "__main__":
