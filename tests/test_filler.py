@@ -182,11 +182,18 @@ def test_causal(rec: SimRecording) -> None:
 
 
 def test_learns_segments_and_joints_without_skeleton(rec: SimRecording) -> None:
-    """No skeleton: segments, shapes and joints are learned online, then a 3 s gap of one marker is filled."""
+    """No skeleton: segments, shapes and joints (the simulated knees and elbows as hinges) are learned online, then a
+    3 s gap of one marker is filled."""
     hidden = ["LTH2"]
     out, flags, _, idx = fill_gap(rec, None, hidden)
     assert (flags[GAP][:, idx] == FillCase.ONE_MISSING).mean() > 0.95
     assert gap_error(rec, out, idx) < 4.0
+    filler = GapFiller(rec.labels, rec.rate)
+    for frame in rec.positions:
+        filler.update(frame)
+    assert filler.skeleton is not None
+    hinges = {j.name for j in filler.skeleton.joints if j.kind == "hinge"}
+    assert hinges == {"LUA-LFA", "LTH-LSH", "RUA-RFA", "RTH-RSH"}
 
 
 def test_set_skeleton_mid_stream(rec: SimRecording, skeleton: SkeletonModel) -> None:
