@@ -113,13 +113,14 @@ def plot(rows: list[tuple[str, float, int, dict[str, tuple[float, int]]]], path:
     width = 0.8 / len(METHODS)
     for k, method in enumerate(METHODS):
         ax.bar(np.arange(len(rows)) + (k - (len(METHODS) - 1) / 2) * width, [r[3][method][0] for r in rows], width,
-               label=method)
-    ax.set_xticks(np.arange(len(rows)), [f"{r[0].removeprefix('cmu_').removesuffix('.c3d')}\n{r[1]:g} s gaps"
-                                         for r in rows], fontsize=8)
+               label="causal (filled samples only)" if method == "causal" else method)
+    names = [r[0].removeprefix("cmu_").removesuffix(".c3d").replace("_shoot_basketball", "") for r in rows]
+    ax.set_xticks(np.arange(len(rows)), [f"{name}\n{r[1]:g} s gaps" for name, r in zip(names, rows, strict=True)],
+                  fontsize=8)
     ax.set_yscale("log")
     ax.set_ylabel("mean error of the deleted samples (mm)")
     ax.set_title("MocapRecovery protocol (5 markers, 1-10 gaps each) on the CMU recordings")
-    ax.legend(ncol=len(METHODS), fontsize=8)
+    ax.legend(ncol=len(METHODS), fontsize=7)
     ax.grid(axis="y", which="both", alpha=0.3)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
