@@ -72,7 +72,8 @@ class Body:
             self.neighbours[p].append((len(self.joints) - 1, c))
             self.neighbours[c].append((len(self.joints) - 1, p))
         kinds = [j.kind for j in skeleton.joints]
-        for k, links in enumerate(self.neighbours):  # the steadiest reference first: a hinge, then the parent
+        for k, links in enumerate(self.neighbours):  # a hinge first, then the parent: the twist reference until the
+            # twist statistics have samples
             links.sort(key=lambda link: (kinds[link[0]] != "hinge", self.joint(link[0]).child != k))
         # per segment: (joint, neighbour, centre in this segment's frame, centre in the neighbour's frame)
         self.links = [[(j, other, self.joint_offset(j, k), self.joint_offset(j, other)) for j, other in links]
