@@ -78,9 +78,17 @@ def fill_both_ways(
     back = np.where(np.isfinite(ahead.positions).all(-1), back, 1.0)[..., None]
     out = np.where(back > 0, behind.positions[::-1], 0.0) * back + np.where(back < 1, ahead.positions, 0.0) * (1 - back)
     flags = np.where(back[..., 0] > 0.5, behind.flags[::-1], ahead.flags)
-    centres = {name: np.nanmean([ahead.joint_centres[name], behind.joint_centres[name][::-1]], axis=0)
-               for name in ahead.joint_centres} if joints else {}
+    centres = {name: either_or_mean(ahead.joint_centres[name], behind.joint_centres[name][::-1])
+               for name in ahead.joint_centres}
     return FilledRecording(out, flags, centres)
+
+
+def either_or_mean(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(F, 3) the mean of two tracks where both are known, the known one where one is, NaN where neither is."""
+    known_a, known_b = np.isfinite(a).all(-1, keepdims=True), np.isfinite(b).all(-1, keepdims=True)
+    total = np.where(known_a, a, 0.0) + np.where(known_b, b, 0.0)
+    count = known_a.astype(int) + known_b
+    return np.where(count > 0, total / np.maximum(count, 1), np.nan)
 
 
 def backward_weights(missing: np.ndarray) -> np.ndarray:
