@@ -38,6 +38,7 @@ from mocapflow.mocap.rigs import make_rig
 from mocapflow.mocap.simulator import SimulatorConfig, camera_ring, simulate, truth_skeleton
 
 GAP_S = 3.0
+HISTORY_S = 6.0  # frames filled before a gap with a skeleton: more than the filler's 5 s twist and kinematic windows
 RING = camera_ring(8, 4000.0, 2500.0)  # the simulator's camera placement, about the recording's centre
 CASES = ("one missing", "two missing", "all missing", "one on each of two segments", "one-camera, one on each")
 METHODS = ("skeleton", "thesis", "learned", "kalman", "linear", "spline")
@@ -147,9 +148,10 @@ def single_cameras(ds: Dataset, count: int, rng: np.random.Generator) -> np.ndar
 
 def run_filler(ds: Dataset, x: np.ndarray, start: int, stop: int, hidden: list[int], cameras: np.ndarray | None,
                config: FillerConfig, skeleton: SkeletonModel | None) -> tuple[np.ndarray, dict[str, np.ndarray]]:
-    """Fill frames first..stop-1 (first: 1 s before the gap with a skeleton, else 0); filled frames and joints.
+    """Fill frames first..stop-1 (first: ``HISTORY_S`` before the gap with a skeleton, else 0); filled frames and
+    joints.
     With ``cameras`` (one per hidden marker), each hidden marker arrives as the ray from its camera through it."""
-    first = max(start - round(ds.rate), 0) if skeleton is not None else 0
+    first = max(start - round(HISTORY_S * ds.rate), 0) if skeleton is not None else 0
     filler = GapFiller(ds.labels, ds.rate, config, skeleton)
     out = np.full((stop - start, len(ds.labels), 3), np.nan)
     centres: dict[str, np.ndarray] = {}

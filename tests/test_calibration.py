@@ -420,3 +420,60 @@ def test_rigid_shape_rejects_outlier_frames_and_samples() -> None:
     aligned, _ = Rotation.align_vectors(shape.marker_offsets, local)  # the shape is in the reference frame's axes
     assert np.abs(aligned.apply(local) - shape.marker_offsets).max() < 0.2
     assert shape.frames_used < 480 and np.isnan(shape.pose.rotations[7]).all()
+
+
+def _rods_with_rod3_turning(about: np.ndarray | None) -> tuple[SimRecording, np.ndarray, list[list[int]]]:
+    """The rods rig with rod3 turned relative to rod2 about its true joint: by the simulated motion (``about``
+    None: swings of up to 75 deg about all three axes), or only about the one axis ``about`` (40 deg sine)."""
+    rec = _recording("rods")
+    idx = {seg: [i for i, s in enumerate(rec.marker_segment) if s == seg] for seg in ("rod1", "rod2", "rod3")}
+    positions = rec.positions.copy()
+    if about is not None:
+        true = rec.true_positions
+        ref2 = true[0, idx["rod2"]] - true[0, idx["rod2"]].mean(0)
+        centre = rec.joint_centres[:, rec.joint_child.index("rod3")]
+        local3 = true[0, idx["rod3"]] - centre[0]
+        turn_about = Rotation.from_rotvec(np.outer(np.sin(np.arange(len(true)) / 20), np.radians(40.0) * about))
+        noise = np.random.default_rng(1).normal(0, 0.5, (len(true), 3, 3))
+        for f in range(len(true)):
+            turn, _ = Rotation.align_vectors(true[f, idx["rod2"]] - true[f, idx["rod2"]].mean(0), ref2)
+            positions[f, idx["rod3"]] = (turn * turn_about[f]).apply(local3) + centre[f] + noise[f]
+    return rec, positions, list(idx.values())
+
+
+@pytest.mark.parametrize("one_axis", [False, True])
+def test_a_joint_says_whether_its_trial_located_it(one_axis: bool, capsys: pytest.CaptureFixture) -> None:
+    """A joint moved through a full range of motion is located within 5 mm and says so; one turned about a single
+    axis is reported not located, uncertain by over 50 mm, with one line naming it and the motion it lacked."""
+    from mocapflow.commands.calibrate import summary
+
+    rec, positions, groups = _rods_with_rod3_turning(np.array([0.0, 0.0, 1.0]) if one_axis else None)
+    skeleton = build_skeleton(positions, rec.labels, rec.rate, groups, "closed-form")
+    names = [s.name for s in skeleton.segments]
+    joint = next(j for j in skeleton.joints if {j.parent, j.child} == {names[1], names[2]})
+    assert joint.uncertainty_mm is not None
+    lines = [line for line in summary(skeleton).splitlines() if line.startswith(f"joint {joint.name} not located")]
+    if one_axis:
+        assert joint.located is False
+        assert joint.uncertainty_mm > 50
+        assert len(lines) == 1 and "about one axis" in lines[0] and "range-of-motion" in lines[0]
+        return
+    assert joint.located is True and joint.uncertainty_mm < 20 and not lines
+    pose = solve(skeleton, positions, rec.labels)
+    k = skeleton.joints.index(joint)
+    error = np.linalg.norm(pose.joint_centres[:, k] - rec.joint_centres[:, rec.joint_child.index("rod3")], axis=1)
+    assert np.nanmean(error) < 5.0
+
+
+def test_older_skeleton_files_still_read(tmp_path: Path) -> None:
+    """A SKELETON.json written before joints said how sure they are reads with those fields unknown."""
+    from mocapflow.io.skeleton import read_skeleton
+
+    old = {"name": "old", "units": "mm", "root": "a", "segments": [
+        {"name": "a", "markers": ["m1", "m2"], "marker_offsets": [[0, 0, 0], [1, 0, 0]]},
+        {"name": "b", "markers": ["m3", "m4"], "marker_offsets": [[0, 0, 0], [0, 1, 0]]}],
+        "joints": [{"name": "a-b", "parent": "a", "child": "b", "kind": "ball", "parent_offset": [0, 0, 1],
+                    "child_offset": [0, 0, -1]}]}
+    (tmp_path / "old.json").write_text(json.dumps(old))
+    joint = read_skeleton(tmp_path / "old.json").joints[0]
+    assert joint.located is None and joint.uncertainty_mm is None and joint.motion_sd_deg is None

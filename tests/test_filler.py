@@ -70,7 +70,7 @@ def joint_error(rec: SimRecording, centres: np.ndarray, joints: list[str]) -> fl
     ("two missing", [("left_forearm", 0), ("left_forearm", 1)], FillCase.TWO_MISSING, 4.0,
      ["left_elbow", "left_wrist"], 3.0),
     ("all missing, neighbours visible", [("left_shank", i) for i in range(4)], FillCase.VIA_JOINT, 6.0,
-     ["left_knee", "left_ankle"], 3.0),
+     ["left_knee", "left_ankle"], 3.0),  # by its joints alone: the learnt model is tested on its own
     ("one on each of two segments", [("right_thigh", 0), ("right_shank", 1)], FillCase.ONE_MISSING, 3.0,
      ["right_knee"], 3.0),
 ])
@@ -78,7 +78,7 @@ def test_case_error_against_truth(rec: SimRecording, skeleton: SkeletonModel, ca
                                   hidden: list[tuple[str, int]], code: FillCase, bound_mm: float, joints: list[str],
                                   cor_mm: float) -> None:
     names = [markers(skeleton, seg)[i] for seg, i in hidden]
-    out, flags, centres, idx = fill_gap(rec, skeleton, names)
+    out, flags, centres, idx = fill_gap(rec, skeleton, names, config=FillerConfig(kinematic_model=False))
     assert (flags[GAP][:, idx] == code).all(), case
     assert gap_error(rec, out, idx) < bound_mm
     assert joint_error(rec, centres, joints) < cor_mm
@@ -182,11 +182,18 @@ def test_causal(rec: SimRecording) -> None:
 
 
 def test_learns_segments_and_joints_without_skeleton(rec: SimRecording) -> None:
-    """No skeleton: segments, shapes and joints are learned online, then a 3 s gap of one marker is filled."""
+    """No skeleton: segments, shapes and joints (the simulated knees and elbows as hinges) are learned online, then a
+    3 s gap of one marker is filled."""
     hidden = ["LTH2"]
     out, flags, _, idx = fill_gap(rec, None, hidden)
     assert (flags[GAP][:, idx] == FillCase.ONE_MISSING).mean() > 0.95
     assert gap_error(rec, out, idx) < 4.0
+    filler = GapFiller(rec.labels, rec.rate)
+    for frame in rec.positions:
+        filler.update(frame)
+    assert filler.skeleton is not None
+    hinges = {j.name for j in filler.skeleton.joints if j.kind == "hinge"}
+    assert hinges == {"LUA-LFA", "LTH-LSH", "RUA-RFA", "RTH-RSH"}
 
 
 def test_set_skeleton_mid_stream(rec: SimRecording, skeleton: SkeletonModel) -> None:
@@ -412,3 +419,110 @@ def test_a_filler_taking_on_new_markers_keeps_what_it_holds(rec: SimRecording, s
     assert (got.flags[-1] >= FillCase.OBSERVED) and np.isfinite(got.positions[-1]).all()
     with pytest.raises(ValueError, match="do not extend"):
         grown.grow(labels[::-1])
+
+
+def test_twist_reference_is_the_steadiest_neighbour() -> None:
+    """A middle segment whose twist about its own axis swings against its parent but holds against its child (a
+    hinge below, a ball above): the twist statistics rank the child steadier, whichever joint is listed first."""
+    from scipy.spatial.transform import Rotation
+
+    from mocapflow.mocap.filling.twist import TwistSpread, twist_angles
+
+    rng = np.random.default_rng(3)
+    axes = np.tile([0.0, 0.0, 1.0], (3, 1))  # each segment's long axis, in its own frame
+    spread = TwistSpread({0: (0, 1), 1: (1, 2)}, axes, window=50)
+    for f in range(200):
+        parent = Rotation.from_rotvec(rng.normal(0, 0.5, 3)).as_matrix()
+        middle = parent @ Rotation.from_euler("zx", [0.8 * np.sin(f / 7), 0.5 * np.sin(f / 11)]).as_matrix()
+        child = middle @ Rotation.from_euler("x", 1.0 * np.sin(f / 5)).as_matrix()  # a hinge across the axis
+        spread.update(np.stack([parent, middle, child]), np.ones(3, dtype=bool))
+    assert spread.spread(1, 1) < 0.01 < spread.spread(1, 0)
+    # the twist about an axis is what is left of a rotation once the axis is swung back: a pure swing has none
+    swung = Rotation.from_rotvec([0.7, -0.3, 0.0]).as_matrix()
+    assert abs(twist_angles(swung[None], np.eye(3)[None], axes[:1])[0]) < 1e-9
+    twisted = swung @ Rotation.from_euler("z", 0.4).as_matrix()
+    assert twist_angles(twisted[None], np.eye(3)[None], axes[:1])[0] == pytest.approx(0.4)
+
+
+def test_spread_is_unknown_before_any_sample() -> None:
+    from mocapflow.mocap.filling.twist import TwistSpread
+
+    spread = TwistSpread({3: (0, 1)}, np.tile([0.0, 0.0, 1.0], (2, 1)), window=10)
+    spread.update(np.tile(np.eye(3), (2, 1, 1)), np.array([True, False]))
+    assert spread.spread(0, 3) == np.inf
+
+
+def test_offline_fill_uses_both_sides_and_fills_every_sample(tmp_path: Path, rec: SimRecording,
+                                                             skeleton: SkeletonModel) -> None:
+    """``fill --offline``: a whole hidden shank (as well as causally), a lone marker and a whole forearm missing from
+    frame 0 (nothing before them for the causal filler) are filled in every frame; observed samples are kept; the
+    live filler node's configuration cannot ask for the offline fill."""
+    from mocapflow.cli import main
+    from mocapflow.io.markers import MarkerData, read_markers, write_markers
+    from mocapflow.mocap.filling import fill_both_ways
+    from plugins.filler import FillerNodeConfig
+
+    x = rec.positions[:300].copy()
+    shank = [rec.labels.index(m) for m in markers(skeleton, "left_shank")]
+    lone = rec.labels.index("LFA2")
+    x[40:260, shank] = np.nan
+    x[:100, lone] = np.nan
+    forearm = [rec.labels.index(m) for m in markers(skeleton, "right_forearm")]
+    x[:150, forearm] = np.nan  # hidden from the first frame: its shape is known, its pose never was
+    causal, causal_flags = fill_sequence(x, rec.labels, rec.rate, None, skeleton)
+    both = fill_both_ways(x, rec.labels, rec.rate, None, skeleton)
+    assert np.isfinite(both.positions).all()
+    assert (both.flags >= FillCase.OBSERVED).all()
+    assert not np.isfinite(causal[:150, forearm]).all(-1).any()  # the causal filler has nothing before frame 0
+
+    def error(out: np.ndarray, rows: slice, idx: list[int]) -> float:
+        return float(np.linalg.norm(out[rows, idx] - rec.true_positions[rows, idx], axis=-1).mean())
+    assert error(both.positions, slice(40, 260), shank) < min(3.0, error(causal, slice(40, 260), shank) + 0.5)
+    assert error(both.positions, slice(0, 100), [lone]) < 5.0
+    assert error(both.positions, slice(0, 150), forearm) < 10.0
+    observed = np.isfinite(x).all(-1)
+    np.testing.assert_array_equal(both.positions[observed], causal[observed])
+
+    source, out = tmp_path / "in.c3d", tmp_path / "out.c3d"
+    write_markers(source, MarkerData(positions=x, labels=rec.labels, rate=rec.rate))
+    (tmp_path / "skeleton.json").write_text(skeleton.model_dump_json())
+    assert main(["fill", str(source), "-o", str(out), "--skeleton", str(tmp_path / "skeleton.json"), "--offline"]) == 0
+    np.testing.assert_allclose(read_markers(out).positions, both.positions, atol=0.01)
+    with pytest.raises(ValueError, match="offline"):
+        FillerNodeConfig.model_validate({"offline": True})
+
+
+def test_kinematic_model_falls_back_outside_what_it_learnt() -> None:
+    """The learnt regression answers for a configuration like those it learnt from, and refuses (None: the filler
+    falls back to its joints) one beyond them."""
+    from scipy.spatial.transform import Rotation
+
+    from mocapflow.mocap.filling.kinematic import KinematicModel, relative
+
+    angles = np.radians(40) * np.sin(np.arange(300) / 9)  # a knee flexing through +-40 deg
+    r = np.stack([np.tile(np.eye(3), (300, 1, 1)), Rotation.from_euler("x", angles[:, None]).as_matrix()], axis=1)
+    t = np.stack([np.zeros((300, 3)), np.tile([0.0, 0.0, -400.0], (300, 1))], axis=1)
+    features = relative(r, t)
+    targets = np.stack([np.sin(angles / 2) * 200, np.cos(angles / 2) * -200], axis=1)  # where a hidden marker is
+    model = KinematicModel(features, targets)
+    inside = relative(np.stack([np.eye(3), Rotation.from_euler("x", 0.3).as_matrix()])[None], t[:1])[0]
+    assert np.abs(model(inside) - [np.sin(0.15) * 200, np.cos(0.15) * -200]).max() < 3.0
+    beyond = relative(np.stack([np.eye(3), Rotation.from_euler("x", 1.6).as_matrix()])[None], t[:1])[0]
+    assert model(beyond) is None
+    sideways = relative(np.stack([np.eye(3), Rotation.from_euler("y", 0.5).as_matrix()])[None], t[:1])[0]
+    assert model(sideways) is None
+
+
+def test_a_hidden_segment_is_placed_by_its_learnt_model_and_by_its_joints_when_that_has_not_seen_the_motion(
+        rec: SimRecording, skeleton: SkeletonModel) -> None:
+    """A whole shank hidden with thigh and foot visible: the learnt model places it (its own flag) while the motion
+    is like the last seconds', the joints when the novelty test says it is not; both stay close to the truth."""
+    names = markers(skeleton, "left_shank")
+    out, flags, _, idx = fill_gap(rec, skeleton, names)
+    codes = flags[GAP][:, idx]
+    assert (codes == FillCase.LEARNT).mean() > 0.5
+    assert (codes == FillCase.VIA_JOINT).any()
+    assert set(np.unique(codes)) == {FillCase.LEARNT, FillCase.VIA_JOINT}
+    assert gap_error(rec, out, idx) < 3.0
+    rules, rule_flags, _, _ = fill_gap(rec, skeleton, names, config=FillerConfig(kinematic_model=False))
+    assert (rule_flags[GAP][:, idx] == FillCase.VIA_JOINT).all()

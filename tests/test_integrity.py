@@ -180,7 +180,7 @@ def test_commands_refuse_absurd_data(tmp_path: Path) -> None:
 def test_a_wild_sample_does_not_move_other_markers(spike_mm: float) -> None:
     """One sample far off (a reflection, a glitch) while a segment mate is hidden and filled from it: it is treated
     as missing, so the mate is filled near its true position and every other marker exactly as without it."""
-    from mocapflow.mocap.filler import FillerConfig, fill_sequence
+    from mocapflow.mocap.filling import FillerConfig, fill_sequence
     from mocapflow.mocap.simulator import SimulatorConfig, simulate
 
     rec = simulate(SimulatorConfig(rig="human", rate=120, seed=5, dropout_rate=0.0), 600)

@@ -11,14 +11,15 @@ from mocapflow.commands import distinct_output, marker_choice, read_chosen
 from mocapflow.errors import MocapflowError
 
 if TYPE_CHECKING:
-    from mocapflow.mocap.model import SkeletonModel
+    from mocapflow.mocap.model import Joint, SkeletonModel
 
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("calibrate", help="learn a skeleton from labelled marker trajectories (.c3d or .trc)")
     p.add_argument("inputs", nargs="+", metavar="input",
                    help="labelled marker files (.c3d or .trc) of varied motion, one subject with one marker set: "
-                        "every trial given is used (a range-of-motion trial locates the joints best)")
+                        "every trial given is used (a range-of-motion trial locates the joints best: "
+                        "calibrate ROM.c3d TRIAL.c3d)")
     p.add_argument("-o", "--output", required=True, help="skeleton file to write (.json)")
     p.add_argument("--segments", type=int, default=None, metavar="K",
                    help="number of segments (default: found from the data)")
@@ -35,21 +36,42 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def summary(skeleton: SkeletonModel) -> str:
-    """The segments (with how rigid their markers were), joints (with the motion that located them) and root of a
-    skeleton as aligned text tables."""
+    """The segments (with how rigid their markers were), joints (with the motion that located them and how sure
+    their centres are) and root of a skeleton as aligned text tables, then one line per joint the data did not
+    locate, naming the motion it lacked."""
     lines = [f"{'segment':<16} {'markers':>7} {'rigid mm':>8}  labels"]
     for s in skeleton.segments:
         rigid = f"{s.rigidity_mm:>8.2f}" if s.rigidity_mm is not None else f"{'-':>8}"
         lines.append(f"{s.name:<16} {len(s.markers):>7} {rigid}  {' '.join(s.markers)}")
     lines.append("")
-    lines.append(f"{'joint':<32} {'kind':<5} {'motion deg':>10} {'dist mm':>8} {'sd mm':>6}")
+    lines.append(f"{'joint':<32} {'kind':<5} {'motion deg':>10} {'dist mm':>8} {'sd mm':>6} {'uncert mm':>9}")
     for j in skeleton.joints:
         motion = f"{j.rotation_deg:>10.1f}" if j.rotation_deg is not None else f"{'-':>10}"
-        note = "  not located: too little motion" if j.rotation_deg is not None and j.rotation_deg < 2.0 else ""
-        lines.append(f"{j.name:<32} {j.kind:<5} {motion} {j.distance_mean:>8.1f} {j.distance_sd:>6.2f}{note}")
+        sure = f"{j.uncertainty_mm:>9.0f}" if j.uncertainty_mm is not None else f"{'-':>9}"
+        note = "  not located" if j.located is False else ""
+        lines.append(f"{j.name:<32} {j.kind:<5} {motion} {j.distance_mean:>8.1f} {j.distance_sd:>6.2f} {sure}{note}")
     lines.append("")
     lines.append(f"root: {skeleton.root}")
+    lines.extend(not_located(j) for j in skeleton.joints if j.located is False)
     return "\n".join(lines)
+
+
+def not_located(joint: Joint) -> str:
+    """One line naming a joint its data did not locate and the motion they lacked."""
+    from mocapflow.mocap.calibration import MIN_ROTATION_DEG, UNBOUNDED_MM
+
+    uncertain = (f"its centre could be {joint.uncertainty_mm:.0f} mm off along its weakest direction"
+                 if joint.uncertainty_mm is not None and joint.uncertainty_mm < UNBOUNDED_MM else
+                 "nothing fixes its centre")
+    sd = joint.motion_sd_deg
+    if sd is None or sd[0] < MIN_ROTATION_DEG:
+        lacked = f"the segments hardly turned relative to each other ({joint.rotation_deg or 0:.1f} deg RMS)"
+    else:
+        lacked = (f"it turned about one axis ({sd[0]:.0f} deg SD) but only {sd[1]:.0f} and {sd[2]:.0f} deg about "
+                  "the other two")
+    rule = " (a hinge: placed on its axis level with its neighbours)" if joint.kind == "hinge" else ""
+    return (f"joint {joint.name} not located{rule}: {uncertain}; {lacked}. Add a range-of-motion trial (30 deg or "
+            "more of flexion and abduction): mocapflow calibrate ROM.c3d TRIAL.c3d")
 
 
 MAX_MARKERS = 500

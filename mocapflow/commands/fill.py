@@ -1,5 +1,6 @@
-"""``mocapflow fill IN -o OUT [--skeleton SKELETON.json]``: fill marker gaps frame by frame, exactly as the live
-filler would (it never looks ahead), and record in the output's flags how each sample was obtained."""
+"""``mocapflow fill IN -o OUT [--skeleton SKELETON.json] [--offline]``: fill marker gaps frame by frame, exactly as
+the live filler would (it never looks ahead), or with ``--offline`` both ways through the file (the frames after
+each gap used too), and record in the output's flags how each sample was obtained."""
 
 from __future__ import annotations
 
@@ -24,6 +25,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--rays", metavar="FILE.npz",
                    help="single-camera rays per frame and marker: the array 'rays' (frames x markers x 6: origin mm, "
                         "direction; NaN where none) of an .npz file, such as the sidecar `mocapflow simulate` writes")
+    p.add_argument("--offline", action="store_true",
+                   help="use the frames on both sides of every gap: the filler run forwards and backwards, blended "
+                        "across each gap (every marker seen once is filled everywhere); not what a live stream gets")
     p.add_argument("--joints", action="store_true",
                    help="also write the skeleton's joint centres, tracked through occlusions, as extra points")
     marker_choice(p)
@@ -53,7 +57,7 @@ def run(args: argparse.Namespace) -> int:
 
     from mocapflow.io.markers import MarkerData, write_markers
     from mocapflow.io.skeleton import read_skeleton
-    from mocapflow.mocap.filling import FillCase, FillerConfig, fill_recording
+    from mocapflow.mocap.filling import FillCase, FillerConfig, fill_both_ways, fill_recording
     from mocapflow.progress import Reporter
 
     out = distinct_output(args.output, args.input)
@@ -70,7 +74,8 @@ def run(args: argparse.Namespace) -> int:
     rays = read_rays(args.rays, data.positions.shape[:2]) if args.rays else None
 
     joints = [j.name for j in skeleton.joints] if args.joints and skeleton is not None else []
-    positions, flags, centres = fill_recording(data.positions, data.labels, data.rate, config, skeleton, rays=rays,
+    fill = fill_both_ways if args.offline else fill_recording
+    positions, flags, centres = fill(data.positions, data.labels, data.rate, config, skeleton, rays=rays,
                                                joints=joints, progress=Reporter())
 
     extra = dict(data.extra)

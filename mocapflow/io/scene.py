@@ -18,7 +18,7 @@ from typing import TYPE_CHECKING, Final
 import numpy as np
 
 from mocapflow.messages import MarkerFrame, Message, NodeStats, Pose, Segments, Skeleton
-from mocapflow.mocap.filler import FillCase
+from mocapflow.mocap.flags import FillCase
 from mocapflow.mocap.model import SkeletonModel
 
 if TYPE_CHECKING:
@@ -41,6 +41,7 @@ FLAG_COLOURS: Final[dict[int, tuple[int, int, int]]] = {
     FillCase.VIA_JOINT: (230, 60, 200),
     FillCase.CONSTANT_ROTOR: (150, 90, 255),
     FillCase.RAY: (0, 225, 225),
+    FillCase.LEARNT: (90, 200, 90),
 }
 """Estimated samples, by how they were estimated (``FillCase``); observed ones take their segment's colour."""
 OTHER_ESTIMATE: Final = (255, 170, 90)

@@ -14,7 +14,10 @@ The batch pipeline of Schoenauer (2007, chapter 3) with Aristidou's (2008) close
    poses);
 5. rigid parameters: marker and joint offsets averaged over many frames with outlier rejection (3.8.1);
 6. hinges: joints the data locate only up to an axis (an exact hinge, or a knee whose other rotations are too
-   small for its skin artefact), reported with their axis and placed on it level with the neighbouring joints.
+   small for its skin artefact), reported with their axis and placed on it level with the neighbouring joints;
+7. honesty: every joint carries how far its centre could be off along its weakest direction
+   (``CoREstimate.axial_uncertainty``) and whether that is small enough to call it located (``LOCATED_MM``), with the
+   spread of the relative rotations about their principal axes, which says what motion a trial lacked.
 
 The default joint estimator is the closed form: it is as accurate as the variance cost on simulated rigs, two to
 three times faster, and much closer to the clinical knee centres on real skin markers (see
@@ -66,6 +69,12 @@ UNLABELLED_MM = 30.0
 artefact) holds no rigid segment: its labels do not follow the markers."""
 MIN_ROTATION_DEG = 2.0
 """Least RMS rotation between two joined segments for their joint to be located."""
+LOCATED_MM = 20.0
+"""Largest uncertainty (mm) along its weakest direction of a joint reported as located: functional methods reach
+10-20 mm from a range-of-motion trial; gait alone leaves a hip uncertain by over 100 mm along its flexion axis."""
+UNBOUNDED_MM = 10000.0
+"""The uncertainty written for a joint whose data do not bound its centre at all (an exact hinge, a joint too still
+to locate)."""
 CANDIDATES = 3
 """With the variance cost, each segment's joint is optimised towards this many most likely partners (the cheapest
 at the start); other pairs keep their cost at the start, an upper bound, which is far above any real joint's."""
@@ -209,7 +218,7 @@ def build_skeleton(positions: np.ndarray, labels: Sequence[str], rate: float, gr
                                       hinge_placement=hinge_placement, name=name, progress=progress)
             shapes.append(shape)
             offsets.update({(s, e): shape.extra_offsets[j] for j, e in enumerate(attached)})
-        motion = {e: _relative_motion(shapes[e[0]].pose, shapes[e[1]].pose) for e in edges}
+        motion = {e: _relative_motion(shapes[e[0]].pose, shapes[e[1]].pose) for e in edges}  # deg, deg, estimate
         still = [e for e in edges if motion[e][0] < MIN_ROTATION_DEG and e not in fixed]
         if not still or attempt:
             break
@@ -219,7 +228,7 @@ def build_skeleton(positions: np.ndarray, labels: Sequence[str], rate: float, gr
                         "locate it", names[parent], names[child], motion[parent, child][0], MIN_ROTATION_DEG)
             tracks[parent, child] = _closest_track(positions[chosen], groups[parent], groups[child])
         fixed |= set(still)
-    estimates = {e: est for e, (_, est) in motion.items() if est is not None}
+    estimates = {e: est for e, (_, _, est) in motion.items() if est is not None}
     # a hinge needs both segments' orientations (a segment of two markers is posed through its joints, unless they
     # all lie on a line)
     oriented = {e for e in edges if not (shapes[e[0]].in_line or shapes[e[1]].in_line) and e not in fixed
@@ -241,11 +250,14 @@ def build_skeleton(positions: np.ndarray, labels: Sequence[str], rate: float, gr
         pp, pc = shapes[parent].pose, shapes[child].pose
         track = joint_track(pp.matrices(), pp.translations, pc.matrices(), pc.translations, p_off, c_off)
         _, mean, sd = distance_stats(track, positions[chosen][:, list(groups[parent]) + list(groups[child])], ALPHA)
+        uncertainty = UNBOUNDED_MM if est is None or (parent, child) in fixed else min(
+            float(est.axial_uncertainty), UNBOUNDED_MM)
         joints.append(Joint(
             name=f"{names[parent]}-{names[child]}", parent=names[parent], child=names[child],
             kind="hinge" if hinge else "ball", parent_offset=_vec(p_off), child_offset=_vec(c_off),
             axis=_vec(axis) if axis is not None else None, cost=float(costs[parent, child]), distance_mean=mean,
-            distance_sd=sd, rotation_deg=float(motion[parent, child][0])))
+            distance_sd=sd, rotation_deg=float(motion[parent, child][0]), uncertainty_mm=uncertainty,
+            located=uncertainty <= LOCATED_MM, motion_sd_deg=_vec(motion[parent, child][1])))
     spread = distance_spread(positions, pair_frames(rate))
     segments_out = [Segment(name=names[s], markers=[labels[m] for m in g],
                             marker_offsets=[_vec(o) for o in shapes[s].marker_offsets],
@@ -367,13 +379,16 @@ def _offset(est: CoREstimate, edge: tuple[int, int], segment: int) -> np.ndarray
     return est.parent_offset if segment == edge[0] else est.child_offset
 
 
-def _relative_motion(parent: PoseFit, child: PoseFit) -> tuple[float, CoREstimate | None]:
-    """RMS angle (deg) of the child's rotation relative to the parent about its mean, and the closed-form centre
-    of rotation with its hinge test (none without two frames where both poses are known)."""
+def _relative_motion(parent: PoseFit, child: PoseFit) -> tuple[float, np.ndarray, CoREstimate | None]:
+    """RMS angle (deg) of the child's rotation relative to the parent about its mean, its SDs (deg) about its three
+    principal axes (largest first), and the closed-form centre of rotation with its hinge test (none without two
+    frames where both poses are known)."""
     rp, rc = parent.matrices(), child.matrices()
     known = np.isfinite(rp).all((1, 2)) & np.isfinite(rc).all((1, 2))
     if known.sum() < 2:
-        return 0.0, None
+        return 0.0, np.zeros(3), None
     rel = Rotation.from_matrix(np.einsum("fba,fbc->fac", rp[known], rc[known]))
-    spread = float(np.degrees(np.sqrt(np.mean((rel.mean().inv() * rel).magnitude() ** 2))))
-    return spread, closed_form(parent, child)
+    about = (rel.mean().inv() * rel).as_rotvec()
+    spread = float(np.degrees(np.sqrt(np.mean((about**2).sum(axis=1)))))
+    sds = np.degrees(np.sqrt(np.maximum(np.linalg.eigvalsh(about.T @ about / len(about))[::-1], 0.0)))
+    return spread, sds, closed_form(parent, child)

@@ -18,6 +18,7 @@ class FillCase(IntEnum):
     VIA_JOINT = 5  # whole segment hidden, placed through the neighbour's centre of rotation
     CONSTANT_ROTOR = 6  # segment and neighbours hidden: through an estimated neighbour's joint, else constant rotor
     RAY = 7  # seen by a single camera: on its ray
+    LEARNT = 8  # whole segment hidden, placed by the kinematic model learnt from its visible neighbours
 
 
 SampleFlag = FillCase

@@ -50,6 +50,17 @@ class Joint(BaseModel):
         default=None, description="range of motion seen: RMS rotation of the child relative to the parent about "
                                   "its mean (deg); under 2 the joint could not be located and sits between the "
                                   "segments' closest markers")
+    uncertainty_mm: float | None = Field(
+        default=None, description="how far the centre could be off along its weakest direction: the shift a misfit "
+                                  "as large as the fit's residual can cause (mm; 10000: unbounded, as for an exact "
+                                  "hinge or a joint too still to locate)")
+    located: bool | None = Field(
+        default=None, description="whether the data locate the centre (uncertainty within 20 mm); a joint that is "
+                                  "not located sits where a rule put it (on a hinge's axis level with its "
+                                  "neighbours, between the segments' closest markers), not where the data did")
+    motion_sd_deg: Vec3 | None = Field(
+        default=None, description="SD of the child's rotation relative to the parent about the three principal axes "
+                                  "of that rotation, largest first (deg): what motion the data held")
 
 
 class SegmentModel(BaseModel):

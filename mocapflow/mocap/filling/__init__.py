@@ -23,11 +23,15 @@ Changes to the thesis, each backed by its results (tables 6.1-6.6) or needed for
 - A centre of rotation is one more anchor point of its segment, also while one or two of its markers remain visible
   (``joint_anchors="partial"``; the thesis's use, whole segment hidden only, is ``"hidden"``). With a skeleton this
   is the largest gain: the rotation about the line through two visible markers is otherwise unknown.
-- The rotation left free by fewer than three anchors is held relative to the steadiest posed neighbour (a hinge
-  first, then the parent), not extrapolated in the world: a held joint angle errs far less than a constant rotor
+- The rotation left free by fewer than three anchors is held relative to the posed neighbour the segment's twist has
+  varied least with over the last seconds (``twist``; a hinge first, then the parent, until the data say), not
+  extrapolated in the world: a held joint angle errs far less than a constant rotor
   over seconds (``hidden_rotation``). With two anchors the hold is a swing-twist split about the anchor line taken
   when the gap starts, so the twist cannot creep as the line moves (a frame-to-frame minimal rotation accumulates
   holonomy over a walking cycle).
+- A whole hidden segment with two or more visible neighbours is also anchored on where a kinematic model learnt over
+  the last seconds puts its markers (``kinematic``: a regression on the neighbours' relative poses, used only for
+  configurations like those it learnt; code 8, ``FillCase.LEARNT``).
 - A single-camera marker is also slid along its ray to match its distances to the visible markers of its segment,
   with the projected estimate as a prior (appendices D and E combined with 5.3.5: ``ray_distances``).
 - Joint centres (tables 6.1, 6.2): from the side whose markers are all visible when only one is, the mean of both
@@ -37,7 +41,9 @@ Changes to the thesis, each backed by its results (tables 6.1-6.6) or needed for
   (``coast_decay_s``) and is given up after ``extrapolate_max_s``, rather than flying off for seconds.
 
 The filler never reads a future frame: ``update`` uses the current frame and its own state only, so filling a
-recording frame by frame (``fill_sequence``) gives exactly what a live stream would have given.
+recording frame by frame (``fill_sequence``) gives exactly what a live stream would have given. A file may also be
+filled both ways (``fill_both_ways``, ``mocapflow fill --offline``): the same filler run forwards and backwards, blended
+across each gap, which uses the frames after a gap as no live stream can.
 """
 
 
@@ -45,7 +51,7 @@ from mocapflow.mocap.filling.config import FillCase, FillerConfig, FillResult
 from mocapflow.mocap.filling.filter import GapFiller
 from mocapflow.mocap.filling.geometry import nearest_on_circle, project_on_rays
 from mocapflow.mocap.filling.learner import is_complete
-from mocapflow.mocap.filling.offline import FilledRecording, fill_recording, fill_sequence
+from mocapflow.mocap.filling.offline import FilledRecording, fill_both_ways, fill_recording, fill_sequence
 
-__all__ = ["FillCase", "FillResult", "FilledRecording", "FillerConfig", "GapFiller", "fill_recording", "fill_sequence",
-           "is_complete", "nearest_on_circle", "project_on_rays"]
+__all__ = ["FillCase", "FillResult", "FilledRecording", "FillerConfig", "GapFiller", "fill_both_ways", "fill_recording",
+           "fill_sequence", "is_complete", "nearest_on_circle", "project_on_rays"]

@@ -72,7 +72,8 @@ class Body:
             self.neighbours[p].append((len(self.joints) - 1, c))
             self.neighbours[c].append((len(self.joints) - 1, p))
         kinds = [j.kind for j in skeleton.joints]
-        for k, links in enumerate(self.neighbours):  # the steadiest reference first: a hinge, then the parent
+        for k, links in enumerate(self.neighbours):  # a hinge first, then the parent: the twist reference until the
+            # twist statistics have samples
             links.sort(key=lambda link: (kinds[link[0]] != "hinge", self.joint(link[0]).child != k))
         # per segment: (joint, neighbour, centre in this segment's frame, centre in the neighbour's frame)
         self.links = [[(j, other, self.joint_offset(j, k), self.joint_offset(j, other)) for j, other in links]
@@ -196,3 +197,10 @@ def joint_centres(body: Body, poses: tuple[np.ndarray, np.ndarray, np.ndarray], 
     centre = np.einsum("jk,jki->ji", weight, ends) / np.maximum(total, 1)[:, None]
     out[body.joint_usable] = np.where(total[:, None] > 0, centre, np.nan)
     return out
+
+
+def same_segments(a: Body, b: Body) -> bool:
+    """Whether two bodies have the same segments, markers and shapes (their poses in a frame are the same)."""
+    return len(a.members) == len(b.members) and all(
+        np.array_equal(ma, mb) and np.array_equal(oa, ob)
+        for ma, mb, oa, ob in zip(a.members, b.members, a.offsets, b.offsets, strict=True))

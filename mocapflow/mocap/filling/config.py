@@ -40,6 +40,21 @@ class FillerConfig(BaseModel):
         "joint", description="rotation of a segment placed through a single anchor: keep its rotation relative to "
         "the posed neighbour (joint angles held), or turn on by its last rotor in the world (the thesis's constant "
         "rotor)")
+    pose_sample_hz: float = Field(
+        10.0, gt=0, description="rate at which the segments' poses are sampled for the twist statistics and the "
+        "kinematic models (the frame rate at most)")
+    twist_window_s: float = Field(
+        5.0, gt=0, description="seconds over which each segment's twist relative to each neighbour is averaged: a "
+        "segment placed through its joints holds its twist relative to the neighbour it varied least with")
+    kinematic_model: bool = Field(
+        True, description="place a whole hidden segment by a regression of its markers in a visible neighbour's "
+        "frame on the other visible neighbours' poses, learnt over the last kinematic_window_s, while the present "
+        "configuration lies inside what was learnt (else through its joints)")
+    kinematic_window_s: float = Field(5.0, gt=0, description="seconds of past frames the kinematic model learns from")
+    kinematic_sd: float = Field(2.0, gt=0, description="noise of an estimate by the learnt kinematic model (mm)")
+    novelty: float = Field(
+        1.5, gt=0, description="a configuration is new to the kinematic model when its Mahalanobis distance to the "
+        "learnt ones exceeds this many times the largest among them")
     coast_decay_s: float | None = Field(
         0.25, gt=0, description="time constant (s) of the velocity decay of a marker tracked by its filter alone")
     extrapolate_max_s: float | None = Field(

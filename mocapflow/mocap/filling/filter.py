@@ -19,8 +19,9 @@ from mocapflow.mocap.filling.config import (
     FillerConfig,
     FillResult,
 )
-from mocapflow.mocap.filling.geometry import nearest_on_circle, project_on_rays, swing, unit
+from mocapflow.mocap.filling.geometry import nearest_on_circle, project_on_rays, slide_on_rays, swing, unit
 from mocapflow.mocap.filling.learner import SkeletonLearner, is_complete
+from mocapflow.mocap.filling.memory import MotionMemory
 from mocapflow.mocap.kalman import ConstantVelocityBank
 from mocapflow.mocap.markerset import added
 from mocapflow.mocap.model import SkeletonModel
@@ -60,7 +61,8 @@ class GapFiller:
         self._coast_gain = np.exp(-dt / cfg.coast_decay_s) if cfg.coast_decay_s else 1.0
         self._max_coast = round(cfg.extrapolate_max_s * self.rate) if cfg.extrapolate_max_s else None
         self._variance = np.array([1.0, cfg.observed_sd, 1.0, cfg.rigid_sd, cfg.offset_sd, cfg.joint_sd,
-                                   cfg.rotor_sd, cfg.ray_sd]) ** 2  # per FillCase; unused where nothing is measured
+                                   cfg.rotor_sd, cfg.ray_sd, cfg.kinematic_sd]) ** 2  # per FillCase (unused where
+        # nothing is measured)
         self._unmeasured = np.zeros(n, dtype=np.int64)  # frames since a marker was last seen or anchored
         self._extrapolated = np.zeros(n, dtype=bool)  # this frame: predicted from its past alone (a constant rotor
         # with no anchor, or its filter along its ray)
@@ -76,6 +78,9 @@ class GapFiller:
         self._holds: dict[int, Hold] = {}
         self._held: set[int] = set()  # segments whose hold was used this frame
         self._given: SkeletonModel | None = None  # the model given from outside, if any
+        self._memory: MotionMemory | None = None  # of the body in use
+        self._kinematic_weight = cfg.joint_weight * (cfg.joint_sd / cfg.kinematic_sd) ** 2  # a learnt marker's
+        # weight in a fit, next to a joint's
         if skeleton is not None:
             self.set_skeleton(skeleton)
         elif cfg.learn:
@@ -128,6 +133,7 @@ class GapFiller:
         self._holds = {}
         self.body = Body(skeleton, self.labels)
         s = len(self.body.members)
+        self._memory = MotionMemory(self.body, self.rate, self.config, self._memory)
         self._pose_r = np.zeros((2, s, 3, 3))
         self._pose_t = np.zeros((2, s, 3))
         self._pose_ok = np.zeros((2, s), dtype=bool)
@@ -193,15 +199,18 @@ class GapFiller:
         self._last[1] = self._last[0]
         self._last[0] = z
         centres: np.ndarray | Callable[[], np.ndarray] | None = None
-        if body is not None:
+        memory = self._memory
+        if body is not None and memory is not None:
             self._pose_r[1], self._pose_t[1], self._pose_ok[1] = self._pose_r[0], self._pose_t[0], self._pose_ok[0]
             self._pose_fresh[1] = self._pose_fresh[0]
             if poses is None:  # no segment lost a marker: the fit waits until a gap or a reader needs it
                 self._pose_fresh[0] = False
-                self._holds.clear()  # a later gap starts its own holds
+                self._holds.clear()  # a later gap starts its own holds and models
+                memory.kinematic.forget()
             else:  # the constraint's own poses around the gaps, so estimates cannot creep through the filter's lag
                 self._pose_r[0], self._pose_t[0], self._pose_ok[0], self._pose_fresh[0] = poses
             centres = self._centres_later(z, flags)
+            memory.observe(z, seen)
         if self._learner is not None:  # a new model is taken up from the next frame, so the result and
             # ``joint_names`` keep describing the same body until then
             self._pending = self._learner.observe(z, seen, flags, body, self._current_poses) or self._pending
@@ -265,18 +274,23 @@ class GapFiller:
                 self._extrapolated |= ok & ~anchored  # nothing holds it along its ray: there it coasts to rest
                 z[ok] = project_on_rays(guess[ok], rays[ok])
                 if body is not None and self.config.ray_distances:
-                    self._fit_rays(z, seen, rays, np.flatnonzero(ok & body.in_segment))
+                    slide_on_rays(z, seen, rays, np.flatnonzero(ok & body.in_segment), body.marker_seg,
+                                  body.members, body.offsets, (self.config.observed_sd / self.config.ray_sd) ** 2)
                 flags[ok] = FillCase.RAY
                 visible |= ok
         poses = None
         if body is not None:
             targets = ~visible & body.in_segment
             self._held = set()
+            memory = self._memory
+            assert memory is not None
+            memory.kinematic.start_frame()
             est, codes, (r, t, posed) = self._constrain(z, visible, prior, targets, near, keep=True)
             fresh = np.zeros(len(body.members), dtype=bool)
             fresh[near] = True
             poses = r, t, posed, fresh
             self._holds = {k: hold for k, hold in self._holds.items() if k in self._held}
+            memory.kinematic.end_frame()
             done = targets & np.isfinite(est).all(axis=1)
             if self._max_coast is not None:
                 done &= ~self._extrapolated | (self._unmeasured < self._max_coast)
@@ -289,37 +303,6 @@ class GapFiller:
         flags[lone] = CASE_KALMAN
         return poses
 
-    def _fit_rays(self, z: np.ndarray, seen: np.ndarray, rays: np.ndarray, rows: np.ndarray) -> None:
-        """Slide each single-camera marker along its ray to the point whose distances to the observed markers of its
-        segment best match the segment's shape, held near its projected estimate (a few Gauss-Newton steps on the
-        ray parameter). This is the line-circle (appendix D) and line-sphere (appendix E) solutions with the
-        projected estimate of 5.3.5 as a prior, which picks the right intersection and steadies the near-tangent
-        cases that made the thesis prefer the projection alone."""
-        body = self.body
-        assert body is not None
-        prior_weight = (self.config.observed_sd / self.config.ray_sd) ** 2
-        for i in rows:
-            k = body.marker_seg[i]
-            members = body.members[k]
-            vis = seen[members]
-            if not vis.any():
-                continue
-            slot = int(np.flatnonzero(members == i)[0])
-            anchors = z[members[vis]]
-            radii = np.linalg.norm(body.offsets[k][vis] - body.offsets[k][slot], axis=1)
-            origin, direction = rays[i, :3], unit(rays[i, 3:])
-            start = float((z[i] - origin) @ direction)
-            ray_s = start
-            for _ in range(5):
-                diff = origin + ray_s * direction - anchors
-                dist = np.maximum(np.linalg.norm(diff, axis=1), 1e-9)
-                grad = diff @ direction / dist
-                step = -((dist - radii) @ grad + prior_weight * (ray_s - start)) / (grad @ grad + prior_weight)
-                ray_s += step
-                if abs(step) < 1e-4:
-                    break
-            z[i] = origin + ray_s * direction
-
     def _constrain(
         self, filled: np.ndarray, visible: np.ndarray, prior: np.ndarray, targets: np.ndarray, near: np.ndarray,
         keep: bool,
@@ -329,7 +312,8 @@ class GapFiller:
         one; the others are left unknown): fitted to their visible markers when three or more are, else as placed
         here. ``keep`` stores the two-anchor holds (off for the single-camera pass)."""
         body = self.body
-        assert body is not None
+        memory = self._memory
+        assert body is not None and memory is not None
         cfg = self.config
         n = len(self.labels)
         est = np.full((n, 3), np.nan)
@@ -353,10 +337,17 @@ class GapFiller:
                 seen_rows, seen_offsets, seen_names, miss, hit = layout.parts[k]
                 nv = int(seg_vis[k])
                 links = [link for link in body.links[k] if posed[link[1]]]
-                reference = None  # the first posed neighbour, preferring one placed with its own markers seen
-                for _, other, _, _ in links:
-                    if self._pose_ok[0, other] and (reference is None or seen_posed[other] > seen_posed[reference[0]]):
-                        reference = (other, r_all[other], self._pose_r[0, other])
+                reference = None  # a posed neighbour, preferring one placed with its own markers seen, then the
+                best = (True, np.inf)  # one whose twist relative to this segment has varied least
+                for j, other, _, _ in links:
+                    if not self._pose_ok[0, other]:
+                        continue
+                    rank = (not seen_posed[other], memory.twist.spread(k, j))
+                    if reference is None or rank < best:
+                        best, reference = rank, (other, r_all[other], self._pose_r[0, other])
+                learnt = None if nv or not cfg.kinematic_model else memory.kinematic.points(
+                    k, [other for _, other, _, _ in links if seen_posed[other]], reference and reference[0],
+                    body.offsets[k], r_all, t_all)
                 if not (nv == 0 or cfg.joint_anchors == "partial"):
                     links = []
                 m = nv + len(links)
@@ -367,6 +358,9 @@ class GapFiller:
                 for i, (_, other, own, theirs) in enumerate(links, start=nv):
                     p[i], a[i], w[i] = r_all[other] @ theirs + t_all[other], own, cfg.joint_weight
                 anchors = tuple(seen_names + [("joint", j) for j, *_ in links])
+                if learnt is not None:  # the learnt markers join the joints: they fix the twist the joints leave
+                    p, a = np.concatenate([p, learnt]), np.concatenate([a, body.offsets[k]])
+                    w = np.concatenate([w, np.full(len(learnt), self._kinematic_weight)])
                 via_seen = any(seen_posed[other] for _, other, _, _ in links)
                 pending.remove(k)
                 progress = True
@@ -375,7 +369,9 @@ class GapFiller:
                     continue
                 r, t, points_on_circle = placed
                 est[miss] = (points_on_circle if points_on_circle is not None else body.offsets[k] @ r.T + t)[hit]
-                if seg_vis[k] >= 2:
+                if learnt is not None:
+                    codes[miss] = FillCase.LEARNT
+                elif seg_vis[k] >= 2:
                     codes[miss] = FillCase.ONE_MISSING
                 elif seg_vis[k] == 1:
                     codes[miss] = FillCase.TWO_MISSING

@@ -1,5 +1,6 @@
 """Small geometry of the constraint cases: the two-sphere circle (appendix C), the minimal rotation between two
-directions and the projection on a camera ray (5.3.5)."""
+directions, and a camera ray: the projection on it (5.3.5) and the slide along it to a segment's shape (appendices D,
+E)."""
 
 from __future__ import annotations
 
@@ -57,3 +58,33 @@ def project_on_rays(points: np.ndarray, rays: np.ndarray) -> np.ndarray:
     direction = direction / np.linalg.norm(direction, axis=-1, keepdims=True)
     return origin + np.einsum("ki,ki->k", points - origin, direction)[:, None] * direction
 
+
+
+def slide_on_rays(z: np.ndarray, seen: np.ndarray, rays: np.ndarray, rows: np.ndarray, marker_seg: np.ndarray,
+                  members: list[np.ndarray], offsets: list[np.ndarray], prior_weight: float) -> None:
+    """Slide each single-camera marker ``rows`` of ``z`` (N, 3) along its ray to the point whose distances to the
+    ``seen`` markers of its segment best match the segment's shape (``members``, ``offsets`` per segment,
+    ``marker_seg`` per marker), held near its projected estimate with ``prior_weight`` (a few Gauss-Newton steps on
+    the ray parameter). This is the line-circle (appendix D) and line-sphere (appendix E) solutions with the
+    projected estimate of 5.3.5 as a prior, which picks the right intersection and steadies the near-tangent cases
+    that made the thesis prefer the projection alone."""
+    for i in rows:
+        k = marker_seg[i]
+        vis = seen[members[k]]
+        if not vis.any():
+            continue
+        slot = int(np.flatnonzero(members[k] == i)[0])
+        anchors = z[members[k][vis]]
+        radii = np.linalg.norm(offsets[k][vis] - offsets[k][slot], axis=1)
+        origin, direction = rays[i, :3], unit(rays[i, 3:])
+        start = float((z[i] - origin) @ direction)
+        ray_s = start
+        for _ in range(5):
+            diff = origin + ray_s * direction - anchors
+            dist = np.maximum(np.linalg.norm(diff, axis=1), 1e-9)
+            grad = diff @ direction / dist
+            step = -((dist - radii) @ grad + prior_weight * (ray_s - start)) / (grad @ grad + prior_weight)
+            ray_s += step
+            if abs(step) < 1e-4:
+                break
+        z[i] = origin + ray_s * direction

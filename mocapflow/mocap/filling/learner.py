@@ -32,7 +32,8 @@ class SkeletonLearner:
       three known ones. Unless given.
     - Joints: for every two segments, the closed-form centre of rotation (``cor.SequentialCoR``, Aristidou 4.4) fed
       with the poses of the frames allowed by ``update_joint_offsets``; the joints kept are the minimum spanning
-      forest of the fit residuals among the pairs that turned enough relative to each other. A skeleton's own joints
+      forest of the fit residuals among the pairs that turned enough relative to each other, hinges where the
+      relative rotations keep to one axis (``CoREstimate.is_hinge``). A skeleton's own joints
       keep their pairs and, when given, their offsets.
     """
 
@@ -74,7 +75,8 @@ class SkeletonLearner:
         self.fed: dict[tuple[int, int], int] = {}  # per segment pair: batches already fed to its estimator
         self.queue: list[tuple[int, int]] = []  # pairs still to update in this round, a few per frame
         self.per_frame = 1
-        self.found: dict[tuple[int, int], tuple[np.ndarray, np.ndarray, float]] = {}
+        self.found: dict[tuple[int, int], tuple[np.ndarray, np.ndarray, float, bool]] = {}  # offsets, residual,
+        # hinge
         self.body_groups: list[tuple[int, ...]] = []
         self.joints: list[Joint] = [j for j in self.given_joints or [] if j.parent_offset is not None
                                     and j.child_offset is not None]
@@ -190,7 +192,7 @@ class SkeletonLearner:
         if spread < self.min_spread**2:
             return  # they turned too little relative to each other: any point fits
         est = cor.estimate()
-        self.found[a, b] = (est.parent_offset, est.child_offset, est.residual)
+        self.found[a, b] = (est.parent_offset, est.child_offset, est.residual, est.is_hinge)
 
     def _select_joints(self) -> list[Joint]:
         """The joints of this round: the given pairs, or the minimum spanning forest of the fit residuals."""
@@ -198,18 +200,18 @@ class SkeletonLearner:
         found = self.found
         if self.given_joints is None:
             costs = np.zeros((len(groups), len(groups)))
-            for (a, b), (_, _, residual) in found.items():
+            for (a, b), (_, _, residual, _) in found.items():
                 costs[a, b] = residual + 1e-9  # csgraph reads 0 as no edge
             tree = minimum_spanning_tree(costs).tocoo()
             kept = {(int(a), int(b)) for a, b in zip(tree.row, tree.col, strict=True)}
             found = {pair: estimate for pair, estimate in found.items() if pair in kept}
         given = {(j.parent, j.child): j for j in self.given_joints or []}
         joints = [j for j in self.given_joints or [] if j.parent_offset is not None and j.child_offset is not None]
-        for (a, b), (pa, ch, _) in sorted(found.items()):
+        for (a, b), (pa, ch, _, hinge) in sorted(found.items()):
             parent, child = self.names[groups[a]], self.names[groups[b]]
             known = given.get((parent, child))
             joints.append(Joint(name=known.name if known else f"{parent}-{child}", parent=parent, child=child,
-                                kind=known.kind if known else "ball", parent_offset=as_vector(pa),
+                                kind=known.kind if known else "hinge" if hinge else "ball", parent_offset=as_vector(pa),
                                 child_offset=as_vector(ch)))
         return joints
 

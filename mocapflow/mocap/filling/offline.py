@@ -1,5 +1,5 @@
 """The filler over a whole recording: frame by frame, exactly as a live stream would be filled (the commands, the
-tests and the benchmarks all drive it through here)."""
+tests and the benchmarks all drive it through here), or, for a file, both ways (``fill_both_ways``)."""
 
 from __future__ import annotations
 
@@ -52,3 +52,58 @@ def fill_sequence(
     """``fill_recording``'s positions and flags."""
     filled = fill_recording(positions, labels, rate, config, skeleton)
     return filled.positions, filled.flags
+
+
+def fill_both_ways(
+    positions: np.ndarray, labels: list[str], rate: float, config: FillerConfig | None = None,
+    skeleton: SkeletonModel | None = None, *, rays: np.ndarray | None = None, joints: Sequence[str] = (),
+    progress: Progress | None = None,
+) -> FilledRecording:
+    """Fill a recording with the frames on both sides of every gap: the same causal filler run forwards and
+    backwards in time, blended across each gap from the forward estimate at its start to the backward one at its end.
+
+    A gap at the start of the recording is the backward pass's alone, one at the end the forward pass's. Neither pass
+    gives a marker up (``extrapolate_max_s``): a marker the constraints cannot place coasts to rest from each side,
+    and the blend of the two is a straight line across the gap, so every marker seen once is filled in every frame.
+    A sample's flag is that of the pass with the larger weight. Files only: a live stream has no frames after a gap.
+    """
+    positions = np.asarray(positions, dtype=float)
+    config = (config or FillerConfig()).model_copy(update={"extrapolate_max_s": None})
+    reverse = None if rays is None else rays[::-1]
+    ahead = fill_recording(positions, labels, rate, config, skeleton, rays=rays, joints=joints, progress=progress)
+    behind = fill_recording(positions[::-1], labels, rate, config, skeleton, rays=reverse, joints=joints,
+                            progress=progress)
+    back = backward_weights(~np.isfinite(positions).all(axis=-1))
+    back = np.where(np.isfinite(behind.positions[::-1]).all(-1), back, 0.0)
+    back = np.where(np.isfinite(ahead.positions).all(-1), back, 1.0)[..., None]
+    out = np.where(back > 0, behind.positions[::-1], 0.0) * back + np.where(back < 1, ahead.positions, 0.0) * (1 - back)
+    flags = np.where(back[..., 0] > 0.5, behind.flags[::-1], ahead.flags)
+    centres = {name: either_or_mean(ahead.joint_centres[name], behind.joint_centres[name][::-1])
+               for name in ahead.joint_centres}
+    return FilledRecording(out, flags, centres)
+
+
+def either_or_mean(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(F, 3) the mean of two tracks where both are known, the known one where one is, NaN where neither is."""
+    known_a, known_b = np.isfinite(a).all(-1, keepdims=True), np.isfinite(b).all(-1, keepdims=True)
+    total = np.where(known_a, a, 0.0) + np.where(known_b, b, 0.0)
+    count = known_a.astype(int) + known_b
+    return np.where(count > 0, total / np.maximum(count, 1), np.nan)
+
+
+def backward_weights(missing: np.ndarray) -> np.ndarray:
+    """(F, N) the backward pass's weight per sample: 0 where observed, rising linearly across each gap of a marker
+    from just above 0 after its last sighting to just below 1 before its next; 1 throughout a gap at the start, 0
+    throughout one at the end (and 1/2 for a marker never seen)."""
+    frames, n = missing.shape
+    weight = np.zeros((frames, n))
+    for m in range(n):
+        edges = np.flatnonzero(np.diff(np.concatenate([[0], missing[:, m].astype(np.int8), [0]])))
+        for start, stop in zip(edges[::2], edges[1::2], strict=True):
+            if start == 0 and stop == frames:
+                weight[:, m] = 0.5
+            elif start == 0:
+                weight[:stop, m] = 1.0
+            elif stop < frames:
+                weight[start:stop, m] = np.arange(1, stop - start + 1) / (stop - start + 1)
+    return weight
