@@ -48,6 +48,8 @@ class ModelLabellerConfig:
     weak_gate_mm: float = 150.0  # the same for a segment posed from two points and its previous pose
     joint_mm: float = 40.0  # largest distance between a joint centre placed by each of its two segments
     max_coast_s: float = 0.1  # a marker whose segment has no pose is coasted at constant velocity this long
+    recent_s: float = 2.0  # a segment posed this recently is looked for near where it was (see _place_layout)
+    max_speed_mm_s: float = 3000.0  # fastest a segment moves, bounding where to look for it
     velocity_smoothing: float = 0.7
 
 
@@ -96,6 +98,8 @@ class ModelLabeller:
         # how surely each segment was posed this frame: 0 by three markers or more, 1 through joints, 2 with a turn
         # left to its previous pose (3: not posed)
         self._level = np.full(len(self.segments), 3)
+        self._last_seen = np.full((len(self.segments), 3), np.nan)  # where each segment was last posed
+        self._last_time = np.full(len(self.segments), -np.inf)
         self._time = -np.inf
 
     def update(self, points: np.ndarray, time: float) -> tuple[np.ndarray, np.ndarray]:
@@ -129,6 +133,9 @@ class ModelLabeller:
                 break
         self._observe(cur, time)
         self.pose = poses
+        for s, pose in enumerate(poses):
+            if pose is not None and self._level[s] < 2:
+                self._last_seen[s], self._last_time[s] = pose[1], time
         point_marker = np.full(len(pts), -1, np.intp)
         point_marker[rows] = taken
         return cur, point_marker
@@ -149,9 +156,14 @@ class ModelLabeller:
                     fitted = self._fit(s, seg, poses, cur, level)
                     if fitted is None:
                         continue
-                    rot, shift = fitted
+                    rot, shift, joint_error = fitted
                     seen = np.isfinite(cur[seg.markers, 0])
                     error = np.where(seen, np.linalg.norm(seg.local @ rot.T + shift - cur[seg.markers], axis=1), 0.0)
+                    if joint_error > cfg.joint_mm:  # markers swapped, or taken by ghosts: the search decides
+                        taken[np.isin(taken, seg.markers)] = -1
+                        cur[seg.markers] = np.nan
+                        self.streak[seg.markers] = 0
+                        continue
                     if (error > cfg.fit_mm).any():  # the worst one goes; the others decide again
                         worst = seg.markers[np.argmax(error)]
                         taken[taken == worst] = -1
@@ -159,15 +171,16 @@ class ModelLabeller:
                         self.streak[worst] = 0
                         progress = True
                         continue
-                    poses[s] = fitted
+                    poses[s] = (rot, shift)
                     self._level[s] = level
                     any_posed = progress = True
         return any_posed
 
     def _fit(self, s: int, seg: _Segment, poses: list, cur: np.ndarray,
-             level: int) -> tuple[np.ndarray, np.ndarray] | None:
+             level: int) -> tuple[np.ndarray, np.ndarray, float] | None:
         """Segment ``s``'s pose from its matched markers alone (``level`` 0: three or more), with the centres of its
-        joints to posed segments (1: three points or more; 2: two, with its previous pose), or None."""
+        joints to surely posed segments (1: three points or more; 2: two, with its previous pose), or None; and how
+        far the fit puts the farthest joint centre from where its neighbour does."""
         seen = np.isfinite(cur[seg.markers, 0])
         n_seen = int(seen.sum())
         local = [seg.local[seen]]
@@ -190,15 +203,24 @@ class ModelLabeller:
                 local.append(seg.local)
                 world.append(seg.local @ before[0].T + before[1])
                 weight.append(np.full(len(seg.local), PRIOR_WEIGHT))
-        return fit_one(np.concatenate(local), np.concatenate(world), np.concatenate(weight))
+        fitted = fit_one(np.concatenate(local), np.concatenate(world), np.concatenate(weight))
+        if fitted is None:
+            return None
+        rot, shift = fitted
+        joints = len(local) - 1 - (n_seen < 3 and self.pose[s] is not None)
+        if n_seen >= 3 or joints <= 0:
+            return rot, shift, 0.0
+        here, there = np.concatenate(local[1:1 + joints]), np.concatenate(world[1:1 + joints])
+        return rot, shift, float(np.linalg.norm(here @ rot.T + shift - there, axis=1).max())
 
     def _take_predicted(self, poses: list, cur: np.ndarray, taken: np.ndarray, z: np.ndarray, time: float) -> None:
         """Give the points left over to the unmatched markers predicted by their segment's pose, or, for a segment
         with no pose, by a short constant-velocity coast.
 
-        A segment posed from two points and its previous pose may have turned about their line since: its markers
-        take a point within ``weak_gate_mm`` of the prediction, but only one keeping the layout's distances (within
-        ``fit_mm``) to the segment's markers seen now.
+        A segment posed through its joints, or from two points and its previous pose, may be turned some way from
+        the fit: its markers take a point within ``weak_gate_mm`` of the prediction, but only one keeping the
+        layout's distances to the segment's markers seen now (within ``fit_mm``) and to its joint centres (within
+        ``joint_mm``), and only where neither the point nor the marker has another such candidate.
         """
         cfg = self.config
         missing = np.flatnonzero(np.isnan(cur[:, 0]))
@@ -225,7 +247,9 @@ class ModelLabeller:
                 tol = np.array([cfg.fit_mm] * len(seen) + [cfg.joint_mm] * (len(here) - 1))
                 want = cdist(seg.local[rows], np.concatenate(here))  # (slots, references)
                 have = cdist(z[free], np.concatenate(there))  # (free, references)
-                allowed[slot] = (np.abs(have[None] - want[:, None]) < tol).all(axis=2)
+                fits = (np.abs(have[None] - want[:, None]) < tol).all(axis=2)
+                # a point that could be two of its markers, or a marker that could take two points, is left alone
+                allowed[slot] = fits & (fits.sum(axis=0, keepdims=True) == 1) & (fits.sum(axis=1, keepdims=True) == 1)
         dt = time - self.last[missing]
         coast = np.isnan(pred[:, 0]) & (dt <= cfg.max_coast_s)
         pred[coast] = self.pos[missing[coast]] + self.vel[missing[coast]] * dt[coast, None]
@@ -238,9 +262,9 @@ class ModelLabeller:
         taken[free[fi]] = missing[known[mi]]
 
     def _search(self, poses: list, cur: np.ndarray, taken: np.ndarray, z: np.ndarray, searched: dict) -> bool:
-        """Look for each segment with no pose and three markers or more among the points left over by its layout,
-        its joint centres to posed segments kept within ``joint_mm``; True when one was placed. A segment is searched
-        again in a frame only when more of its neighbours got posed."""
+        """Look for each segment with no pose among the points left over and those of its own markers matched so far
+        by its layout (``_place_layout``), its joint centres to surely posed segments kept within ``joint_mm``; True
+        when one was placed. A segment is searched again in a frame only when more of its neighbours got posed."""
         cfg = self.config
         placed = False
         for s, seg in enumerate(self.segments):
@@ -251,13 +275,18 @@ class ModelLabeller:
             if searched.get(s, -1) >= len(anchors):
                 continue
             searched[s] = len(anchors)
-            free = np.flatnonzero(taken < 0)
+            own = np.isin(taken, seg.markers)  # its markers matched so far (too few to pose it) may move
+            free = np.flatnonzero((taken < 0) | own)
             if not len(free):
-                return placed
-            best = _place_layout(seg.local, z[free], cfg.fit_mm, anchors, cfg.joint_mm)
+                continue
+            dt = self._time - self._last_time[s]
+            around = (self._last_seen[s], 100.0 + cfg.max_speed_mm_s * dt) if dt <= cfg.recent_s else None
+            best = _place_layout(seg.local, z[free], cfg.fit_mm, anchors, cfg.joint_mm, around)
             if best is None:
                 continue
             hits, rot, shift = best
+            cur[seg.markers] = np.nan
+            taken[own] = -1
             for slot, point in hits.items():
                 cur[seg.markers[slot]] = z[free[point]]
                 taken[free[point]] = seg.markers[slot]
@@ -280,7 +309,8 @@ class ModelLabeller:
 
 
 def _place_layout(layout: np.ndarray, cloud: np.ndarray, tol: float, anchors: list[tuple[np.ndarray, np.ndarray]],
-                  joint_tol: float) -> tuple[dict[int, int], np.ndarray, np.ndarray] | None:
+                  joint_tol: float, around: tuple[np.ndarray, float] | None = None,
+                  ) -> tuple[dict[int, int], np.ndarray, np.ndarray] | None:
     """The placement of a segment's layout ``(n, 3)`` on ``cloud`` that fits clearly better than any other (more
     points, or a third of the misfit): the points it lands on by layout row, its rotation and translation; None when
     no placement is that sure.
@@ -288,12 +318,13 @@ def _place_layout(layout: np.ndarray, cloud: np.ndarray, tol: float, anchors: li
     With ``anchors`` (joint centres to posed segments: local, world), a placement lands two or more layout points on
     cloud points (within ``tol``) and every anchor within ``joint_tol`` of its world position. Without, it must land
     four or more: any three points form a triangle that also fits the mirror-image segment of the other side of the
-    body, whose own markers may be the ones hidden now.
+    body, whose own markers may be the ones hidden now; three are enough when the segment's centre must lie ``around``
+    (centre, radius) where it was lately.
     """
     found: dict[frozenset, tuple[int, float, dict[int, int], np.ndarray, np.ndarray]] = {}
     local_a = np.array([here for here, _ in anchors]).reshape(-1, 3)
     world_a = np.array([there for _, there in anchors]).reshape(-1, 3)
-    least = 4 if not anchors else 2 if len(anchors) == 1 else 1
+    least = (4 if around is None else 3) if not anchors else 2 if len(anchors) == 1 else 1
     if len(layout) < least:
         return None
     d_cloud = cdist(cloud, cloud)
@@ -307,7 +338,7 @@ def _place_layout(layout: np.ndarray, cloud: np.ndarray, tol: float, anchors: li
             continue
         rot, shift = fitted
         anchor_err = np.linalg.norm(local_a @ rot.T + shift - world_a, axis=1)
-        if (anchor_err > joint_tol).any():
+        if (anchor_err > joint_tol).any() or (around is not None and np.linalg.norm(shift - around[0]) > around[1]):
             continue
         near = cdist(layout @ rot.T + shift, cloud)
         point = near.argmin(axis=1)
@@ -317,8 +348,7 @@ def _place_layout(layout: np.ndarray, cloud: np.ndarray, tol: float, anchors: li
             continue
         hits = {int(r): int(point[r]) for r in np.flatnonzero(inside)}
         key = frozenset(hits.items())
-        misfit = float(np.sqrt((np.sum(fit[inside] ** 2) + JOINT_WEIGHT * np.sum(anchor_err**2))
-                               / (inside.sum() + JOINT_WEIGHT * len(anchor_err))))
+        misfit = float(np.sqrt((np.sum(fit[inside] ** 2) + np.sum(anchor_err**2)) / (inside.sum() + len(anchor_err))))
         if key not in found or misfit < found[key][1]:
             found[key] = (int(inside.sum()), misfit, hits, rot, shift)
     if not found:
