@@ -155,7 +155,7 @@ def _stream(points: list[np.ndarray], rate: float) -> tuple[np.ndarray, np.ndarr
 
 def _line(score: LabellingScore) -> str:
     return (f"right identity {100 * score.accuracy:7.3f} %, swaps {score.swaps:3d}, "
-            f"{score.tracks / score.markers_true:.2f} tracks per marker, "
+            f"{score.tracks / score.markers_true:.2f} tracks per marker ({score.ghost_tracks} ghost tracks), "
             f"{100 * (1 - score.assigned):.2f} % of true points unlabelled")
 
 

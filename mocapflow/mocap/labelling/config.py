@@ -50,7 +50,8 @@ class LabellerConfig(BaseModel):
     poses: int = Field(20, ge=1, description="snapshots of each marker with its neighbours kept to re-identify it")
     pose_interval_s: float = Field(0.1, gt=0, description="time between two snapshots of a marker and its neighbours")
     min_track_s: float = Field(0.5, ge=0, description="offline only: tracks seen for less than this in all, once "
-                               "merged, are dropped as ghosts (the thesis drops Marker Sets under half a second)")
+                               "merged, are dropped as ghosts (the thesis drops Marker Sets under half a second) "
+                               "unless they keep their distances to two rigid partners seen with them throughout")
     expected_markers: int | None = Field(None, ge=1, description="number of physical markers, when known: at most "
                                          "this many tracks; beyond it new points can only re-identify lost tracks")
 
