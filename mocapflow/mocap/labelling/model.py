@@ -29,9 +29,9 @@ from itertools import combinations
 import numpy as np
 from scipy.spatial.distance import cdist
 
-from mocapflow.mocap.labelling.assignment import assign, gated_cost, match
+from mocapflow.mocap.labelling.assignment import assign, gated_cost, match, norm
 from mocapflow.mocap.model import SkeletonModel
-from mocapflow.mocap.rigidfit import fit_one
+from mocapflow.mocap.rigidfit import fit_one, kabsch
 
 PRIOR_WEIGHT = 1e-3
 """Weight of a segment's previous pose in its fit, against 1 for each marker or joint centre seen now."""
@@ -89,6 +89,12 @@ class ModelLabeller:
                 po, co = np.array(joint.parent_offset), np.array(joint.child_offset)
                 self.segments[p].joints.append((c, po, co))
                 self.segments[c].joints.append((p, co, po))
+        width = max(len(seg.markers) for seg in self.segments)
+        self._slots = np.full((len(self.segments), width), -1, np.intp)  # markers of each segment, -1 padding
+        self._layouts = np.zeros((len(self.segments), width, 3))
+        for s, seg in enumerate(self.segments):
+            self._slots[s, : len(seg.markers)] = seg.markers
+            self._layouts[s, : len(seg.markers)] = seg.local
         n = len(self.labels)
         self.pos = np.full((n, 3), np.nan)
         self.vel = np.zeros((n, 3))
@@ -145,7 +151,7 @@ class ModelLabeller:
         three markers or more, then three points with joint centres, then two with the previous pose. A marker far
         from its fitted place gives its point back. True when a segment was posed."""
         cfg = self.config
-        any_posed = False
+        any_posed = self._pose_rigid(poses, cur)
         for level in (0, 1, 2):
             progress = True
             while progress:
@@ -175,6 +181,25 @@ class ModelLabeller:
                     self._level[s] = level
                     any_posed = progress = True
         return any_posed
+
+    def _pose_rigid(self, poses: list, cur: np.ndarray) -> bool:
+        """Pose at once (one batched fit) the segments not posed yet that three or more matched markers fit within
+        ``fit_mm``: most segments in most frames. True when one was posed."""
+        x = np.where((self._slots >= 0)[..., None], cur[np.maximum(self._slots, 0)], np.nan)
+        seen = np.isfinite(x[..., 0])
+        todo = np.flatnonzero(np.array([p is None for p in poses]) & (seen.sum(axis=1) >= 3))
+        if not len(todo):
+            return False
+        w = seen[todo].astype(float)
+        local = np.where(seen[todo, :, None], self._layouts[todo], 0.0)
+        rot, shift, ok = kabsch(local, np.where(seen[todo, :, None], x[todo], 0.0), w)
+        moved = np.einsum("bij,bnj->bni", rot, self._layouts[todo]) + shift[:, None]
+        error = np.where(seen[todo], norm(moved - np.where(seen[todo, :, None], x[todo], 0.0)), 0.0)
+        good = ok & (error <= self.config.fit_mm).all(axis=1)
+        for b in np.flatnonzero(good):
+            poses[todo[b]] = (rot[b], shift[b])
+            self._level[todo[b]] = 0
+        return bool(good.any())
 
     def _fit(self, s: int, seg: _Segment, poses: list, cur: np.ndarray,
              level: int) -> tuple[np.ndarray, np.ndarray, float] | None:
