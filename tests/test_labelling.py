@@ -310,3 +310,23 @@ def test_marker_hidden_ten_seconds_comes_back_to_its_own_track() -> None:
     assert got[299, 5] >= 0
     assert (got[1300:, 5] == got[299, 5]).all(), "not re-identified on its first frame back"
     assert len(labeller.labels) == 12
+
+
+def test_the_labeller_node_labels_as_the_streaming_labeller() -> None:
+    """The live node and the streaming labeller run offline give every frame the same labels on the same input."""
+    from mocapflow.messages import MarkerFrame
+    from mocapflow.plugins.labeller import LabellerNode
+
+    rec = simulate(SimulatorConfig(rig="human", rate=240, noise_mm=0.5, dropout_rate=0.5, long_gaps=6, ghosts=2,
+                                   unlabelled=True, seed=5), 360)
+    assert rec.points is not None
+    published: list[MarkerFrame] = []
+    node = LabellerNode(LabellerConfig(), lambda _port, message: published.append(message), "labeller")
+    labeller = Labeller(LabellerConfig(), rec.rate)
+    for i, points in enumerate(rec.points):
+        node.process("markers", MarkerFrame(frame=i, capture_ns=0, rate=rec.rate, positions=points))
+        expected = labeller.update(points, i / rec.rate).positions
+        live = published[-1]
+        assert live.labels == labeller.labels
+        np.testing.assert_array_equal(live.positions, expected.astype(live.positions.dtype))
+    assert len(labeller.labels) >= len(rec.labels)
