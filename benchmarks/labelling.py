@@ -23,6 +23,7 @@ marker's name.
 from __future__ import annotations
 
 import argparse
+import math
 import time
 from pathlib import Path
 
@@ -45,7 +46,7 @@ LEVELS = {
 CAMERAS = (4, 8)  # camera counts of the camera-model cases
 # stress damage: independent gaps of 0.2-2 s (mean 1.1 s) starting at a rate that hides a marker a third of the time
 # (1 - exp(-rate * 1.1 s) = 1/3), and one-frame ghosts, Poisson 0.2 per frame (one or more in 18 % of frames)
-STRESS = {"gaps_per_s": float(np.log(1.5) / 1.1), "long_fraction": 1.0, "long_s": (0.2, 2.0), "ghosts": 0.2,
+STRESS = {"gaps_per_s": math.log(1.5) / 1.1, "long_fraction": 1.0, "long_s": (0.2, 2.0), "ghosts": 0.2,
           "ghost_frames": 1}
 STRESS_RIGS = (("human", 120.0), ("quadruped", 120.0))
 
@@ -130,7 +131,7 @@ def _named(skeleton: SkeletonModel, points: list[np.ndarray], identity: list[np.
     for f, (rows, ids) in enumerate(zip(points, identity, strict=True)):
         real = np.flatnonzero(ids >= 0)
         total += len(real)
-        d = cdist(np.asarray(rows)[real], np.where(np.isfinite(named[f]), named[f], np.inf))
+        d = cdist(np.asarray(rows)[real], np.nan_to_num(named[f], nan=np.inf))
         hit = d.min(axis=1, initial=np.inf) < 1e-9
         who = index[d.argmin(axis=1)] if d.size else np.empty(0, int)
         right += int((hit & (who == ids[real])).sum())
@@ -186,9 +187,9 @@ def main() -> None:
         print(f"  streaming: {_line(score_labelling(tracks, points, identity, markers))}")
         print(f"  offline:   {_line(score_labelling(offline, points, identity, markers))}", flush=True)
         if skeleton is not None:
-            right, wrong, cost = _named(skeleton, points, identity, rate, labels)
+            right, wrong, named_us = _named(skeleton, points, identity, rate, labels)
             print(f"  skeleton:  {100 * right:.3f} % of true points carry their own marker's name, {100 * wrong:.3f} % "
-                  f"another's, {100 * (1 - right - wrong):.3f} % none ({cost:.0f} us per frame)", flush=True)
+                  f"another's, {100 * (1 - right - wrong):.3f} % none ({named_us:.0f} us per frame)", flush=True)
 
 
 if __name__ == "__main__":

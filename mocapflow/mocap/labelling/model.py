@@ -89,12 +89,12 @@ class ModelLabeller:
                 po, co = np.array(joint.parent_offset), np.array(joint.child_offset)
                 self.segments[p].joints.append((c, po, co))
                 self.segments[c].joints.append((p, co, po))
-        width = max(len(seg.markers) for seg in self.segments)
+        width = max(len(one.markers) for one in self.segments)
         self._slots = np.full((len(self.segments), width), -1, np.intp)  # markers of each segment, -1 padding
         self._layouts = np.zeros((len(self.segments), width, 3))
-        for s, seg in enumerate(self.segments):
-            self._slots[s, : len(seg.markers)] = seg.markers
-            self._layouts[s, : len(seg.markers)] = seg.local
+        for s, one in enumerate(self.segments):
+            self._slots[s, : len(one.markers)] = one.markers
+            self._layouts[s, : len(one.markers)] = one.local
         n = len(self.labels)
         self.pos = np.full((n, 3), np.nan)
         self.vel = np.zeros((n, 3))
