@@ -5,19 +5,25 @@ local frame and the joints that link the segments. A new trial of the same subje
 whatever the point order and however long a marker was hidden:
 
 1. markers seen in the previous frame follow their points (constant-velocity prediction, gated optimal assignment);
-2. each segment's pose is fitted to its markers matched so far, with the centres of its joints to segments already
-   posed as extra points (a segment reduced to two markers, or one, is posed through its joint) and, with a tiny
-   weight, its own pose of the previous frame (which only settles a turn the points leave open); a marker far from
-   where the fit puts it loses its point (a swap, a ghost);
+2. each segment's pose is fitted, surest first: to three or more of its matched markers (one batched fit for all
+   such segments), else to its markers and the centres of its joints to surely posed segments (a segment reduced to
+   two markers, or one, is posed through its joints), else to two points and, with a tiny weight, its own pose of
+   the previous frame (which only settles the turn about their line). A marker far from where the fit puts it gives
+   its point back (a swap, a ghost), and so do all of a segment's markers when the fit puts a joint centre far from
+   where its neighbour does;
 3. the markers of posed segments not matched yet are predicted from the pose, and the points left over are
    assigned to these predictions by cost (distance, inside ``gate_mm``): a returning marker takes its own slot in
-   the layout, whatever marker happens to lie near it;
-4. a segment with no pose yet (the first frame, or after every marker of it and of its neighbours was hidden) is
-   searched for among the points left over by its layout: three points whose mutual distances are the layout's,
-   placed by a proper rotation (a mirror-image segment does not fit), taken when one placement fits clearly best.
+   the layout, whatever marker happens to lie near it. A segment posed through joints or its previous pose gives a
+   point (inside ``weak_gate_mm``) only to a marker whose layout distances to the segment's seen markers and joint
+   centres it keeps, and only when neither has another such candidate;
+4. a segment with no pose (the first frame, or after its markers and its neighbours' were hidden) is searched for
+   among the points left over, and its own markers matched so far, by its layout (``_place_layout``): points at the
+   layout's distances and its joint centres where its posed neighbours put them, placed by a proper rotation, taken
+   when one placement fits clearly best.
 
 Steps 2-4 repeat while they pose new segments, so a segment found in step 4 poses its neighbours through their
-joints. Points that fit no marker (ghosts, markers the skeleton does not know) stay unnamed.
+joints. Points that fit no marker (ghosts, markers the skeleton does not know) stay unnamed. The method, its workflow
+and its accuracy under stress: docs/labelling.md.
 """
 
 from __future__ import annotations
@@ -45,7 +51,7 @@ class ModelLabellerConfig:
 
     gate_mm: float = 20.0  # largest distance from a marker's prediction to the point it takes
     fit_mm: float = 10.0  # largest distance between a fitted layout and a point it keeps
-    weak_gate_mm: float = 150.0  # the same for a segment posed from two points and its previous pose
+    weak_gate_mm: float = 150.0  # the same for a segment posed through joints or its previous pose
     joint_mm: float = 40.0  # largest distance between a joint centre placed by each of its two segments
     max_coast_s: float = 0.1  # a marker whose segment has no pose is coasted at constant velocity this long
     recent_s: float = 2.0  # a segment posed this recently is looked for near where it was (see _place_layout)
