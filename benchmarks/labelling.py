@@ -1,43 +1,59 @@
-"""Labelling benchmark: per-frame cost of the streaming labeller and accuracy against truth.
+"""Labelling benchmark: accuracy against truth under mild and under stress damage, and the streaming labeller's cost.
 
-Runs the simulator's human rig and the real captures of the shared data folder (identities stripped, occlusions and
-ghosts added by ``unlabel``), at a moderate and a heavy level of damage, and the human rig seen through the
-simulator's camera model (4 and 8 cameras, whose body occlusions hide markers often and several at once) at the
-moderate level. For each it prints the cost of ``Labeller.update`` per frame (mean, median, 99th percentile, in
-microseconds of wall time), then the accuracy of the streaming labels (which leave a new track's first
-``confirm_frames`` frames unlabelled) and of the offline ``label_sequence`` (those frames filled in, fragments
-merged, short tracks dropped).
+Two sets of cases, identities stripped, occlusions and ghosts added, rows shuffled every frame (``unlabel``):
 
-    python benchmarks/labelling.py [--frames N] [--data DIR]
+- mild: the simulator's human rig at 240 Hz at a moderate and a heavy level of damage, seen directly and through the
+  simulator's camera model (4 and 8 cameras), and three real captures;
+- stress: ordinary but harsh capture conditions, on every labelled real capture of the shared data folder and on the
+  simulated human and quadruped: each marker hidden in independent gaps of 0.2-2 s, a third of the time in all, and a
+  one-frame ghost in about a fifth of the frames.
+
+For each case it prints the cost of ``Labeller.update`` per frame (mean, median, 99th percentile, in microseconds of
+wall time: a busy machine inflates them), then for the streaming labels (which leave a new track's first
+``confirm_frames`` frames unlabelled) and the offline ``label_sequence`` (those frames filled in, fragments merged,
+short tracks dropped): right identity (share of true points on the track that stands for their marker), swaps,
+output tracks per true marker and the share of true points left unlabelled. Stress cases are also labelled from a
+skeleton (``label_with_skeleton``) calibrated on an undamaged trial of the same subject (the simulated rigs: another
+trial; a real capture: its first half, the second half being labelled): the share of true points named with their own
+marker's name.
+
+    python benchmarks/labelling.py [--cases mild|stress|all] [--quick] [--data DIR]
 """
 
 from __future__ import annotations
 
 import argparse
+import math
 import time
 from pathlib import Path
 
 import _common
 import numpy as np
+from scipy.spatial.distance import cdist
 
-from mocapflow.mocap.evaluation import score_labelling, unlabel
-from mocapflow.mocap.labelling import (
-    Labeller,
-    LabellerConfig,
-    label_sequence,
-)
+from mocapflow.mocap.calibration import CalibrationError, calibrate
+from mocapflow.mocap.evaluation import LabellingScore, score_labelling, unlabel
+from mocapflow.mocap.labelling import Labeller, LabellerConfig, label_sequence
+from mocapflow.mocap.labelling.model import label_with_skeleton
+from mocapflow.mocap.model import SkeletonModel
 from mocapflow.mocap.simulator import SimulatorConfig, simulate
 
-# damage levels: simulator settings, and unlabel() settings (occlusions per marker per second, ghosts per frame)
+# mild damage levels: simulator settings, and unlabel() settings (occlusions per marker per second, ghosts per frame)
 LEVELS = {
     "moderate": ({"dropout_rate": 0.2, "long_gaps": 2.0, "ghosts": 2.0}, (0.05, 1.0)),
     "heavy": ({"dropout_rate": 0.5, "long_gaps": 4.0, "ghosts": 5.0}, (0.2, 3.0)),
 }
 CAMERAS = (4, 8)  # camera counts of the camera-model cases
+# stress damage: independent gaps of 0.2-2 s (mean 1.1 s) starting at a rate that hides a marker a third of the time
+# (1 - exp(-rate * 1.1 s) = 1/3), and one-frame ghosts, Poisson 0.2 per frame (one or more in 18 % of frames)
+STRESS = {"gaps_per_s": math.log(1.5) / 1.1, "long_fraction": 1.0, "long_s": (0.2, 2.0), "ghosts": 0.2,
+          "ghost_frames": 1}
+STRESS_RIGS = (("human", 120.0), ("quadruped", 120.0))
+
+Case = tuple[str, list[np.ndarray], list[np.ndarray], float, int]  # name, points, identity, rate, true marker count
 
 
-def _scenarios(frames: int, data: Path) -> list[tuple[str, list[np.ndarray], list[np.ndarray], float, int]]:
-    """(name, points per frame, identity per frame, rate, true marker count) for every case."""
+def _mild(frames: int, data: Path) -> list[Case]:
     cases = []
     simulated = [(level, damage, 0) for level, (damage, _) in LEVELS.items()]
     simulated += [("moderate", LEVELS["moderate"][0], cameras) for cameras in CAMERAS]
@@ -56,11 +72,71 @@ def _scenarios(frames: int, data: Path) -> list[tuple[str, list[np.ndarray], lis
     for name in ("lowerbody_clusters_knee_0401.c3d", "cmu_85_02.c3d", "cmu_85_12_breakdance.c3d"):
         marker_data = read_markers(data / name)
         for level, (_, (dropouts, ghosts)) in LEVELS.items():
-            points, identity = unlabel(marker_data.positions, marker_data.rate, seed=1, gaps_per_s=dropouts,
-                                       ghosts=ghosts)
+            points, identity = unlabel(marker_data.positions[:frames], marker_data.rate, seed=1,
+                                       gaps_per_s=dropouts, ghosts=ghosts)
             cases.append((f"{name} {marker_data.rate:g} Hz, {level}", list(points), list(identity),
                           marker_data.rate, marker_data.n_markers))
     return cases
+
+
+def stress_captures(frames: int, data: Path) -> list[tuple[str, np.ndarray, list[str], float]]:
+    """(name, labelled positions (F, N, 3), labels, rate) of the stress cases before damage: the simulated rigs and
+    every labelled real capture in ``data``."""
+    out = []
+    for rig, rate in STRESS_RIGS:
+        rec = simulate(SimulatorConfig(rig=rig, rate=rate, noise_mm=0.5, seed=7), frames)
+        out.append((f"simulated {rig} {rate:g} Hz", rec.positions, rec.labels, rec.rate))
+    if not data.is_dir():
+        print(f"(real captures skipped: {data} is absent)")
+        return out
+    from mocapflow.io.markers import read_markers
+
+    for path in sorted(data.iterdir()):
+        if path.suffix.lower() in (".c3d", ".trc"):
+            md = read_markers(path)
+            out.append((f"{path.name} {md.rate:g} Hz", md.positions[:frames], md.labels, md.rate))
+    return out
+
+
+def _stress(frames: int, data: Path) -> list[tuple[Case, SkeletonModel | None, list[str]]]:
+    """The stress cases, each with a skeleton calibrated on the undamaged first half of its capture (the simulated
+    rigs: on another trial of the same subject), and its true marker labels."""
+    cases = []
+    for name, positions, labels, rate in stress_captures(frames, data):
+        if name.startswith("simulated"):
+            rig = name.split()[1]
+            calibration = simulate(SimulatorConfig(rig=rig, rate=rate, noise_mm=0.5, seed=3), frames)
+            reference, trial = calibration.positions, positions
+        else:
+            reference, trial = positions[: len(positions) // 2], positions[len(positions) // 2:]
+        try:
+            skeleton = calibrate(reference, labels, rate)
+        except CalibrationError as exc:
+            print(f"(no skeleton for {name}: {exc})")
+            skeleton = None
+        points, identity = unlabel(trial, rate, seed=1, **STRESS)  # type: ignore[arg-type]
+        cases.append(((f"{name}, stress", list(points), list(identity), rate, len(labels)), skeleton, labels))
+    return cases
+
+
+def _named(skeleton: SkeletonModel, points: list[np.ndarray], identity: list[np.ndarray], rate: float,
+           labels: list[str]) -> tuple[float, float, float]:
+    """Shares of true points that ``label_with_skeleton`` names with their own marker's name, with another's, and
+    not at all; and its cost per frame (us, wall time)."""
+    start = time.perf_counter()
+    named, names = label_with_skeleton(points, rate, skeleton)
+    cost = (time.perf_counter() - start) / len(points) * 1e6
+    index = np.array([labels.index(n) if n in labels else -2 for n in names])
+    right = wrong = total = 0
+    for f, (rows, ids) in enumerate(zip(points, identity, strict=True)):
+        real = np.flatnonzero(ids >= 0)
+        total += len(real)
+        d = cdist(np.asarray(rows)[real], np.nan_to_num(named[f], nan=np.inf))
+        hit = d.min(axis=1, initial=np.inf) < 1e-9
+        who = index[d.argmin(axis=1)] if d.size else np.empty(0, int)
+        right += int((hit & (who == ids[real])).sum())
+        wrong += int((hit & (who != ids[real])).sum())
+    return right / total, wrong / total, cost
 
 
 def _stream(points: list[np.ndarray], rate: float) -> tuple[np.ndarray, np.ndarray]:
@@ -78,12 +154,26 @@ def _stream(points: list[np.ndarray], rate: float) -> tuple[np.ndarray, np.ndarr
     return tracks, cost
 
 
+def _line(score: LabellingScore) -> str:
+    return (f"right identity {100 * score.accuracy:7.3f} %, swaps {score.swaps:3d}, "
+            f"{score.tracks / score.markers_true:.2f} tracks per marker ({score.ghost_tracks} ghost tracks), "
+            f"{100 * (1 - score.assigned):.2f} % of true points unlabelled")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--frames", type=int, default=4800, help="simulated frames per case (default 4800)")
+    parser.add_argument("--cases", choices=("mild", "stress", "all"), default="all", help="which cases (default all)")
+    parser.add_argument("--quick", action="store_true", help="at most 1500 frames per case (default 4800 simulated, "
+                        "real captures whole)")
     parser.add_argument("--data", type=Path, default=_common.DATA, help="folder of the real captures")
     args = parser.parse_args()
-    for name, points, identity, rate, markers in _scenarios(args.frames, args.data):
+    frames = 1500 if args.quick else 4800
+    cases: list[tuple[Case, SkeletonModel | None, list[str]]] = []
+    if args.cases in ("mild", "all"):
+        cases += [(case, None, []) for case in _mild(frames, args.data)]
+    if args.cases in ("stress", "all"):
+        cases += _stress(frames, args.data)
+    for (name, points, identity, rate, markers), skeleton, labels in cases:
         seen = np.mean([np.isfinite(np.asarray(p)).all(axis=1).sum() for p in points])
         tracks, cost = _stream(points, rate)
         start = time.perf_counter()
@@ -94,8 +184,12 @@ def main() -> None:
         print(f"  update cost: mean {us.mean():.0f} us, median {np.median(us):.0f} us, "
               f"p99 {np.percentile(us, 99):.0f} us; offline label_sequence {offline_s / len(points) * 1e6:.0f} us "
               "per frame")
-        print(f"  streaming: {score_labelling(tracks, points, identity, markers).summary()}")
-        print(f"  offline:   {score_labelling(offline, points, identity, markers).summary()}")
+        print(f"  streaming: {_line(score_labelling(tracks, points, identity, markers))}")
+        print(f"  offline:   {_line(score_labelling(offline, points, identity, markers))}", flush=True)
+        if skeleton is not None:
+            right, wrong, named_us = _named(skeleton, points, identity, rate, labels)
+            print(f"  skeleton:  {100 * right:.3f} % of true points carry their own marker's name, {100 * wrong:.3f} % "
+                  f"another's, {100 * (1 - right - wrong):.3f} % none ({named_us:.0f} us per frame)", flush=True)
 
 
 if __name__ == "__main__":

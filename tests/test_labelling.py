@@ -254,3 +254,79 @@ def test_single_camera_rays_go_to_the_unseen_markers_they_belong_to() -> None:
                            for p in result.positions[seen]]
     assert given > 0.4 * rays
     assert right >= 0.98 * given
+
+
+def _hand_on_hip(seconds: float = 5.0) -> np.ndarray:
+    """(F, 8, 3): a 'hip' cluster (markers 0-3) swaying, and a 'hand' cluster (4-7) whose marker 4 comes to rest
+    13 mm from hip marker 0 from 2 s to 3 s, sliding and turning a little, and leaves again."""
+    t = np.arange(int(seconds * RATE)) / RATE
+    hip_shape = np.array([[0, 0, 0], [-110, 20, 0], [-60, -90, 30], [-50, 40, 100]], float)
+    hand_shape = np.array([[0, 0, 0], [70, 10, 0], [40, -50, 20], [50, 30, 60]], float)
+    sway = np.stack([40 * np.sin(0.8 * t), 30 * np.sin(0.5 * t), 1000 + 10 * np.sin(1.3 * t)], 1)
+    turn = Rotation.from_rotvec(np.outer(0.2 * np.sin(0.7 * t), [0, 0, 1])).as_matrix()
+    hip = np.einsum("fij,nj->fni", turn, hip_shape) + sway[:, None]
+    # distance of the hand marker from the hip marker: 13 mm in contact, 400 mm away, smooth 0.5 s ramps
+    ramp = np.clip(np.minimum(t - 1.5, 3.5 - t) / 0.5, 0, 1)
+    gap = 13.0 + (400.0 - 13.0) * (1 - (3 * ramp**2 - 2 * ramp**3))
+    slide = np.stack([np.zeros_like(t), 3 * np.sin(4 * t), 3 * np.cos(4 * t)], 1)
+    anchor = hip[:, 0] + gap[:, None] * np.array([1.0, 0.0, 0.0]) + slide
+    tilt = Rotation.from_rotvec(np.outer(0.3 * np.sin(1.1 * t), [0, 1, 0])).as_matrix()
+    hand = np.einsum("fij,nj->fni", tilt, hand_shape) + anchor[:, None]
+    rng = np.random.default_rng(0)
+    return np.concatenate([hip, hand], axis=1) + rng.normal(0, 0.3, (len(t), 8, 3))
+
+
+def test_hand_on_hip_keeps_both_identities() -> None:
+    """Two markers of different bodies 13 mm apart for a second, the hand's hidden for 0.3 s meanwhile: each keeps
+    its own track, streaming and offline (where the returning marker's first frames are filled in)."""
+    truth = _hand_on_hip()
+    contact = slice(200, 300)
+    assert np.linalg.norm(truth[contact, 4] - truth[contact, 0], axis=1).max() < 15.0
+    hidden = np.zeros(truth.shape[:2], bool)
+    hidden[230:260, 4] = True
+    labeller = Labeller(LabellerConfig(), RATE)
+    got = _stream(labeller, truth, hidden)
+    back = 260 + LabellerConfig().confirm_frames  # a point next to another marker is only believed once confirmed
+    for marker in (0, 4):
+        track = got[150, marker]
+        assert track >= 0 and np.isin(got[150:, marker], [track, -1]).all(), f"marker {marker} took another track"
+        assert (got[150:230, marker] == track).all() and (got[back:, marker] == track).all()
+    assert got[150, 0] != got[150, 4]
+    points, identity = unlabel(truth, RATE, seed=3, gaps_per_s=0.0, ghosts=0.0)
+    points[230:260] = np.where((identity[230:260] == 4)[..., None], np.nan, points[230:260])
+    tracks, _ = label_sequence(points, RATE)
+    score = score_labelling(tracks, points, identity, 8)
+    assert score.swaps == 0 and score.accuracy == 1.0 and score.tracks == 8
+
+
+def test_marker_hidden_ten_seconds_comes_back_to_its_own_track() -> None:
+    """Hidden from 3 s to 13 s while its cluster travels and turns: its neighbours place it again at once."""
+    truth = _clusters(14.0)
+    hidden = np.zeros(truth.shape[:2], bool)
+    hidden[300:1300, 5] = True
+    assert np.linalg.norm(truth[1300, 5] - truth[299, 5]) > 5 * LabellerConfig().gate_mm
+    labeller = Labeller(LabellerConfig(), RATE)
+    got = _stream(labeller, truth, hidden)
+    assert got[299, 5] >= 0
+    assert (got[1300:, 5] == got[299, 5]).all(), "not re-identified on its first frame back"
+    assert len(labeller.labels) == 12
+
+
+def test_the_labeller_node_labels_as_the_streaming_labeller() -> None:
+    """The live node and the streaming labeller run offline give every frame the same labels on the same input."""
+    from mocapflow.messages import MarkerFrame
+    from mocapflow.plugins.labeller import LabellerNode
+
+    rec = simulate(SimulatorConfig(rig="human", rate=240, noise_mm=0.5, dropout_rate=0.5, long_gaps=6, ghosts=2,
+                                   unlabelled=True, seed=5), 360)
+    assert rec.points is not None
+    published: list[MarkerFrame] = []
+    node = LabellerNode(LabellerConfig(), lambda _port, message: published.append(message), "labeller")
+    labeller = Labeller(LabellerConfig(), rec.rate)
+    for i, points in enumerate(rec.points):
+        node.process("markers", MarkerFrame(frame=i, capture_ns=0, rate=rec.rate, positions=points))
+        expected = labeller.update(points, i / rec.rate).positions
+        live = published[-1]
+        assert live.labels == labeller.labels
+        np.testing.assert_array_equal(live.positions, expected.astype(live.positions.dtype))
+    assert len(labeller.labels) >= len(rec.labels)

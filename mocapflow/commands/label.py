@@ -24,6 +24,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--confirm", type=int, metavar="FRAMES",
                    help="frames a new point must live to count as a marker, not a ghost (default 5)")
     p.add_argument("--markers", type=int, metavar="N", help="number of physical markers, when known")
+    p.add_argument("--skeleton", metavar="SKELETON.json",
+                   help="name every point with this skeleton's marker names by fitting its segments' marker layouts "
+                        "(a skeleton from mocapflow calibrate on a labelled trial of the same subject)")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                    help="any other labeller setting, e.g. --set max_coast_s=0.2 (see mocapflow.mocap.labelling)")
     marker_choice(p, include=False)
@@ -49,12 +52,23 @@ def run(args: argparse.Namespace) -> int:
     points = data.positions
     if not np.isfinite(points).all(axis=2).any():
         raise MocapflowError(f"{args.input}: no points to label")
-    tracks, labels = label_sequence(progress(points, len(points), "label"), data.rate, config)
+    if args.skeleton is not None:
+        from mocapflow.io.skeleton import read_skeleton
+        from mocapflow.mocap.labelling.model import label_with_skeleton
+
+        skeleton = read_skeleton(args.skeleton)
+        try:
+            tracks, labels = label_with_skeleton(progress(points, len(points), "label"), data.rate, skeleton)
+        except ValueError as exc:
+            raise MocapflowError(f"{args.skeleton}: {exc}") from None
+    else:
+        tracks, labels = label_sequence(progress(points, len(points), "label"), data.rate, config)
     if not labels:
         raise MocapflowError(f"{args.input}: no point lived long enough to be a marker (see --confirm)")
     write_markers(out, MarkerData(positions=tracks, labels=labels, rate=data.rate, first_frame=data.first_frame))
     given = int(np.isfinite(points).all(axis=2).sum())
     kept = int(np.isfinite(tracks).all(axis=2).sum())
     print(f"wrote {out}: {len(labels)} markers over {len(tracks)} frames at {data.rate:g} Hz; "
-          f"{kept}/{given} points labelled ({100.0 * kept / given:.2f} %), the rest dropped as ghosts")
+          f"{kept}/{given} points labelled ({100.0 * kept / given:.2f} %), the rest dropped as ghosts"
+          f"{' or markers the skeleton does not know' if args.skeleton else ''}")
     return 0

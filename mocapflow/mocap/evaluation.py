@@ -75,13 +75,15 @@ def score_labelling(tracks: np.ndarray, points: Sequence[np.ndarray], identity: 
 
 
 def unlabel(positions: np.ndarray, rate: float, seed: int, gaps_per_s: float = 0.05, long_fraction: float = 0.3,
-            ghosts: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+            ghosts: float = 1.0, long_s: tuple[float, float] = (0.5, 2.0),
+            ghost_frames: int = 3) -> tuple[np.ndarray, np.ndarray]:
     """A labelled recording ``(F, N, 3)`` as a passive tracker would report it, to test labelling against truth.
 
-    Adds occlusions (``gaps_per_s`` per marker per second; a ``long_fraction`` of them 0.5-2 s long, the others 1-9
-    frames), ghost points (Poisson, ``ghosts`` new per frame, each living 1-3 frames, 20-300 mm from a random
-    marker, with 0.5 mm jitter) and shuffles the rows of every frame. Returns points ``(F, W, 3)`` padded with NaN
-    and identity ``(F, W)``: the true marker index of each row, -1 for ghosts and padding.
+    Adds occlusions (``gaps_per_s`` per marker per second, independent; a ``long_fraction`` of them ``long_s``
+    seconds long, the others 1-9 frames), ghost points (Poisson, ``ghosts`` new per frame, each living 1 to
+    ``ghost_frames`` frames, 20-300 mm from a random marker, with 0.5 mm jitter) and shuffles the rows of every
+    frame. Returns points ``(F, W, 3)`` padded with NaN and identity ``(F, W)``: the true marker index of each row,
+    -1 for ghosts and padding.
     """
     rng = np.random.default_rng(seed)
     n_frames, n_markers, _ = positions.shape
@@ -89,7 +91,7 @@ def unlabel(positions: np.ndarray, rate: float, seed: int, gaps_per_s: float = 0
     for marker in range(n_markers):
         for _ in range(rng.poisson(gaps_per_s * n_frames / rate)):
             long = rng.random() < long_fraction
-            length = int(rng.uniform(0.5, 2.0) * rate) if long else int(rng.integers(1, 10))
+            length = int(rng.uniform(*long_s) * rate) if long else int(rng.integers(1, 10))
             start = int(rng.integers(0, n_frames))
             seen[start:start + length, marker] = False
     clouds: list[np.ndarray] = []
@@ -100,7 +102,7 @@ def unlabel(positions: np.ndarray, rate: float, seed: int, gaps_per_s: float = 0
         for _ in range(rng.poisson(ghosts) if len(visible) else 0):
             direction = rng.standard_normal(3)
             centre = positions[f, rng.choice(visible)] + direction / np.linalg.norm(direction) * rng.uniform(20, 300)
-            alive.append((f + int(rng.integers(0, 3)), centre))
+            alive.append((f + int(rng.integers(0, ghost_frames)), centre))
         alive = [(last, c) for last, c in alive if last >= f]
         ghost_pts = np.array([c for _, c in alive]).reshape(-1, 3) + rng.normal(0.0, 0.5, (len(alive), 3))
         cloud = np.concatenate([positions[f, visible], ghost_pts])

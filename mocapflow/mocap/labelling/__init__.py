@@ -29,6 +29,9 @@ point that has lived ``confirm_frames`` frames, so that a passing ghost cannot s
 track start tentative tracks, which become markers (or re-identify a lost one) when they live ``confirm_frames``
 frames; the rest, short-lived ghosts, are dropped. Offline, :func:`label_sequence` also merges what streaming could
 not (the thesis's *Marker Set* merging, :func:`merge_tracks`) and drops tracks too short to be markers.
+
+With a skeleton of the subject (``mocapflow calibrate`` on a labelled trial), :mod:`.model` names every point with
+the skeleton's own marker names instead, by fitting its segments' marker layouts frame by frame.
 """
 
 from mocapflow.mocap.labelling.config import LabellerConfig, LabelResult

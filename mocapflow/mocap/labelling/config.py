@@ -44,13 +44,16 @@ class LabellerConfig(BaseModel):
                                "for them to count as one rigid body")
     rigid_tolerance_mm: float = Field(5.0, gt=0, description="a point is a lost marker's when its distances to two or "
                                       "more of the marker's rigid partners are the learnt ones within this, plus 3 sd")
+    last_position_s: float = Field(1.0, ge=0, description="how long a lost track may still take a new point near "
+                                   "where it was last seen when nothing else places it")
     rigid_min_s: float = Field(0.2, gt=0, description="time two markers must be seen together before their distance "
                                "statistics choose neighbours")
     reselect_s: float = Field(1.0, gt=0, description="how often neighbour sets are chosen again from the statistics")
     poses: int = Field(20, ge=1, description="snapshots of each marker with its neighbours kept to re-identify it")
     pose_interval_s: float = Field(0.1, gt=0, description="time between two snapshots of a marker and its neighbours")
     min_track_s: float = Field(0.5, ge=0, description="offline only: tracks seen for less than this in all, once "
-                               "merged, are dropped as ghosts (the thesis drops Marker Sets under half a second)")
+                               "merged, are dropped as ghosts (the thesis drops Marker Sets under half a second) "
+                               "unless they keep their distances to two rigid partners seen with them throughout")
     expected_markers: int | None = Field(None, ge=1, description="number of physical markers, when known: at most "
                                          "this many tracks; beyond it new points can only re-identify lost tracks")
 

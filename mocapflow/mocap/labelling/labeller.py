@@ -273,21 +273,23 @@ class Labeller:
         """The track each confirmed tentative point belongs to: a lost track that fits it, else a new one (-1: none).
 
         This is the thesis's merging of *Marker Sets*, done as the new set is born: a lost track fits when one of its
-        hypotheses (``pred``, ``gate`` from ``_lost_predictions``; the last position where its neighbours place
-        nothing) is within the gate, or when the point keeps its distances to two of the track's rigid partners seen
-        now. With fewer seen, its lost partners placed on other tentative points (``_lost_partners``) and its looser
-        neighbours (``_plausible``) complete the evidence: one partner seen and one more cue, or without any the
-        neighbours and a lost partner, as long as no other lost track fits the point that way. Once
+        hypotheses (``pred``, ``gate`` from ``_lost_predictions``; where its neighbours place nothing, the last
+        position, for ``last_position_s`` only: a marker moves far in a few seconds) is within the gate, or when the
+        point keeps its distances to two of the track's rigid partners seen now. With fewer seen, its lost partners
+        placed on other tentative points (``_lost_partners``) and its looser neighbours (``_plausible``) complete the
+        evidence: one partner seen and one more cue, or without any the neighbours and a lost partner, as long as no
+        other lost track fits the point that way. Once
         ``expected_markers`` tracks exist, the lost tracks are the only possible owners and the nearest wins without a
         gate; points left over stay tentative.
         """
         cfg = self.config
         pred = pred.copy()
         known = np.isfinite(pred[:, 0, 0])
-        pred[~known, 0] = self._tracks.pos[lost[~known]]
+        full = cfg.expected_markers is not None and len(self.labels) >= cfg.expected_markers
+        recent = (self._time - self._tracks.last[lost] <= cfg.last_position_s) | full
+        pred[~known & recent, 0] = self._tracks.pos[lost[~known & recent]]
         gate = gate.copy()
         gate[~known, 0] = cfg.reid_gate_mm
-        full = cfg.expected_markers is not None and len(self.labels) >= cfg.expected_markers
         li, ri = np.empty(0, np.intp), np.empty(0, np.intp)
         if len(lost):
             cost = gated_cost(pred, np.full(gate.shape, UNGATED_MM) if full else gate, z)

@@ -102,6 +102,14 @@ def _set_score(tracks: np.ndarray, seen: np.ndarray, i: int, j: int, spread: tup
     return float(np.median(best)) if len(best) else np.inf
 
 
+def _explained(tracks: np.ndarray, seen: np.ndarray, k: int, cfg: LabellerConfig) -> bool:
+    """Whether track ``k`` keeps its distances to two or more other tracks, seen in every one of its frames, within
+    ``rigid_sd_mm``: a real marker on a rigid body, however briefly seen, not a ghost."""
+    _, sd = _distance_spread(tracks, seen, k, int(seen[:, k].sum()))
+    sd[k] = np.nan
+    return int((sd <= cfg.rigid_sd_mm).sum()) >= 2
+
+
 def _evenly(frames: np.ndarray, count: int) -> np.ndarray:
     """At most ``count`` of ``frames``, evenly spread."""
     if len(frames) <= count:
@@ -115,7 +123,8 @@ def label_sequence(frames: Iterable[np.ndarray], rate: float,
 
     Knowing the whole recording allows more than streaming: points a track collected while still tentative are
     filled in, tracks of one marker are merged (:func:`merge_tracks`), and tracks seen for less than ``min_track_s``
-    in all are dropped. Markers are labelled ``M001``... in order of first appearance.
+    in all are dropped unless rigid partners explain them (``_explained``). Markers are labelled ``M001``... in
+    order of first appearance.
     """
     cfg = config or LabellerConfig()
     labeller = Labeller(cfg, rate)
@@ -130,11 +139,11 @@ def label_sequence(frames: Iterable[np.ndarray], rate: float,
         tracks[i, : len(row)] = row
     for track, idx, pos in late:
         tracks[idx, track] = pos
-    markers = []
-    for group in merge_tracks(tracks, cfg):
-        merged = np.fmax.reduce(tracks[:, group], axis=1)  # the tracks of a group never share a frame
-        if np.isfinite(merged[:, 0]).sum() >= cfg.min_track_s * rate:
-            markers.append(merged)
+    merged = [np.fmax.reduce(tracks[:, group], axis=1) for group in merge_tracks(tracks, cfg)]  # never share a frame
+    joined = np.stack(merged, axis=1) if merged else np.full((len(rows), 0, 3), np.nan)
+    seen = np.isfinite(joined[..., 0])
+    markers = [m for k, m in enumerate(merged)
+               if seen[:, k].sum() >= cfg.min_track_s * rate or _explained(joined, seen, k, cfg)]
     markers.sort(key=lambda m: np.flatnonzero(np.isfinite(m[:, 0]))[0])
     out = np.stack(markers, axis=1) if markers else np.full((len(rows), 0, 3), np.nan)
     return out, [f"M{k + 1:03d}" for k in range(out.shape[1])]

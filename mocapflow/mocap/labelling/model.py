@@ -1,0 +1,430 @@
+"""Labelling from a skeleton: every point named with the skeleton's own marker names, by fitting its segments.
+
+A skeleton (``mocapflow calibrate`` on a labelled range-of-motion trial) holds each segment's marker layout in its
+local frame and the joints that link the segments. A new trial of the same subject is then labelled frame by frame,
+whatever the point order and however long a marker was hidden:
+
+1. markers seen in the previous frame follow their points (constant-velocity prediction, gated optimal assignment);
+2. each segment's pose is fitted, surest first: to three or more of its matched markers (one batched fit for all
+   such segments), else to its markers and the centres of its joints to surely posed segments (a segment reduced to
+   two markers, or one, is posed through its joints), else to two points and, with a tiny weight, its own pose of
+   the previous frame (which only settles the turn about their line). A marker far from where the fit puts it gives
+   its point back (a swap, a ghost), and so do all of a segment's markers when the fit puts a joint centre far from
+   where its neighbour does;
+3. the markers of posed segments not matched yet are predicted from the pose, and the points left over are
+   assigned to these predictions by cost (distance, inside ``gate_mm``): a returning marker takes its own slot in
+   the layout, whatever marker happens to lie near it. A segment posed through joints or its previous pose gives a
+   point (inside ``weak_gate_mm``) only to a marker whose layout distances to the segment's seen markers and joint
+   centres it keeps, and only when neither has another such candidate;
+4. a segment with no pose (the first frame, or after its markers and its neighbours' were hidden) is searched for
+   among the points left over, and its own markers matched so far, by its layout (``_place_layout``): points at the
+   layout's distances and its joint centres where its posed neighbours put them, placed by a proper rotation, taken
+   when one placement fits clearly best.
+
+Steps 2-4 repeat while they pose new segments, so a segment found in step 4 poses its neighbours through their
+joints. Points that fit no marker (ghosts, markers the skeleton does not know) stay unnamed. The method, its workflow
+and its accuracy under stress: docs/labelling.md.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+from dataclasses import dataclass
+from itertools import combinations
+
+import numpy as np
+from scipy.spatial.distance import cdist
+
+from mocapflow.mocap.labelling.assignment import assign, gated_cost, match, norm
+from mocapflow.mocap.model import SkeletonModel
+from mocapflow.mocap.rigidfit import fit_one, kabsch
+
+PRIOR_WEIGHT = 1e-3
+"""Weight of a segment's previous pose in its fit, against 1 for each marker or joint centre seen now."""
+JOINT_WEIGHT = 0.1
+"""Weight of a joint centre in a segment's fit: a joint is less sure than a marker."""
+
+
+@dataclass
+class ModelLabellerConfig:
+    """Tolerances of the model-based labeller (mm, s)."""
+
+    gate_mm: float = 20.0  # largest distance from a marker's prediction to the point it takes
+    fit_mm: float = 10.0  # largest distance between a fitted layout and a point it keeps
+    weak_gate_mm: float = 150.0  # the same for a segment posed through joints or its previous pose
+    joint_mm: float = 40.0  # largest distance between a joint centre placed by each of its two segments
+    max_coast_s: float = 0.1  # a marker whose segment has no pose is coasted at constant velocity this long
+    recent_s: float = 2.0  # a segment posed this recently is looked for near where it was (see _place_layout)
+    max_speed_mm_s: float = 3000.0  # fastest a segment moves, bounding where to look for it
+    velocity_smoothing: float = 0.7
+
+
+@dataclass
+class _Segment:
+    markers: np.ndarray  # indices into the model's marker list
+    local: np.ndarray  # (n, 3) layout in the segment's frame
+    joints: list[tuple[int, np.ndarray, np.ndarray]]  # (other segment, centre in this frame, centre in the other's)
+
+
+class ModelLabeller:
+    """Streaming labeller that names points with a skeleton's marker names; feed frames in time order to
+    :meth:`update`. ``labels`` are the skeleton's markers that have a layout, in the skeleton's order."""
+
+    def __init__(self, skeleton: SkeletonModel, rate: float, config: ModelLabellerConfig | None = None) -> None:
+        if rate <= 0:
+            raise ValueError("rate must be positive")
+        self.config = config or ModelLabellerConfig()
+        self.rate = float(rate)
+        self.labels: list[str] = []
+        self.segments: list[_Segment] = []
+        index: dict[str, int] = {}
+        for seg in skeleton.segments:
+            if seg.marker_offsets is None or len(seg.markers) == 0:
+                continue
+            first = len(self.labels)
+            self.labels += seg.markers
+            index[seg.name] = len(self.segments)
+            self.segments.append(_Segment(np.arange(first, len(self.labels)), np.array(seg.marker_offsets, float), []))
+        if not self.segments:
+            raise ValueError(f"skeleton {skeleton.name!r} has no segment with a marker layout")
+        if len(set(self.labels)) != len(self.labels):
+            raise ValueError(f"skeleton {skeleton.name!r} names a marker on two segments")
+        for joint in skeleton.joints:
+            if joint.parent in index and joint.child in index and joint.parent_offset and joint.child_offset:
+                p, c = index[joint.parent], index[joint.child]
+                po, co = np.array(joint.parent_offset), np.array(joint.child_offset)
+                self.segments[p].joints.append((c, po, co))
+                self.segments[c].joints.append((p, co, po))
+        width = max(len(one.markers) for one in self.segments)
+        self._slots = np.full((len(self.segments), width), -1, np.intp)  # markers of each segment, -1 padding
+        self._layouts = np.zeros((len(self.segments), width, 3))
+        for s, one in enumerate(self.segments):
+            self._slots[s, : len(one.markers)] = one.markers
+            self._layouts[s, : len(one.markers)] = one.local
+        n = len(self.labels)
+        self.pos = np.full((n, 3), np.nan)
+        self.vel = np.zeros((n, 3))
+        self.last = np.full(n, -np.inf)
+        self.streak = np.zeros(n, np.int64)
+        self.pose: list[tuple[np.ndarray, np.ndarray] | None] = [None] * len(self.segments)
+        # how surely each segment was posed this frame: 0 by three markers or more, 1 through joints, 2 with a turn
+        # left to its previous pose (3: not posed)
+        self._level = np.full(len(self.segments), 3)
+        self._last_seen = np.full((len(self.segments), 3), np.nan)  # where each segment was last posed
+        self._last_time = np.full(len(self.segments), -np.inf)
+        self._time = -np.inf
+
+    def update(self, points: np.ndarray, time: float) -> tuple[np.ndarray, np.ndarray]:
+        """Name one frame of points ``(M, 3)`` (NaN rows ignored) captured at ``time`` seconds (increasing).
+
+        Returns the markers' positions ``(N, 3)`` in ``labels`` order (NaN where unseen) and the marker of each row
+        of ``points`` (-1 for none).
+        """
+        cfg = self.config
+        if time <= self._time:
+            raise ValueError(f"frame times must increase: {time} after {self._time}")
+        self._time = time
+        pts = np.asarray(points, dtype=float).reshape(-1, 3)
+        rows = np.flatnonzero(np.isfinite(pts).all(axis=1))
+        z = pts[rows]
+        taken = np.full(len(z), -1, np.intp)
+        cur = np.full((len(self.labels), 3), np.nan)
+        # 1. markers seen in the previous frame follow their points
+        live = np.flatnonzero(self.streak > 0)
+        dt = time - self.last[live]
+        ti, pi = assign(self.pos[live] + self.vel[live] * dt[:, None], np.full(len(live), cfg.gate_mm), z)
+        cur[live[ti]], taken[pi] = z[pi], live[ti]
+        poses: list[tuple[np.ndarray, np.ndarray] | None] = [None] * len(self.segments)
+        searched: dict[int, int] = {}
+        self._level[:] = 3
+        while True:
+            posed = self._pose_segments(poses, cur, taken, z)
+            self._take_predicted(poses, cur, taken, z, time)
+            found = self._search(poses, cur, taken, z, searched)
+            if not (posed or found):
+                break
+        self._observe(cur, time)
+        self.pose = poses
+        for s, pose in enumerate(poses):
+            if pose is not None and self._level[s] < 2:
+                self._last_seen[s], self._last_time[s] = pose[1], time
+        point_marker = np.full(len(pts), -1, np.intp)
+        point_marker[rows] = taken
+        return cur, point_marker
+
+    def _pose_segments(self, poses: list, cur: np.ndarray, taken: np.ndarray, z: np.ndarray) -> bool:
+        """Fit every segment not posed yet whose markers, joint centres and previous pose fix a pose, surest first:
+        three markers or more, then three points with joint centres, then two with the previous pose. A marker far
+        from its fitted place gives its point back. True when a segment was posed."""
+        cfg = self.config
+        any_posed = self._pose_rigid(poses, cur)
+        for level in (0, 1, 2):
+            progress = True
+            while progress:
+                progress = False
+                for s, seg in enumerate(self.segments):
+                    if poses[s] is not None:
+                        continue
+                    fitted = self._fit(s, seg, poses, cur, level)
+                    if fitted is None:
+                        continue
+                    rot, shift, joint_error = fitted
+                    seen = np.isfinite(cur[seg.markers, 0])
+                    error = np.where(seen, np.linalg.norm(seg.local @ rot.T + shift - cur[seg.markers], axis=1), 0.0)
+                    if joint_error > cfg.joint_mm:  # markers swapped, or taken by ghosts: the search decides
+                        taken[np.isin(taken, seg.markers)] = -1
+                        cur[seg.markers] = np.nan
+                        self.streak[seg.markers] = 0
+                        continue
+                    if (error > cfg.fit_mm).any():  # the worst one goes; the others decide again
+                        worst = seg.markers[np.argmax(error)]
+                        taken[taken == worst] = -1
+                        cur[worst] = np.nan
+                        self.streak[worst] = 0
+                        progress = True
+                        continue
+                    poses[s] = (rot, shift)
+                    self._level[s] = level
+                    any_posed = progress = True
+        return any_posed
+
+    def _pose_rigid(self, poses: list, cur: np.ndarray) -> bool:
+        """Pose at once (one batched fit) the segments not posed yet that three or more matched markers fit within
+        ``fit_mm``: most segments in most frames. True when one was posed."""
+        x = np.where((self._slots >= 0)[..., None], cur[np.maximum(self._slots, 0)], np.nan)
+        seen = np.isfinite(x[..., 0])
+        todo = np.flatnonzero(np.array([p is None for p in poses]) & (seen.sum(axis=1) >= 3))
+        if not len(todo):
+            return False
+        w = seen[todo].astype(float)
+        local = np.where(seen[todo, :, None], self._layouts[todo], 0.0)
+        rot, shift, ok = kabsch(local, np.where(seen[todo, :, None], x[todo], 0.0), w)
+        moved = np.einsum("bij,bnj->bni", rot, self._layouts[todo]) + shift[:, None]
+        error = np.where(seen[todo], norm(moved - np.where(seen[todo, :, None], x[todo], 0.0)), 0.0)
+        good = ok & (error <= self.config.fit_mm).all(axis=1)
+        for b in np.flatnonzero(good):
+            poses[todo[b]] = (rot[b], shift[b])
+            self._level[todo[b]] = 0
+        return bool(good.any())
+
+    def _fit(self, s: int, seg: _Segment, poses: list, cur: np.ndarray,
+             level: int) -> tuple[np.ndarray, np.ndarray, float] | None:
+        """Segment ``s``'s pose from its matched markers alone (``level`` 0: three or more), with the centres of its
+        joints to surely posed segments (1: three points or more; 2: two, with its previous pose), or None; and how
+        far the fit puts the farthest joint centre from where its neighbour does."""
+        seen = np.isfinite(cur[seg.markers, 0])
+        n_seen = int(seen.sum())
+        local = [seg.local[seen]]
+        world = [cur[seg.markers[seen]]]
+        weight = [np.ones(n_seen)]
+        if n_seen < 3:
+            if level == 0 or n_seen == 0:
+                return None
+            for other, here, there in seg.joints:
+                if poses[other] is not None and self._level[other] < 2:
+                    rot, shift = poses[other]
+                    local.append(here[None])
+                    world.append((rot @ there + shift)[None])
+                    weight.append(np.array([JOINT_WEIGHT]))
+            count = sum(len(w) for w in weight)
+            before = self.pose[s]
+            if count < 2 or (count < 3 and (level < 2 or before is None)):
+                return None
+            if before is not None:
+                local.append(seg.local)
+                world.append(seg.local @ before[0].T + before[1])
+                weight.append(np.full(len(seg.local), PRIOR_WEIGHT))
+        fitted = fit_one(np.concatenate(local), np.concatenate(world), np.concatenate(weight))
+        if fitted is None:
+            return None
+        rot, shift = fitted
+        joints = len(local) - 1 - (n_seen < 3 and self.pose[s] is not None)
+        if n_seen >= 3 or joints <= 0:
+            return rot, shift, 0.0
+        here, there = np.concatenate(local[1:1 + joints]), np.concatenate(world[1:1 + joints])
+        return rot, shift, float(np.linalg.norm(here @ rot.T + shift - there, axis=1).max())
+
+    def _take_predicted(self, poses: list, cur: np.ndarray, taken: np.ndarray, z: np.ndarray, time: float) -> None:
+        """Give the points left over to the unmatched markers predicted by their segment's pose, or, for a segment
+        with no pose, by a short constant-velocity coast.
+
+        A segment posed through its joints, or from two points and its previous pose, may be turned some way from
+        the fit: its markers take a point within ``weak_gate_mm`` of the prediction, but only one keeping the
+        layout's distances to the segment's markers seen now (within ``fit_mm``) and to its joint centres (within
+        ``joint_mm``), and only where neither the point nor the marker has another such candidate.
+        """
+        cfg = self.config
+        missing = np.flatnonzero(np.isnan(cur[:, 0]))
+        free = np.flatnonzero(taken < 0)
+        if not len(missing) or not len(free):
+            return
+        pred = np.full((len(missing), 3), np.nan)
+        gate = np.full(len(missing), cfg.gate_mm)
+        allowed = np.ones((len(missing), len(free)), bool)
+        for s, seg in enumerate(self.segments):
+            if poses[s] is None:
+                continue
+            rot, shift = poses[s]
+            slot = np.flatnonzero(np.isin(missing, seg.markers))
+            rows = np.searchsorted(seg.markers, missing[slot])
+            pred[slot] = seg.local[rows] @ rot.T + shift
+            if self._level[s] > 0:
+                gate[slot] = cfg.weak_gate_mm
+                seen = np.flatnonzero(np.isfinite(cur[seg.markers, 0]))
+                sure = [(h, poses[o][0] @ t + poses[o][1]) for o, h, t in seg.joints
+                        if poses[o] is not None and self._level[o] < 2]
+                here = [seg.local[seen]] + [h[None] for h, _ in sure]
+                there = [cur[seg.markers[seen]]] + [t[None] for _, t in sure]
+                tol = np.array([cfg.fit_mm] * len(seen) + [cfg.joint_mm] * (len(here) - 1))
+                want = cdist(seg.local[rows], np.concatenate(here))  # (slots, references)
+                have = cdist(z[free], np.concatenate(there))  # (free, references)
+                fits = (np.abs(have[None] - want[:, None]) < tol).all(axis=2)
+                # a point that could be two of its markers, or a marker that could take two points, is left alone
+                allowed[slot] = fits & (fits.sum(axis=0, keepdims=True) == 1) & (fits.sum(axis=1, keepdims=True) == 1)
+        dt = time - self.last[missing]
+        coast = np.isnan(pred[:, 0]) & (dt <= cfg.max_coast_s)
+        pred[coast] = self.pos[missing[coast]] + self.vel[missing[coast]] * dt[coast, None]
+        known = np.flatnonzero(np.isfinite(pred[:, 0]))
+        if not len(known):
+            return
+        cost = np.where(allowed[known], gated_cost(pred[known], gate[known], z[free]), 0.0)
+        mi, fi = match(cost)
+        cur[missing[known[mi]]] = z[free[fi]]
+        taken[free[fi]] = missing[known[mi]]
+
+    def _search(self, poses: list, cur: np.ndarray, taken: np.ndarray, z: np.ndarray, searched: dict) -> bool:
+        """Look for each segment with no pose among the points left over and those of its own markers matched so far
+        by its layout (``_place_layout``), its joint centres to surely posed segments kept within ``joint_mm``; True
+        when one was placed. A segment is searched again in a frame only when more of its neighbours got posed."""
+        cfg = self.config
+        placed = False
+        for s, seg in enumerate(self.segments):
+            if poses[s] is not None:
+                continue
+            anchors = [(here, poses[other][0] @ there + poses[other][1]) for other, here, there in seg.joints
+                       if poses[other] is not None and self._level[other] < 2]
+            if searched.get(s, -1) >= len(anchors):
+                continue
+            searched[s] = len(anchors)
+            own = np.isin(taken, seg.markers)  # its markers matched so far (too few to pose it) may move
+            free = np.flatnonzero((taken < 0) | own)
+            if not len(free):
+                continue
+            dt = self._time - self._last_time[s]
+            around = (self._last_seen[s], 100.0 + cfg.max_speed_mm_s * dt) if dt <= cfg.recent_s else None
+            best = _place_layout(seg.local, z[free], cfg.fit_mm, anchors, cfg.joint_mm, around)
+            if best is None:
+                continue
+            hits, rot, shift = best
+            cur[seg.markers] = np.nan
+            taken[own] = -1
+            for slot, point in hits.items():
+                cur[seg.markers[slot]] = z[free[point]]
+                taken[free[point]] = seg.markers[slot]
+            poses[s] = (rot, shift)
+            self._level[s] = 1 if anchors else 0
+            placed = True
+        return placed
+
+    def _observe(self, cur: np.ndarray, time: float) -> None:
+        seen = np.isfinite(cur[:, 0])
+        m = np.flatnonzero(seen)
+        dt = time - self.last[m]
+        measured = (cur[m] - self.pos[m]) / dt[:, None]
+        smooth = self.vel[m] + self.config.velocity_smoothing * (measured - self.vel[m])
+        self.vel[m] = np.where((self.streak[m] >= 2)[:, None], smooth,
+                               np.where((self.streak[m] == 1)[:, None], measured, 0.0))
+        self.pos[m] = cur[m]
+        self.last[m] = time
+        self.streak = np.where(seen, self.streak + 1, 0)
+
+
+def _place_layout(layout: np.ndarray, cloud: np.ndarray, tol: float, anchors: list[tuple[np.ndarray, np.ndarray]],
+                  joint_tol: float, around: tuple[np.ndarray, float] | None = None,
+                  ) -> tuple[dict[int, int], np.ndarray, np.ndarray] | None:
+    """The placement of a segment's layout ``(n, 3)`` on ``cloud`` that fits clearly better than any other (more
+    points, or a third of the misfit): the points it lands on by layout row, its rotation and translation; None when
+    no placement is that sure.
+
+    With ``anchors`` (joint centres to posed segments: local, world), a placement lands two or more layout points on
+    cloud points (within ``tol``) and every anchor within ``joint_tol`` of its world position. Without, it must land
+    four or more: any three points form a triangle that also fits the mirror-image segment of the other side of the
+    body, whose own markers may be the ones hidden now; three are enough when the segment's centre must lie ``around``
+    (centre, radius) where it was lately.
+    """
+    found: dict[frozenset, tuple[int, float, dict[int, int], np.ndarray, np.ndarray]] = {}
+    local_a = np.array([here for here, _ in anchors]).reshape(-1, 3)
+    world_a = np.array([there for _, there in anchors]).reshape(-1, 3)
+    least = (4 if around is None else 3) if not anchors else 2 if len(anchors) == 1 else 1
+    if len(layout) < least:
+        return None
+    d_cloud = cdist(cloud, cloud)
+    d_anchor = cdist(cloud, world_a)
+    d_local = cdist(layout, local_a)
+    for target_rows, target in _triples(layout, cloud, d_cloud, d_anchor, d_local, len(anchors), tol, joint_tol):
+        weight = np.array([1.0] * len(target_rows) + [JOINT_WEIGHT] * len(anchors))
+        fitted = fit_one(np.concatenate([layout[list(target_rows)], local_a]),
+                         np.concatenate([cloud[list(target)], world_a]), weight)
+        if fitted is None:
+            continue
+        rot, shift = fitted
+        anchor_err = np.linalg.norm(local_a @ rot.T + shift - world_a, axis=1)
+        if (anchor_err > joint_tol).any() or (around is not None and np.linalg.norm(shift - around[0]) > around[1]):
+            continue
+        near = cdist(layout @ rot.T + shift, cloud)
+        point = near.argmin(axis=1)
+        fit = near[np.arange(len(layout)), point]
+        inside = fit < tol
+        if inside.sum() < least or len(set(point[inside].tolist())) < inside.sum():
+            continue
+        hits = {int(r): int(point[r]) for r in np.flatnonzero(inside)}
+        key = frozenset(hits.items())
+        misfit = float(np.sqrt((np.sum(fit[inside] ** 2) + np.sum(anchor_err**2)) / (inside.sum() + len(anchor_err))))
+        if key not in found or misfit < found[key][1]:
+            found[key] = (int(inside.sum()), misfit, hits, rot, shift)
+    if not found:
+        return None
+    ranked = sorted(found.values(), key=lambda f: (-f[0], f[1]))
+    top = ranked[0]
+    if len(ranked) > 1 and ranked[1][0] == top[0] and ranked[1][1] < 3.0 * top[1] + 1.0:
+        return None
+    return top[2], top[3], top[4]
+
+
+def _triples(layout: np.ndarray, cloud: np.ndarray, d_cloud: np.ndarray, d_anchor: np.ndarray, d_local: np.ndarray,
+             anchors: int, tol: float, joint_tol: float) -> Iterable[tuple[tuple[int, ...], tuple[int, ...]]]:
+    """Layout rows and cloud points that, with the anchors, make three points at the layout's distances: a marker
+    with two anchors or more, two markers with one, three markers without."""
+    width = 3 - min(anchors, 2)
+    d_layout = cdist(layout, layout)
+
+    def fits_anchors(rows: tuple[int, ...], points: tuple[int, ...]) -> bool:
+        return all((np.abs(d_anchor[p] - d_local[r]) <= joint_tol).all() for r, p in zip(rows, points, strict=True))
+
+    if width == 1:
+        for a in range(len(layout)):
+            for i in np.flatnonzero((np.abs(d_anchor - d_local[a]) <= joint_tol).all(axis=1)):
+                yield (a,), (int(i),)
+        return
+    for rows in combinations(range(len(layout)), width):
+        a, b = rows[0], rows[1]
+        for i, j in np.argwhere(np.abs(d_cloud - d_layout[a, b]) < tol):
+            if width == 2:
+                if fits_anchors((a, b), (i, j)):
+                    yield (a, b), (int(i), int(j))
+                continue
+            c = rows[2]
+            ks = np.flatnonzero((np.abs(d_cloud[i] - d_layout[a, c]) < tol)
+                                & (np.abs(d_cloud[j] - d_layout[b, c]) < tol))
+            for k in ks[(ks != i) & (ks != j)]:
+                yield (a, b, c), (int(i), int(j), int(k))
+
+
+def label_with_skeleton(frames: Iterable[np.ndarray], rate: float, skeleton: SkeletonModel,
+                        config: ModelLabellerConfig | None = None) -> tuple[np.ndarray, list[str]]:
+    """Label a whole recording of point clouds with a skeleton's marker names: ``(F, N, 3)`` trajectories of its
+    ``N`` markers (NaN where not found) and their names."""
+    labeller = ModelLabeller(skeleton, rate, config)
+    rows = [labeller.update(points, i / rate)[0] for i, points in enumerate(frames)]
+    out = np.stack(rows) if rows else np.full((0, len(labeller.labels), 3), np.nan)
+    return out, list(labeller.labels)

@@ -1,0 +1,83 @@
+"""Labelling from a skeleton: a new trial of a calibrated subject named with the skeleton's own marker names."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from mocapflow.mocap.calibration import calibrate
+from mocapflow.mocap.evaluation import unlabel
+from mocapflow.mocap.labelling.model import ModelLabeller, label_with_skeleton
+from mocapflow.mocap.model import SkeletonModel
+from mocapflow.mocap.simulator import Simulator, SimulatorConfig, simulate, truth_skeleton
+
+RATE = 120.0
+
+
+def _named(named: np.ndarray, names: list[str], points: np.ndarray, identity: np.ndarray,
+           labels: list[str]) -> tuple[int, int, int]:
+    """Real points named with their own marker's name, with another's, and in all."""
+    index = np.array([labels.index(n) for n in names])
+    right = wrong = total = 0
+    for f in range(len(points)):
+        for r in np.flatnonzero(identity[f] >= 0):
+            total += 1
+            hit = np.flatnonzero(np.linalg.norm(named[f] - points[f, r], axis=1) < 1e-9)
+            if len(hit):
+                right += int(index[hit[0]] == identity[f, r])
+                wrong += int(index[hit[0]] != identity[f, r])
+    return right, wrong, total
+
+
+def test_new_trial_of_the_same_subject_is_named_from_its_skeleton() -> None:
+    """Calibrated on one trial, the skeleton names the shuffled points of another, hidden in 0.2-1 s gaps and with
+    one-frame ghosts, from its first frame: no point gets another marker's name."""
+    calibration = simulate(SimulatorConfig(rig="human", rate=RATE, noise_mm=0.5, seed=3), 720)
+    skeleton = calibrate(calibration.positions, calibration.labels, RATE)
+    trial = simulate(SimulatorConfig(rig="human", rate=RATE, noise_mm=0.5, seed=7), 240)
+    points, identity = unlabel(trial.positions, RATE, seed=2, gaps_per_s=0.3, long_fraction=1.0, long_s=(0.2, 1.0),
+                               ghosts=0.2, ghost_frames=1)
+    named, names = label_with_skeleton(list(points), RATE, skeleton)
+    assert sorted(names) == sorted(trial.labels)
+    right, wrong, total = _named(named, names, points, identity, trial.labels)
+    print(f"\n{right}/{total} true points named right ({100 * right / total:.2f} %), {wrong} wrong")
+    assert wrong == 0
+    first = np.flatnonzero(identity[0] >= 0)
+    row = [np.flatnonzero(np.linalg.norm(named[0] - points[0, r], axis=1) < 1e-9) for r in first]
+    assert all(len(hit) == 1 for hit in row), "every marker seen in the first frame is named in it"
+    assert right >= 0.98 * total
+
+
+def test_skeleton_validation() -> None:
+    empty = SkeletonModel(segments=[], joints=[], root="none")
+    with pytest.raises(ValueError, match="no segment"):
+        ModelLabeller(empty, RATE)
+    sim = Simulator(SimulatorConfig(rig="human", seed=3))
+    labeller = ModelLabeller(truth_skeleton(sim.rig, sim.frame(0).true_positions), RATE)
+    labeller.update(np.zeros((0, 3)), 0.0)
+    with pytest.raises(ValueError, match="increase"):
+        labeller.update(np.zeros((0, 3)), 0.0)
+
+
+def test_label_command_with_a_skeleton(tmp_path: Path) -> None:
+    from mocapflow.cli import main
+    from mocapflow.io.markers import MarkerData, read_markers, write_markers
+    from mocapflow.io.skeleton import write_skeleton
+
+    sim = Simulator(SimulatorConfig(rig="human", seed=3))
+    skeleton_path = tmp_path / "subject.json"
+    write_skeleton(skeleton_path, truth_skeleton(sim.rig, sim.frame(0).true_positions))
+    trial = simulate(SimulatorConfig(rig="human", rate=RATE, noise_mm=0.5, seed=7), 120)
+    points, identity = unlabel(trial.positions, RATE, seed=4, gaps_per_s=0.3, ghosts=0.2, ghost_frames=1)
+    source, target = tmp_path / "points.c3d", tmp_path / "named.c3d"
+    write_markers(source, MarkerData(positions=points, labels=[f"P{i}" for i in range(points.shape[1])], rate=RATE))
+    assert main(["label", str(source), "-o", str(target), "--skeleton", str(skeleton_path)]) == 0
+    out = read_markers(target)
+    assert sorted(out.labels) == sorted(trial.labels)
+    right, wrong, total = _named(out.positions, out.labels, read_markers(source).positions, identity, trial.labels)
+    assert wrong == 0 and right >= 0.98 * total
+    assert main(["label", str(source), "-o", str(target), "--skeleton", str(tmp_path / "absent.json")]) == 2
+    (tmp_path / "bad.json").write_text("{}")
+    assert main(["label", str(source), "-o", str(target), "--skeleton", str(tmp_path / "bad.json")]) == 2
