@@ -51,6 +51,7 @@ def _joint_errors(rec: SimRecording, skeleton: SkeletonModel, positions: np.ndar
 
 @pytest.mark.parametrize(("rig", "joint_method"), [("human", "variance"), ("rods", "variance"),
                                                    ("quadruped", "variance"), ("human", "closed-form")])
+@pytest.mark.integration
 def test_simulated_rigs_give_their_true_segments_tree_and_joints(rig: str, joint_method: str) -> None:
     rec = _recording(rig)
     skeleton = _skeleton(rig, joint_method)
@@ -107,6 +108,7 @@ def _rig_parent_rotation(rec: SimRecording, rig: object, child: int) -> np.ndarr
     return Rotation.align_vectors(world, local)[0].as_matrix()
 
 
+@pytest.mark.integration
 def test_calibration_and_solver_work_through_gaps() -> None:
     gappy = _recording("human", dropout_rate=0.5, long_gaps=4.0)
     assert np.isnan(gappy.positions).mean() > 0.05

@@ -177,6 +177,7 @@ def _report(name: str, score: object) -> None:
     print(f"\n{name}: {score.summary()}")  # type: ignore[attr-defined]
 
 
+@pytest.mark.integration
 @pytest.mark.parametrize("name,seed", [("lowerbody_clusters_knee_0401.c3d", 0), ("cmu_85_02.c3d", 1)])
 def test_real_capture_with_identities_stripped(data_dir: Path, name: str, seed: int) -> None:
     from mocapflow.io.markers import read_markers
@@ -192,6 +193,7 @@ def test_real_capture_with_identities_stripped(data_dir: Path, name: str, seed: 
     assert score.markers_found == data.n_markers
 
 
+@pytest.mark.integration
 def test_simulated_human_with_long_gaps_and_ghosts() -> None:
     rec = simulate(SimulatorConfig(rig="human", rate=240, noise_mm=0.5, dropout_rate=0.2, long_gaps=3, ghosts=2,
                                    unlabelled=True, seed=4), 2400)
@@ -205,6 +207,7 @@ def test_simulated_human_with_long_gaps_and_ghosts() -> None:
     assert score.markers_found == len(rec.labels)
 
 
+@pytest.mark.integration
 @pytest.mark.parametrize("cameras,seed,accuracy,fragments", [(4, 2, 0.990, 28), (8, 7, 0.993, 6)])
 def test_streaming_through_the_camera_model(cameras: int, seed: int, accuracy: float, fragments: int) -> None:
     """Body occlusions hide markers often, for long and several of one segment at once: a returning marker is found
@@ -225,6 +228,7 @@ def test_streaming_through_the_camera_model(cameras: int, seed: int, accuracy: f
     assert score.markers_found == len(rec.labels)
 
 
+@pytest.mark.integration
 def test_single_camera_rays_go_to_the_unseen_markers_they_belong_to() -> None:
     """The camera model's unlabelled cloud lists each single-camera marker as a row with a ray and no position: the
     labeller gives such a ray to the unseen track expected nearest its line, and only when that is unambiguous, so a
