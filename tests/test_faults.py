@@ -389,3 +389,35 @@ def test_a_recorder_path_under_a_file_fails_the_run_at_start_in_one_line(tmp_pat
     assert "[recorder] ERROR node recorder could not start: afile/out.c3d.part: cannot record there: afile is a " \
            "file, not a folder" in out, out
     assert "failed: recorder\n" in out and "tracker       simulator           finished" in out, out
+
+
+def test_a_killed_skeleton_publisher_loses_poses_of_its_restart_gap_only(tmp_path: Path, free_endpoint: str) -> None:
+    """With a skeleton given from the start, every frame is posed; killing the skeleton publisher costs the poses of
+    one gap and not a single marker frame."""
+    from mocapflow.mocap.simulator import simulate, truth_skeleton
+
+    frames = 10 * RATE
+    sim = Simulator(SimulatorConfig(rig="human", rate=RATE, seed=3))
+    reference = simulate(SimulatorConfig(rig="human", rate=RATE, seed=3, noise_mm=0.0), 1).true_positions[0]
+    (tmp_path / "human.json").write_text(truth_skeleton(sim.rig, reference).model_dump_json())
+    path, prefix = graph_file(tmp_path, "skl", free_endpoint, f"""
+  tracker: {{plugin: simulator, config: {{rig: human, rate: {RATE}, seed: 3, frames: {frames}}}}}
+  skeleton: {{plugin: skeleton, inputs: {{markers: tracker/markers}}, config: {{skeleton: {tmp_path / 'human.json'}}}}}
+  recorder: {{plugin: recorder, inputs: {{markers: tracker/markers, pose: skeleton/pose}},
+              config: {{path: {tmp_path / 'out.c3d'}}}}}
+""")
+    run = start(["run", str(path), "--duration", "90"], tmp_path)
+    wait_for_frames(free_endpoint, prefix, "recorder", 3 * RATE)
+    os.kill(worker_pid(prefix, "skeleton"), signal.SIGKILL)
+    out, _ = run.communicate(timeout=120)
+    assert run.returncode == 0, out
+    assert "[skeleton] stopped (exit code -9); restart 1" in out, out
+    points, labels, *_ = read_c3d(tmp_path / "out.c3d")
+    markers = len(sim.rig.marker_labels)
+    assert points.shape[0] == frames and len(labels) > markers  # the joint centres follow the markers
+    assert_real_frames(points[:, :markers], truth(frames), np.arange(frames))  # every marker frame, unchanged
+    posed = np.isfinite(points[:, markers:, 0]).any(axis=1)
+    missing = np.flatnonzero(~posed)
+    assert posed[0] and posed[-1], missing[:10]
+    assert len(missing) == 0 or missing[-1] - missing[0] + 1 == len(missing), missing  # one gap of poses
+    print(f"skeleton restart gap: {len(missing)} frames ({len(missing) / RATE:.2f} s at {RATE} Hz)")
