@@ -74,22 +74,28 @@ def test_qtm_rt_reads_the_point_cloud_exactly(real_file) -> None:
 def test_natnet_client_reads_the_file_exactly(real_file) -> None:
     path = real_file(SHORT)
     data = read_markers(path)
-    port = free_port()
-    frames: list = []
-    descriptions: list = []
-    with Server("natnet", path, port, "--speed", "2"):
-        client = natnet.NatNetClient(server_ip_address="127.0.0.1", local_ip_address="127.0.0.1",
-                                     use_multicast=False, command_port=port)
-        client.on_data_frame_received_event.handlers.append(frames.append)
-        client.on_data_description_received_event.handlers.append(descriptions.append)
-        with client:
-            enlarge_receive_buffers(client)  # as the adapter does: a busy machine must not overflow the socket
-            assert str(client.server_info.nat_net_protocol_version) == "3.0.0.0"
-            client.request_modeldef()
-            client.run_async()
-            deadline = time.monotonic() + 60
-            while len(frames) < len(data.positions) and time.monotonic() < deadline:
-                time.sleep(0.05)
+    # NatNet streams over UDP, which may drop a datagram on a machine busy enough: a session that lost one is played
+    # again (at most three times); what is checked is that the server sends every frame as the file has it.
+    for _attempt in range(3):
+        port = free_port()
+        frames: list = []
+        descriptions: list = []
+        with Server("natnet", path, port, "--speed", "2"):
+            client = natnet.NatNetClient(server_ip_address="127.0.0.1", local_ip_address="127.0.0.1",
+                                         use_multicast=False, command_port=port)
+            client.on_data_frame_received_event.handlers.append(frames.append)
+            client.on_data_description_received_event.handlers.append(descriptions.append)
+            with client:
+                enlarge_receive_buffers(client)  # as the adapter does: a busy machine must not overflow the socket
+                assert str(client.server_info.nat_net_protocol_version) == "3.0.0.0"
+                client.request_modeldef()
+                client.run_async()
+                deadline = time.monotonic() + 60
+                while len(frames) < len(data.positions) and time.monotonic() < deadline:
+                    time.sleep(0.05)
+        numbers = [f.prefix.frame_number for f in frames]
+        if numbers == list(range(data.first_frame, data.first_frame + len(data.positions))):
+            break
     assert [f.prefix.frame_number for f in frames] == list(range(data.first_frame, data.first_frame + len(frames)))
     assert len(frames) == len(data.positions)
     (marker_set,) = descriptions[0].marker_sets
