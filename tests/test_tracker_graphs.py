@@ -14,7 +14,7 @@ import pytest
 from conftest import CLI, free_port
 from scipy.optimize import linear_sum_assignment
 from test_runtime import wait_for_frames
-from trackers import Server, graph_file, run_graph
+from trackers import Server, graph_file, run_graph, stream_graph
 
 from mocapflow.io.markers import MarkerData, read_markers, write_markers
 
@@ -47,8 +47,7 @@ def test_every_frame_reaches_the_recorder(protocol: str, unlabelled: bool, tmp_p
     port = free_port()
     graph = graph_file(tmp_path, free_endpoint, f"{protocol[0]}{int(unlabelled)}",
                        {"tracker": tracker(protocol, port, unlabelled), "recorder": recorder(tmp_path / "live.c3d")})
-    with Server(protocol, path, port, "--speed", "2"):
-        code, out, stats = run_graph(graph)
+    code, out, stats = stream_graph(protocol, path, port, graph, "recorder", "--speed", "2")
     assert code == 0 and "all nodes finished" in out, out
     assert stats["recorder"]["frames_in"] == len(data.positions), stats
     assert stats["recorder"]["drops"] == 0 and stats["recorder"]["errors"] == 0, stats  # in order, none missing
@@ -90,8 +89,7 @@ def test_filled_output_equals_the_c3d_replay_graph(protocol: str, tmp_path: Path
     pipeline = {"filler": {"plugin": "occlusion-filler", "inputs": {"markers": "tracker/markers"}},
                 "recorder": recorder(tmp_path / "live.c3d", "filler/markers")}
     live = graph_file(tmp_path, free_endpoint, f"fl{protocol[0]}", {"tracker": tracker(protocol, port), **pipeline})
-    with Server(protocol, source, port, "--speed", "2"):
-        code, out, _ = run_graph(live)
+    code, out, _ = stream_graph(protocol, source, port, live, "filler", "--speed", "2")
     assert code == 0, out
     pipeline["recorder"] = recorder(tmp_path / "replay.c3d", "filler/markers")
     replay = graph_file(tmp_path, f"tcp/127.0.0.1:{free_port()}", f"fr{protocol[0]}", {
@@ -143,8 +141,11 @@ def test_server_restarted_mid_stream_is_reconnected(protocol: str, tmp_path: Pat
     assert stats["errors"] == 0, stats  # never a frame number at or below the one before
     assert received.sum() + stats["drops"] == len(live.positions)
     tail = live.positions[-len(data.positions):]  # the replayed file, whole, at the end
+    arrived = np.isfinite(tail).any(axis=(1, 2))
+    # QTM streams over TCP: every frame; NatNet over UDP, which a busy machine may drop a datagram of
+    assert arrived.all() if protocol == "qtm" else arrived.mean() > 0.99, np.flatnonzero(~arrived)
     tolerance = 1e-3 if protocol == "natnet" else 0
-    np.testing.assert_allclose(tail, data.positions.astype(np.float32), rtol=0, atol=tolerance)
+    np.testing.assert_allclose(tail[arrived], data.positions[arrived].astype(np.float32), rtol=0, atol=tolerance)
 
 
 @pytest.mark.parametrize("protocol", ["qtm", "natnet"])
@@ -174,8 +175,7 @@ def test_labelled_point_cloud_equals_the_c3d_replay_graph(protocol: str, tmp_pat
                 "recorder": recorder(tmp_path / "live.c3d", "labeller/markers")}
     live = graph_file(tmp_path, free_endpoint, f"lb{protocol[0]}",
                       {"tracker": tracker(protocol, port, unlabelled=True), **pipeline})
-    with Server(protocol, path, port, "--speed", "2"):
-        code, out, _ = run_graph(live)
+    code, out, _ = stream_graph(protocol, path, port, live, "labeller", "--speed", "2")
     assert code == 0, out
     pipeline["recorder"] = recorder(tmp_path / "replay.c3d", "labeller/markers")
     replay = graph_file(tmp_path, f"tcp/127.0.0.1:{free_port()}", f"lr{protocol[0]}", {
