@@ -14,6 +14,7 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
 from mocapflow.errors import GraphError
+from mocapflow.runtime.inbox import DEFAULT_CAPACITY, QueuePolicy
 from mocapflow.runtime.integrity import StreamLimits
 from mocapflow.runtime.node import Node
 from mocapflow.runtime.plugins import PluginNotFound, load
@@ -48,6 +49,10 @@ class NodeSpec(RestartPolicy):
     config: dict[str, Any] = Field(default_factory=dict)
     inputs: dict[str, str] = Field(default_factory=dict, description="input port -> 'node/output'")
     machine: str | None = Field(default=None, description="agent that runs this node; none: the launcher's machine")
+    queue: dict[str, QueuePolicy] = Field(
+        default_factory=dict, description="input port -> 'all' (every message, the default) or 'latest' (the newest)")
+    queue_size: int = Field(default=DEFAULT_CAPACITY, ge=1,
+                            description="messages the inbox holds at most; beyond, new ones are dropped and counted")
 
 
 class Graph(BaseModel):
@@ -174,6 +179,10 @@ def validate(graph: Graph, source: str = "graph") -> dict[str, type[Node]]:
         for port, port_spec in cls.inputs.items():
             if port_spec.required and port not in spec.inputs:
                 errors.append(f"nodes.{name}.inputs.{port}: required input is not linked ({port_spec.type.type_name})")
+        for port in spec.queue:
+            if port not in spec.inputs:
+                errors.append(f"nodes.{name}.queue.{port}: no linked input {port!r} "
+                              f"(inputs: {', '.join(spec.inputs) or 'none'})")
         for port, link in spec.inputs.items():
             where = f"nodes.{name}.inputs.{port}"
             if port not in cls.inputs:

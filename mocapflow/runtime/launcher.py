@@ -70,6 +70,11 @@ def refuse_prefix_in_use(session: zenoh.Session, prefix: str) -> None:
                              " or give this graph another 'name' or 'prefix'")
 
 
+def _backlog(stats: NodeStats | None) -> str:
+    """Messages waiting in a node's inbox and how long the oldest has waited: ``12/48ms``."""
+    return "-" if stats is None else f"{stats.backlog}/{stats.backlog_ms:.0f}ms"
+
+
 class Launcher:
     def __init__(self, graph: Graph, classes: dict[str, type[Node]], *, duration: float | None = None,
                  listen: list[str] | None = None, connect: list[str] | None = None, out: IO[str] = sys.stdout,
@@ -105,7 +110,7 @@ class Launcher:
                     inputs={p: f"{self.prefix}/{link}" for p, link in spec.inputs.items()},
                     connect=endpoints, peers=list(graph.nodes), end_inputs=ends[name],
                     security=str(self.security) if self.security else None, limits=graph.limits,
-                    run=self.run_id,
+                    run=self.run_id, queue=spec.queue, queue_size=spec.queue_size,
                 ),
                 source=classes[name].is_source(), restart=spec.restart, max_restarts=spec.max_restarts,
             )
@@ -151,7 +156,7 @@ class Launcher:
     def table(self) -> str:
         where = f"{'MACHINE':<14}" if self.remote else ""
         head = f"{'NODE':<14}{'PLUGIN':<20}{where}{'STATE':<11}{'PID':>8}{'RATE Hz':>9}{'P50 ms':>8}{'P99 ms':>8}" \
-               f"{'IN':>8}{'OUT':>8}{'DROPS':>6}{'ERR':>5}{'RESTARTS':>9}"
+               f"{'IN':>8}{'OUT':>8}{'DROPS':>6}{'BACKLOG':>12}{'ERR':>5}{'RESTARTS':>9}"
         rows = [head]
         for name, plugin, machine, state, pid, restarts in self._rows():
             s = self.stats.get(name)
@@ -162,7 +167,7 @@ class Launcher:
                 f"{fmt(s.rate_hz if s else None):>9}{fmt(s.latency_p50_ms if s else None):>8}"
                 f"{fmt(s.latency_p99_ms if s else None):>8}{(s.frames_in if s else 0):>8}"
                 f"{(s.frames_out if s else 0):>8}"
-                f"{(s.drops if s else 0):>6}{(s.errors if s else 0):>5}{restarts:>9}"
+                f"{(s.drops + s.skipped if s else 0):>6}{_backlog(s):>12}{(s.errors if s else 0):>5}{restarts:>9}"
             )
         return "\n".join(rows)
 

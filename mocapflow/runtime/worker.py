@@ -19,7 +19,6 @@ import argparse
 import ctypes
 import logging
 import os
-import queue
 import signal
 import sys
 import threading
@@ -34,6 +33,7 @@ from pydantic import BaseModel, Field, ValidationError
 
 from mocapflow.messages import DecodeError, Message, NodeStats, decode, encode
 from mocapflow.runtime import keys
+from mocapflow.runtime.inbox import DEFAULT_CAPACITY, Entry, Inbox, QueuePolicy
 from mocapflow.runtime.integrity import InputGuard, Refused, StreamLimits, new_identity
 from mocapflow.runtime.node import RUN_ENV, Node
 from mocapflow.runtime.plugins import PluginNotFound, load
@@ -45,7 +45,6 @@ EXIT_CONFIG = 2
 EXIT_FINISH = 3
 STATS_PERIOD_S = 0.5
 PEER_WAIT_S = 20.0
-QUEUE_CAPACITY = 100_000
 MAX_BATCH = 256
 
 log = logging.getLogger("mocapflow.worker")
@@ -71,6 +70,8 @@ class WorkerSpec(BaseModel):
         default=None, description="security settings file (TLS, login); its path, so no password is on a command line"
     )
     limits: StreamLimits = Field(default_factory=StreamLimits, description="what the data inputs accept")
+    queue: dict[str, QueuePolicy] = Field(default_factory=dict, description="input port -> policy (default 'all')")
+    queue_size: int = Field(default=DEFAULT_CAPACITY, ge=1, description="messages an 'all' inbox holds at most")
     run: str = Field(default="", description="the launch this node belongs to (the same across its restarts)")
 
 
@@ -98,7 +99,7 @@ class Stats:
             self._first_done = self._last_done
         self.latencies_ms.append((time.time_ns() - capture_ns) / 1e6)
 
-    def snapshot(self, node: str, state: str) -> NodeStats:
+    def snapshot(self, node: str, state: str, inbox: Inbox[Any] | None = None) -> NodeStats:
         now = time.monotonic()
         t0, n0 = self._rate_mark
         if state in ("finished", "stopping") and self._first_done is not None and self.handled > 1:
@@ -109,9 +110,14 @@ class Stats:
         p50 = p99 = None
         if self.latencies_ms:
             p50, p99 = (float(v) for v in np.percentile(np.fromiter(self.latencies_ms, float), [50, 99]))
+        backlog, backlog_ms = inbox.backlog() if inbox is not None else (0, 0.0)
         return NodeStats(
             node=node, pid=os.getpid(), state=state, frames_in=self.frames_in, frames_out=self.frames_out,
-            rate_hz=round(self.rate_hz, 2), latency_p50_ms=p50, latency_p99_ms=p99, drops=self.drops,
+            rate_hz=round(self.rate_hz, 2), latency_p50_ms=p50, latency_p99_ms=p99,
+            drops=self.drops + (inbox.drops if inbox is not None else 0),
+            skipped=inbox.skipped if inbox is not None else 0, backlog=backlog, backlog_ms=round(backlog_ms, 3),
+            backlog_max=inbox.max_backlog_frames if inbox is not None else 0,
+            backlog_max_ms=round(inbox.max_backlog_ms, 3) if inbox is not None else 0.0,
             errors=self.errors, refused=self.refused, last_error=self.last_error,
         )
 
@@ -124,7 +130,7 @@ class Worker:
         self.state = "starting"
         self.stop_event = threading.Event()
         self.finished_ok = True
-        self.inbox: queue.Queue[tuple[str, zenoh.Sample]] = queue.Queue(QUEUE_CAPACITY)
+        self.inbox: Inbox[zenoh.Sample] = Inbox(spec.queue_size, {p for p, q in spec.queue.items() if q == "latest"})
         self._publishers: dict[str, Any] = {}
         self._last_frame: dict[str, int] = {}
         self._last_capture_ns: int | None = None
@@ -160,10 +166,7 @@ class Worker:
         spec = self.node.inputs[port]
 
         def on_sample(sample: zenoh.Sample) -> None:
-            try:
-                self.inbox.put_nowait((port, sample))
-            except queue.Full:
-                self.stats.drops += 1
+            self.inbox.put(port, sample, end=sample.kind == zenoh.SampleKind.DELETE)
 
         if spec.state:
             return zext.declare_advanced_subscriber(
@@ -197,7 +200,7 @@ class Worker:
             self.publish_stats()
 
     def publish_stats(self) -> None:
-        stats = self.stats.snapshot(self.spec.node, self.state)
+        stats = self.stats.snapshot(self.spec.node, self.state, self.inbox)
         stats.clock_origin_ns = self.clock_origin_ns
         self._stats_pub.put(encode(stats))
 
@@ -270,14 +273,13 @@ class Worker:
         self._end_outputs()
 
     def _run_sink(self) -> None:
-        pending: tuple[str, zenoh.Sample] | None = None
+        pending: Entry[zenoh.Sample] | None = None
         while not self.stop_event.is_set():
             if pending is None:
-                try:
-                    pending = self.inbox.get(timeout=0.1)
-                except queue.Empty:
+                pending = self.inbox.get(timeout=0.1)
+                if pending is None:
                     continue
-            port, sample = pending
+            port, sample, skipped = pending.port, pending.item, pending.skipped
             pending = None
             if sample.kind == zenoh.SampleKind.DELETE:
                 if port in self.guards and not self.guards[port].accept_end(_identity(sample)):
@@ -291,19 +293,20 @@ class Worker:
                     return
                 continue
             # A node that fell behind catches up on what has queued on this input since, in one batch.
-            batch = [sample]
+            batch = [(sample, skipped)]
             while len(batch) < MAX_BATCH:
-                try:
-                    pending = self.inbox.get_nowait()
-                except queue.Empty:
+                pending = self.inbox.get(timeout=0)
+                if pending is None:
                     break
-                if pending[0] != port or pending[1].kind != zenoh.SampleKind.PUT:
+                if pending.port != port or pending.end:
                     break
-                batch.append(pending[1])
+                batch.append((pending.item, pending.skipped))
                 pending = None
             self._handle(port, batch)
 
-    def _decode(self, port: str, sample: zenoh.Sample) -> Message | None:
+    def _decode(self, port: str, sample: zenoh.Sample, skipped: int = 0) -> Message | None:
+        """The message of ``sample``, checked; ``skipped``: how many messages it replaced in a 'latest' inbox (not
+        counted again as lost frames)."""
         spec = self.node.inputs[port]
         try:
             message = decode(sample.payload.to_bytes(), spec.type)
@@ -323,15 +326,15 @@ class Worker:
                     return None
             last = self._last_frame.get(port)
             if last is not None and message.frame != last + 1:
-                if message.frame > last + 1:
-                    self.stats.drops += message.frame - last - 1
+                if message.frame > last + 1 + skipped:
+                    self.stats.drops += message.frame - last - 1 - skipped
                 else:
                     self._report_error(f"input {port!r}", ValueError(f"frame {message.frame} after {last}"))
             self._last_frame[port] = message.frame
         return message
 
-    def _handle(self, port: str, samples: list[zenoh.Sample]) -> None:
-        messages = [m for m in (self._decode(port, s) for s in samples) if m is not None]
+    def _handle(self, port: str, samples: list[tuple[zenoh.Sample, int]]) -> None:
+        messages = [m for m in (self._decode(port, s, k) for s, k in samples) if m is not None]
         if type(self.node).process_batch is Node.process_batch:
             groups = [[m] for m in messages]  # one at a time, so a bad frame costs only itself
         else:
