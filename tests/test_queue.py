@@ -28,7 +28,7 @@ def test_latest_keeps_the_newest_and_counts_the_rest() -> None:
     first, second = inbox.get(0), inbox.get(0)
     assert first is not None and (first.port, first.item, first.skipped) == ("view", 5, 5)
     assert second is not None and (second.port, second.item, second.skipped) == ("data", 100, 0)
-    assert inbox.get(0) is None and inbox.skipped == 5 and inbox.drops == 0
+    assert inbox.get(0) is None and inbox.skipped == {"view": 5} and inbox.drops == {}
     inbox.put("view", 6)
     inbox.put("view", 0, end=True)  # end of stream is never replaced
     inbox.put("view", 7)
@@ -40,11 +40,12 @@ def test_all_is_bounded_counts_what_it_refuses_and_never_refuses_an_end() -> Non
     inbox: Inbox[int] = Inbox(capacity=3)
     assert [inbox.put("m", i) for i in range(5)] == [True, True, True, False, False]
     assert inbox.put("m", -1, end=True)
-    assert inbox.drops == 2 and inbox.backlog()[0] == 4
+    assert inbox.drops == {"m": 2} and inbox.backlog()[0] == 4
     got = [inbox.get(0) for _ in range(4)]
     assert [e.item for e in got if e is not None] == [0, 1, 2, -1]
     assert got[3] is not None and got[3].end and got[3].skipped == 2  # the gap before the end is accounted for
-    assert inbox.max_backlog_frames == 4 and inbox.max_backlog_ms >= 0.0
+    figures = inbox.figures({"m"})
+    assert (figures["drops"], figures["skipped"], figures["backlog"], figures["backlog_max"]) == (2, 0, 0, 4)
 
 
 def test_a_queue_policy_must_name_a_linked_input(tmp_path: Path) -> None:

@@ -36,10 +36,9 @@ class Inbox(Generic[T]):
     def __init__(self, capacity: int = DEFAULT_CAPACITY, latest: set[str] | frozenset[str] = frozenset()) -> None:
         self.capacity = capacity
         self.latest = set(latest)
-        self.drops = 0
-        self.skipped = 0
-        self.max_backlog_frames = 0
-        self.max_backlog_ms = 0.0
+        self.drops: dict[str, int] = {}
+        self.skipped: dict[str, int] = {}
+        self.max_backlog: dict[str, tuple[int, float]] = {}  # per input: most waiting, longest wait (ms) when taken
         self._entries: deque[Entry[T]] = deque()
         self._waiting: dict[str, Entry[T]] = {}  # latest inputs: the one message of each that waits
         self._refused: dict[str, int] = {}  # per input, refused since its last queued message
@@ -53,11 +52,11 @@ class Inbox(Generic[T]):
                 waiting = self._waiting.get(port)
                 if waiting is not None:
                     waiting.item, waiting.skipped = item, waiting.skipped + 1
-                    self.skipped += 1
+                    self.skipped[port] = self.skipped.get(port, 0) + 1
                     return True
                 entry = self._waiting[port] = Entry(port, item, end, now)
             elif not end and len(self._entries) >= self.capacity:
-                self.drops += 1
+                self.drops[port] = self.drops.get(port, 0) + 1
                 self._refused[port] = self._refused.get(port, 0) + 1
                 return False
             else:
@@ -77,8 +76,8 @@ class Inbox(Generic[T]):
             if not entry.end and entry.port in self.latest:
                 del self._waiting[entry.port]
             waited = (time.monotonic() - entry.arrived) * 1e3
-            self.max_backlog_frames = max(self.max_backlog_frames, len(self._entries) + 1)
-            self.max_backlog_ms = max(self.max_backlog_ms, waited)
+            most, longest = self.max_backlog.get(entry.port, (0, 0.0))
+            self.max_backlog[entry.port] = max(most, len(self._entries) + 1), max(longest, waited)
             return entry
 
     def backlog(self) -> tuple[int, float]:
@@ -87,3 +86,15 @@ class Inbox(Generic[T]):
             if not self._entries:
                 return 0, 0.0
             return len(self._entries), (time.monotonic() - self._entries[0].arrived) * 1e3
+
+    def figures(self, ports: set[str]) -> dict[str, int | float]:
+        """What a node's statistics say of its inputs ``ports``: refused (``drops``), ``skipped``, the backlog now
+        (of the whole inbox: the node waits behind all of it) and the largest seen on these inputs."""
+        backlog, backlog_ms = self.backlog()
+        return {
+            "drops": sum(self.drops.get(p, 0) for p in ports), "skipped": sum(self.skipped.get(p, 0) for p in ports),
+            "backlog": backlog, "backlog_ms": round(backlog_ms, 3),
+            "backlog_max": max((self.max_backlog[p][0] for p in ports if p in self.max_backlog), default=0),
+            "backlog_max_ms": round(max((self.max_backlog[p][1] for p in ports if p in self.max_backlog),
+                                        default=0.0), 3),
+        }
