@@ -16,6 +16,7 @@ from typing import Any
 
 import numpy as np
 import orjson
+import yaml
 import zenoh
 
 from mocapflow.messages import MarkerFrame, decode, encode
@@ -36,6 +37,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="run a whole graph (--graph) at each of --rates instead of the relay chain")
     p.add_argument("--graph", default=str(QUICKSTART), help="graph of --pipeline (default the quickstart)")
     p.add_argument("--rates", default="240,500,1000", help="tracker rates of --pipeline, Hz (default 240,500,1000)")
+    p.add_argument("--layouts", default="grouped,separate",
+                   help="--pipeline: the graph as written (grouped) and/or every node in its own process (separate)")
     p.set_defaults(func=run)
 
 
@@ -140,10 +143,11 @@ def _node_chain(hops: int, rate: float, seconds: float) -> dict[str, list[float]
     return latencies
 
 
-def _pipeline(graph: str, rate: float, seconds: float) -> dict[str, Any]:
+def _pipeline(graph: str, rate: float, seconds: float, separate: bool) -> dict[str, Any]:
     """Run ``graph`` with its tracker at ``rate`` for ``seconds`` of frames, through a router of its own, and watch
     from outside its filled markers (every frame should arrive, in order) and its poses (latency from capture; they
-    start once the skeleton is learnt), with every node's drops and backlog from ``--summary``."""
+    start once the skeleton is learnt), with every node's drops and backlog from ``--summary``. ``separate``: every
+    node in its own process (the graph's groups removed)."""
     endpoint = _free_endpoint()
     prefix = load_graph(graph).key_prefix
     frames = int(seconds * rate)
@@ -159,6 +163,12 @@ def _pipeline(graph: str, rate: float, seconds: float) -> dict[str, Any]:
 
     with tempfile.TemporaryDirectory() as tmp, open_router([endpoint]) as router:
         subs = [router.declare_subscriber(f"{prefix}/{key}", listener(key)) for key in seen]
+        if separate:
+            raw = yaml.safe_load(Path(graph).read_text())
+            for node in raw["nodes"].values():
+                node.pop("group", None)
+            graph = str(Path(tmp) / Path(graph).name)
+            Path(graph).write_text(yaml.safe_dump(raw))
         summary = Path(tmp) / "summary.json"
         cmd = [sys.executable, "-m", "mocapflow.cli", "run", graph, "--connect", endpoint, "--summary", str(summary),
                "--set", f"tracker.rate={rate}", "--set", f"tracker.frames={frames}",
@@ -186,18 +196,20 @@ def run_pipeline(args: argparse.Namespace) -> int:
     rates = [float(r) for r in args.rates.split(",") if r.strip()]
     print(f"{Path(args.graph).name}, {args.seconds:g} s of frames at each rate; latency from capture, all processes on"
           " this machine")
+    layouts = [x.strip() for x in args.layouts.split(",") if x.strip()]
     for rate in rates:
         bare = _bare_zenoh(args.markers, rate, min(args.seconds, 5.0))
-        result = _pipeline(args.graph, rate, args.seconds)
         bare_p99 = float(np.percentile(bare, 99)) if bare else float("nan")
         print(f"{rate:6g} Hz  bare Zenoh   {_percentiles(bare)}   1000 Hz target: pose p99 <= "
               f"{3 * 4 * bare_p99 + 1:.2f} ms")
-        print(f"{'':9} pose         {_percentiles(result['latency'])}   poses {result['poses']} of frames "
-              f"{result['pose_frames']} since the first")
-        print(f"{'':9} filled markers: frames {result['delivered']}/{result['frames']}"
-              f"{'' if result['in_order'] else ' (OUT OF ORDER)'}, drops {result['drops']}, skipped "
-              f"{result['skipped']}; longest wait in an inbox: " +
-              (", ".join(f"{n} {v:.1f} ms" for n, v in result["backlog_max_ms"].items()) or "none"))
+        for layout in layouts:
+            result = _pipeline(args.graph, rate, args.seconds, separate=layout == "separate")
+            print(f"  {layout:<9} pose         {_percentiles(result['latency'])}   poses {result['poses']} of frames "
+                  f"{result['pose_frames']} since the first")
+            print(f"{'':12}filled markers: frames {result['delivered']}/{result['frames']}"
+                  f"{'' if result['in_order'] else ' (OUT OF ORDER)'}, drops {result['drops']}, skipped "
+                  f"{result['skipped']}; longest wait in an inbox: " +
+                  (", ".join(f"{n} {v:.1f} ms" for n, v in result["backlog_max_ms"].items()) or "none"))
     return 0
 
 

@@ -327,7 +327,12 @@ class Worker:
             batch.append((pending.item, pending.skipped))
             pending = None
         messages = [m for m in (self._decode(member, port, s, k) for s, k in batch) if m is not None]
-        member.runner.handle(port, messages)
+        if type(member.runner.node).process_batch is not Node.process_batch:
+            member.runner.handle(port, messages)  # vectorised: the batch at once
+            return pending
+        for message in messages:  # one at a time, each followed by all it causes inside the group
+            member.runner.handle(port, [message])
+            self._drain()
         return pending
 
     def _decode(self, member: Member, port: str, sample: zenoh.Sample, skipped: int) -> Message | None:
