@@ -189,6 +189,7 @@ class NodeStats(BaseModel):
     backlog_max_ms: float = Field(default=0.0, description="longest any message waited during the run (ms)")
     errors: int = 0
     refused: int = Field(default=0, description="input samples refused (wrong publisher, frame number, size)")
+    unpaired: int = Field(default=0, description="frames handled without the input they wait for ('wait_for')")
     last_error: str | None = None
     clock_origin_ns: int | None = Field(default=None, description="sources: wall-clock time of frame 0")
 

@@ -55,6 +55,10 @@ class NodeSpec(RestartPolicy):
         default_factory=dict, description="input port -> 'all' (every message, the default) or 'latest' (the newest)")
     queue_size: int = Field(default=DEFAULT_CAPACITY, ge=1,
                             description="messages the inbox holds at most; beyond, new ones are dropped and counted")
+    wait_for: dict[str, float] = Field(
+        default_factory=dict, description="input port -> ms: before a frame is handled, how long to wait for that "
+        "input's message of the same frame number (the filler's prediction from another process); frames handled "
+        "without it are counted")
 
 
 class Graph(BaseModel):
@@ -198,10 +202,16 @@ def validate(graph: Graph, source: str = "graph") -> dict[str, type[Node]]:
         for port, port_spec in cls.inputs.items():
             if port_spec.required and port not in spec.inputs:
                 errors.append(f"nodes.{name}.inputs.{port}: required input is not linked ({port_spec.type.type_name})")
-        for port in spec.queue:
-            if port not in spec.inputs:
-                errors.append(f"nodes.{name}.queue.{port}: no linked input {port!r} "
-                              f"(inputs: {', '.join(spec.inputs) or 'none'})")
+        for field, ports in (("queue", spec.queue), ("wait_for", spec.wait_for)):
+            for port in ports:
+                if port not in spec.inputs:
+                    errors.append(f"nodes.{name}.{field}.{port}: no linked input {port!r} "
+                                  f"(inputs: {', '.join(spec.inputs) or 'none'})")
+                elif field == "wait_for" and (cls.inputs[port].state if port in cls.inputs else False):
+                    errors.append(f"nodes.{name}.wait_for.{port}: {port!r} carries models, not frames")
+        for port, bound in spec.wait_for.items():
+            if bound <= 0:
+                errors.append(f"nodes.{name}.wait_for.{port}: {bound} ms must be more than 0")
         for port, link in spec.inputs.items():
             where = f"nodes.{name}.inputs.{port}"
             if port not in cls.inputs:

@@ -33,6 +33,7 @@ class Stats:
         self.drops = 0
         self.errors = 0
         self.refused = 0
+        self.unpaired = 0
         self.last_error: str | None = None
         self.latencies_ms: deque[float] = deque(maxlen=4096)
         self._rate_mark = (time.monotonic(), 0)
@@ -62,7 +63,7 @@ class Stats:
         return NodeStats(
             node=node, pid=os.getpid(), state=state, frames_in=self.frames_in, frames_out=self.frames_out,
             rate_hz=round(self.rate_hz, 2), latency_p50_ms=p50, latency_p99_ms=p99,
-            errors=self.errors, refused=self.refused, last_error=self.last_error,
+            errors=self.errors, refused=self.refused, unpaired=self.unpaired, last_error=self.last_error,
             **{**inbox, "drops": self.drops + inbox.get("drops", 0)},
         )
 
@@ -80,6 +81,7 @@ class Runner:
         self._last_frame: dict[str, int] = {}
         self._last_capture_ns: int | None = None
         self._open_inputs = set(end_inputs)
+        self.ended_inputs: set[str] = set()
         self.node = node_cls(config, self._publish, name)
 
     def _publish(self, port: str, message: Message) -> None:
@@ -109,6 +111,10 @@ class Runner:
                 self.report_error(f"input {port!r}", ValueError(f"frame {message.frame} after {last}"))
         self._last_frame[port] = message.frame
 
+    def last_frame(self, port: str) -> int:
+        """The frame number last received on data input ``port``; -1 before any."""
+        return self._last_frame.get(port, -1)
+
     def handle(self, port: str, messages: list[Message]) -> None:
         if type(self.node).process_batch is Node.process_batch:
             groups = [[m] for m in messages]  # one at a time, so a bad frame costs only itself
@@ -130,6 +136,7 @@ class Runner:
     def end_of(self, port: str) -> bool:
         """Input ``port`` has ended; True when that ends the node (every input it waits for has ended)."""
         self._open_inputs.discard(port)
+        self.ended_inputs.add(port)
         if self.ended or self._open_inputs or self.node.inputs[port].state:
             return False
         self.ended = True

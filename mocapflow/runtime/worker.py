@@ -80,6 +80,9 @@ class WorkerSpec(BaseModel):
     limits: StreamLimits = Field(default_factory=StreamLimits, description="what the data inputs accept")
     queue: dict[str, QueuePolicy] = Field(default_factory=dict, description="input port -> policy (default 'all')")
     queue_size: int = Field(default=DEFAULT_CAPACITY, ge=1, description="messages an 'all' inbox holds at most")
+    wait_for: dict[str, float] = Field(
+        default_factory=dict, description="input port -> ms: how long a frame waits for that input's message of the "
+        "same frame number (feedback from another process)")
     linked: list[str] | None = Field(
         default=None, description="outputs that nodes in other processes are linked to (always published); the "
         "others only while someone subscribes. None: publish every output")
@@ -106,6 +109,7 @@ class Member:
     identity: bytes
     guards: dict[str, InputGuard]
     routes: dict[str, list[tuple[Member, str]]] = field(default_factory=dict)  # output -> members' inputs it feeds
+    internal: set[str] = field(default_factory=set)  # inputs fed by another member
     wanted: dict[str, bool] = field(default_factory=dict)  # output -> published on Zenoh now
     listeners: list[Any] = field(default_factory=list)
     stats_pub: Any = None
@@ -129,6 +133,7 @@ class Worker:
         self.inbox: Inbox[zenoh.Sample] = Inbox(spec.queue_size, {
             f"{n.node}/{p}" for n in spec.nodes() for p, q in n.queue.items() if q == "latest"})
         self._local: deque[tuple[Member, str, Any]] = deque()  # hand-overs inside the group, in order
+        self._deferred: deque[Entry[zenoh.Sample]] = deque()  # from outside, set aside while waiting for feedback
         self.members: dict[str, Member] = {}
         for node in spec.nodes():
             self.members[node.node] = self._member(node, classes[node.node], configs[node.node])
@@ -140,6 +145,7 @@ class Worker:
                 if key in by_key:
                     src, out = by_key[key]
                     src.routes.setdefault(out, []).append((m, port))
+                    m.internal.add(port)
                 else:
                     self._subscribers.append(self._subscribe(m, port, key))
         for m in self.members.values():
@@ -274,16 +280,13 @@ class Worker:
             # Frame i is due at origin + i * period, so a restarted source resumes on schedule and a late frame is
             # caught up at once instead of shifting every later frame.
             t0 = time.monotonic() - (time.time_ns() - origin_ns) / 1e9
-        pending: Entry[zenoh.Sample] | None = None
         while not self.stop_event.is_set() and not all(m.runner.ended for m in self.members.values()):
             due = None
             if src is not None and not src.runner.ended:
                 due = t0 + index * period if src.runner.node.paced else 0.0
-            if pending is None:
-                wait = 0.1 if due is None else min(0.1, max(0.0, due - time.monotonic()))
-                pending = self.inbox.get(timeout=wait)
-            if pending is not None:
-                pending = self._external(pending)
+            entry = self._next(0.1 if due is None else min(0.1, max(0.0, due - time.monotonic())))
+            if entry is not None:
+                self._external(entry)
                 self._drain()
             if src is not None and due is not None and time.monotonic() >= due and not self.stop_event.is_set():
                 if not src.runner.emit(index):
@@ -303,9 +306,12 @@ class Worker:
                 member.runner.count_in(port, message)
             member.runner.handle(port, [message])
 
-    def _external(self, entry: Entry[zenoh.Sample]) -> Entry[zenoh.Sample] | None:
-        """Handle ``entry`` and whatever queued after it on the same input, in one batch; return the entry that
-        ended the batch (another input), to be handled next."""
+    def _next(self, timeout: float) -> Entry[zenoh.Sample] | None:
+        """The next message from outside: one set aside while waiting for feedback first, else the inbox's."""
+        return self._deferred.popleft() if self._deferred else self.inbox.get(timeout=timeout)
+
+    def _external(self, entry: Entry[zenoh.Sample]) -> None:
+        """Handle ``entry`` and whatever queued after it on the same input, in one batch."""
         name, _, port = entry.port.partition("/")
         member = self.members[name]
         sample = entry.item
@@ -316,24 +322,47 @@ class Worker:
                     f"end of stream from {_who(sample)}, not from the stream's publisher: ignored"))
             elif member.runner.end_of(port):
                 self._end_outputs(member)
-            return None
+            return
         # A node that fell behind catches up on what has queued on this input since, in one batch.
         batch = [(sample, entry.skipped)]
-        pending = None
         while len(batch) < MAX_BATCH:
-            pending = self.inbox.get(timeout=0)
-            if pending is None or pending.port != entry.port or pending.end:
+            following = self._next(0)
+            if following is None:
                 break
-            batch.append((pending.item, pending.skipped))
-            pending = None
+            if following.port != entry.port or following.end:
+                self._deferred.appendleft(following)
+                break
+            batch.append((following.item, following.skipped))
         messages = [m for m in (self._decode(member, port, s, k) for s, k in batch) if m is not None]
         if type(member.runner.node).process_batch is not Node.process_batch:
             member.runner.handle(port, messages)  # vectorised: the batch at once
-            return pending
+            return
         for message in messages:  # one at a time, each followed by all it causes inside the group
+            if port not in member.spec.wait_for and not member.runner.node.inputs[port].state:
+                self._wait_for(member, message.frame)
             member.runner.handle(port, [message])
             self._drain()
-        return pending
+
+    def _wait_for(self, member: Member, frame: int) -> None:
+        """Before ``frame`` is handled, wait (each up to its bound) for the inputs the graph says to wait for (the
+        filler's prediction for that frame) to reach it; what else arrives meanwhile is set aside, in order. A frame
+        handled without them is counted (``unpaired``)."""
+        for port, bound_ms in member.spec.wait_for.items():
+            if port in member.internal:  # handed over inside the group: it is there already
+                continue
+            deadline = time.monotonic() + bound_ms / 1e3
+            held: list[Entry[zenoh.Sample]] = []
+            while member.runner.last_frame(port) < frame and port not in member.runner.ended_inputs:
+                left = deadline - time.monotonic()
+                entry = self.inbox.get(timeout=left) if left > 0 else None
+                if entry is None:
+                    member.runner.stats.unpaired += 1
+                    break
+                if entry.port == f"{member.name}/{port}":
+                    self._external(entry)
+                else:
+                    held.append(entry)
+            self._deferred.extend(held)
 
     def _decode(self, member: Member, port: str, sample: zenoh.Sample, skipped: int) -> Message | None:
         spec = member.runner.node.inputs[port]
