@@ -45,9 +45,11 @@ def main() -> None:
         nodes = {}
         for name, spec in graph.items():
             cls = load(spec["plugin"])
-            nodes[name] = cls(cls.Config.model_validate(spec.get("config", {})),
-                              lambda port, msg, name=name: sent.append((name, port, msg)), name)
-        links = defaultdict(list)  # (node, output) -> [(node, input)]
+            def publish(port: str, msg: Any, name: str = name) -> None:
+                sent.append((name, port, msg))
+
+            nodes[name] = cls(cls.Config.model_validate(spec.get("config", {})), publish, name)
+        links: dict[tuple[str, str], list[tuple[str, str]]] = defaultdict(list)  # (node, output) -> inputs
         for name, spec in graph.items():
             for port, link in spec.get("inputs", {}).items():
                 src, _, out = link.partition("/")

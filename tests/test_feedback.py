@@ -43,7 +43,7 @@ def offline(source: Path, feedback: bool = True, wire: bool = False) -> list[dic
     def hop(message: MarkerFrame, crosses: bool = True) -> MarkerFrame:
         return decode(encode(message), MarkerFrame) if crosses else message
 
-    sent: list[tuple[str, str, MarkerFrame]] = []
+    sent: list[tuple[str, str, Any]] = []
 
     def make(plugin: str, name: str, config: dict[str, Any]) -> Any:
         cls = load(plugin)
