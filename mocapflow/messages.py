@@ -181,9 +181,15 @@ class NodeStats(BaseModel):
     rate_hz: float = 0.0
     latency_p50_ms: float | None = None
     latency_p99_ms: float | None = None
-    drops: int = 0
+    drops: int = Field(default=0, description="frames lost: missing frame numbers, or refused by a full inbox")
+    skipped: int = Field(default=0, description="messages passed over for a newer one ('queue: latest' inputs)")
+    backlog: int = Field(default=0, description="messages waiting in the inbox now")
+    backlog_ms: float = Field(default=0.0, description="how long the oldest waiting message has waited (ms)")
+    backlog_max: int = Field(default=0, description="most messages waiting at once during the run")
+    backlog_max_ms: float = Field(default=0.0, description="longest any message waited during the run (ms)")
     errors: int = 0
     refused: int = Field(default=0, description="input samples refused (wrong publisher, frame number, size)")
+    unpaired: int = Field(default=0, description="frames handled without the input they wait for ('wait_for')")
     last_error: str | None = None
     clock_origin_ns: int | None = Field(default=None, description="sources: wall-clock time of frame 0")
 

@@ -1,8 +1,10 @@
-"""``mocapflow bench``: codec cost, and the latency each node hop adds next to bare Zenoh in the same run."""
+"""``mocapflow bench``: codec cost, and the latency each node hop adds next to bare Zenoh in the same run;
+``--pipeline``: the quickstart graph at several tracker rates, frames delivered, drops and pose latency."""
 
 from __future__ import annotations
 
 import argparse
+import json
 import socket
 import subprocess
 import sys
@@ -10,20 +12,33 @@ import tempfile
 import time
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
+import orjson
+import yaml
 import zenoh
 
 from mocapflow.messages import MarkerFrame, decode, encode
+from mocapflow.runtime.graph import load_graph
 from mocapflow.runtime.session import open_client, open_router
+
+QUICKSTART = Path(__file__).resolve().parents[2] / "deployments" / "quickstart.yaml"
 
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("bench", help="print codec cost per frame and per-hop latency next to bare Zenoh")
     p.add_argument("--markers", type=int, default=60, help="markers per frame (default 60)")
     p.add_argument("--rate", type=float, default=240.0, help="frame rate of the latency runs (default 240)")
-    p.add_argument("--seconds", type=float, default=5.0, help="length of each latency run (default 5)")
+    p.add_argument("--seconds", type=float, default=None,
+                   help="length of each latency run (default 5; --pipeline: 20)")
     p.add_argument("--hops", type=int, default=3, help="relay nodes in the chain (default 3)")
+    p.add_argument("--pipeline", action="store_true",
+                   help="run a whole graph (--graph) at each of --rates instead of the relay chain")
+    p.add_argument("--graph", default=str(QUICKSTART), help="graph of --pipeline (default the quickstart)")
+    p.add_argument("--rates", default="240,500,1000", help="tracker rates of --pipeline, Hz (default 240,500,1000)")
+    p.add_argument("--layouts", default="grouped,separate",
+                   help="--pipeline: the graph as written (grouped) and/or every node in its own process (separate)")
     p.set_defaults(func=run)
 
 
@@ -128,7 +143,81 @@ def _node_chain(hops: int, rate: float, seconds: float) -> dict[str, list[float]
     return latencies
 
 
+def _pipeline(graph: str, rate: float, seconds: float, separate: bool) -> dict[str, Any]:
+    """Run ``graph`` with its tracker at ``rate`` for ``seconds`` of frames, through a router of its own, and watch
+    from outside its filled markers (every frame should arrive, in order) and its poses (latency from capture; they
+    start once the skeleton is learnt), with every node's drops and backlog from ``--summary``. ``separate``: every
+    node in its own process (the graph's groups removed)."""
+    endpoint = _free_endpoint()
+    prefix = load_graph(graph).key_prefix
+    frames = int(seconds * rate)
+    seen: dict[str, list[tuple[int, float]]] = {"filler/markers": [], "skeleton/pose": []}
+
+    def listener(key: str) -> Callable[[zenoh.Sample], None]:
+        def on_sample(sample: zenoh.Sample) -> None:
+            if sample.kind == zenoh.SampleKind.PUT:
+                now = time.time_ns()
+                head = orjson.loads(sample.payload.to_bytes())
+                seen[key].append((head["frame"], (now - head["capture_ns"]) / 1e6))
+        return on_sample
+
+    with tempfile.TemporaryDirectory() as tmp, open_router([endpoint]) as router:
+        subs = [router.declare_subscriber(f"{prefix}/{key}", listener(key)) for key in seen]
+        if separate:
+            raw = yaml.safe_load(Path(graph).read_text())
+            for node in raw["nodes"].values():
+                node.pop("group", None)
+            graph = str(Path(tmp) / Path(graph).name)
+            Path(graph).write_text(yaml.safe_dump(raw))
+        summary = Path(tmp) / "summary.json"
+        cmd = [sys.executable, "-m", "mocapflow.cli", "run", graph, "--connect", endpoint, "--summary", str(summary),
+               "--set", f"tracker.rate={rate}", "--set", f"tracker.frames={frames}",
+               "--set", f"recorder.path={Path(tmp) / 'out.c3d'}"]
+        run = subprocess.run(cmd, capture_output=True, text=True, timeout=seconds * 10 + 120, check=False)
+        time.sleep(0.5)
+        for sub in subs:
+            sub.undeclare()
+        nodes = json.loads(summary.read_text()) if summary.exists() else {}
+    if run.returncode != 0:
+        print(f"  the graph exited {run.returncode}: " + " | ".join(run.stdout.strip().splitlines()[-3:]))
+    markers = [f for f, _ in seen["filler/markers"]]
+    poses = [f for f, _ in seen["skeleton/pose"]]
+    return {
+        "frames": frames, "delivered": len(set(markers)), "in_order": markers == sorted(markers),
+        "poses": len(poses), "pose_frames": poses[-1] - poses[0] + 1 if poses else 0,
+        "drops": sum(int(n.get("drops", 0)) for n in nodes.values()),
+        "skipped": sum(int(n.get("skipped", 0)) for n in nodes.values()),
+        "latency": [lat for _, lat in seen["skeleton/pose"]],
+        "backlog_max_ms": {n: v["backlog_max_ms"] for n, v in nodes.items() if v.get("backlog_max_ms")},
+    }
+
+
+def run_pipeline(args: argparse.Namespace) -> int:
+    rates = [float(r) for r in args.rates.split(",") if r.strip()]
+    print(f"{Path(args.graph).name}, {args.seconds:g} s of frames at each rate; latency from capture, all processes on"
+          " this machine")
+    layouts = [x.strip() for x in args.layouts.split(",") if x.strip()]
+    for rate in rates:
+        bare = _bare_zenoh(args.markers, rate, min(args.seconds, 5.0))
+        bare_p99 = float(np.percentile(bare, 99)) if bare else float("nan")
+        print(f"{rate:6g} Hz  bare Zenoh   {_percentiles(bare)}   1000 Hz target: pose p99 <= "
+              f"{3 * 4 * bare_p99 + 1:.2f} ms")
+        for layout in layouts:
+            result = _pipeline(args.graph, rate, args.seconds, separate=layout == "separate")
+            print(f"  {layout:<9} pose         {_percentiles(result['latency'])}   poses {result['poses']} of frames "
+                  f"{result['pose_frames']} since the first")
+            print(f"{'':12}filled markers: frames {result['delivered']}/{result['frames']}"
+                  f"{'' if result['in_order'] else ' (OUT OF ORDER)'}, drops {result['drops']}, skipped "
+                  f"{result['skipped']}; longest wait in an inbox: " +
+                  (", ".join(f"{n} {v:.1f} ms" for n, v in result["backlog_max_ms"].items()) or "none"))
+    return 0
+
+
 def run(args: argparse.Namespace) -> int:
+    if args.pipeline:
+        args.seconds = args.seconds or 20.0
+        return run_pipeline(args)
+    args.seconds = args.seconds or 5.0
     enc, dec, size = _codec(args.markers)
     print(f"codec, {args.markers}-marker frame ({size} bytes JSON): encode {enc:.1f} us, decode {dec:.1f} us,"
           f" round trip {enc + dec:.1f} us")

@@ -14,6 +14,7 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
 from mocapflow.errors import GraphError
+from mocapflow.runtime.inbox import DEFAULT_CAPACITY, QueuePolicy
 from mocapflow.runtime.integrity import StreamLimits
 from mocapflow.runtime.node import Node
 from mocapflow.runtime.plugins import PluginNotFound, load
@@ -48,6 +49,16 @@ class NodeSpec(RestartPolicy):
     config: dict[str, Any] = Field(default_factory=dict)
     inputs: dict[str, str] = Field(default_factory=dict, description="input port -> 'node/output'")
     machine: str | None = Field(default=None, description="agent that runs this node; none: the launcher's machine")
+    group: str | None = Field(default=None, description="node group: the nodes of a group run in one process and "
+                              "hand messages to one another as Python objects (see docs/ARCHITECTURE.md)")
+    queue: dict[str, QueuePolicy] = Field(
+        default_factory=dict, description="input port -> 'all' (every message, the default) or 'latest' (the newest)")
+    queue_size: int = Field(default=DEFAULT_CAPACITY, ge=1,
+                            description="messages the inbox holds at most; beyond, new ones are dropped and counted")
+    wait_for: dict[str, float] = Field(
+        default_factory=dict, description="input port -> ms: before a frame is handled, how long to wait for that "
+        "input's message of the same frame number (the filler's prediction from another process); frames handled "
+        "without it are counted")
 
 
 class Graph(BaseModel):
@@ -87,6 +98,23 @@ class Graph(BaseModel):
     @property
     def key_prefix(self) -> str:
         return self.prefix or f"mocapflow/{self.name}"
+
+    def process_of(self, node: str) -> str:
+        """The process a node runs in: its group, or the node alone."""
+        return self.nodes[node].group or node
+
+    def groups(self) -> dict[str, list[str]]:
+        """Each node group and its members, in graph order."""
+        groups: dict[str, list[str]] = {}
+        for name, spec in self.nodes.items():
+            if spec.group:
+                groups.setdefault(spec.group, []).append(name)
+        return groups
+
+    def linked_outputs(self, node: str) -> list[str]:
+        """Outputs of ``node`` that a node in another process is linked to."""
+        return sorted({link.partition("/")[2] for name, spec in self.nodes.items() for link in spec.inputs.values()
+                       if link.partition("/")[0] == node and self.process_of(name) != self.process_of(node)})
 
 
 def _format_validation(exc: ValidationError, base: str = "") -> str:
@@ -174,6 +202,16 @@ def validate(graph: Graph, source: str = "graph") -> dict[str, type[Node]]:
         for port, port_spec in cls.inputs.items():
             if port_spec.required and port not in spec.inputs:
                 errors.append(f"nodes.{name}.inputs.{port}: required input is not linked ({port_spec.type.type_name})")
+        for field, ports in (("queue", spec.queue), ("wait_for", spec.wait_for)):
+            for port in ports:
+                if port not in spec.inputs:
+                    errors.append(f"nodes.{name}.{field}.{port}: no linked input {port!r} "
+                                  f"(inputs: {', '.join(spec.inputs) or 'none'})")
+                elif field == "wait_for" and (cls.inputs[port].state if port in cls.inputs else False):
+                    errors.append(f"nodes.{name}.wait_for.{port}: {port!r} carries models, not frames")
+        for port, bound in spec.wait_for.items():
+            if bound <= 0:
+                errors.append(f"nodes.{name}.wait_for.{port}: {bound} ms must be more than 0")
         for port, link in spec.inputs.items():
             where = f"nodes.{name}.inputs.{port}"
             if port not in cls.inputs:
@@ -195,10 +233,29 @@ def validate(graph: Graph, source: str = "graph") -> dict[str, type[Node]]:
             if want is not have:
                 errors.append(
                     f"{where}: type mismatch: {link} carries {have.type_name}, input expects {want.type_name}")
+    errors += _group_errors(graph, classes)
     if errors:
         raise GraphError(f"{source}: " + "; ".join(errors) if len(errors) == 1
                          else f"{source}:\n  " + "\n  ".join(errors))
     return classes
+
+
+def _group_errors(graph: Graph, classes: dict[str, type[Node]]) -> list[str]:
+    errors = []
+    for group, members in graph.groups().items():
+        where = f"nodes.{members[0]}.group"
+        if not NAME.match(group):
+            errors.append(f"{where}: group name {group!r} must be letters, digits, '-' or '_'")
+        elif group in graph.nodes and members != [group]:
+            errors.append(f"{where}: group {group!r} has the name of another node: name it otherwise")
+        placed = [m for m in members if graph.nodes[m].machine]
+        if placed:
+            errors.append(f"{where}: group {group!r} has nodes placed on machines ({', '.join(placed)}): a group runs "
+                          "on the launcher's machine; leave placed nodes out of groups")
+        sources = [m for m in members if m in classes and classes[m].is_source()]
+        if len(sources) > 1:
+            errors.append(f"{where}: group {group!r} has {len(sources)} sources ({', '.join(sources)}): one at most")
+    return errors
 
 
 def end_inputs(graph: Graph, classes: dict[str, type[Node]]) -> dict[str, list[str]]:

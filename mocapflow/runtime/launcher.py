@@ -70,6 +70,11 @@ def refuse_prefix_in_use(session: zenoh.Session, prefix: str) -> None:
                              " or give this graph another 'name' or 'prefix'")
 
 
+def _backlog(stats: NodeStats | None) -> str:
+    """Messages waiting in a node's inbox and how long the oldest has waited: ``12/48ms``."""
+    return "-" if stats is None else f"{stats.backlog}/{stats.backlog_ms:.0f}ms"
+
+
 class Launcher:
     def __init__(self, graph: Graph, classes: dict[str, type[Node]], *, duration: float | None = None,
                  listen: list[str] | None = None, connect: list[str] | None = None, out: IO[str] = sys.stdout,
@@ -98,19 +103,34 @@ class Launcher:
         endpoints = self.connect or client_endpoints(self.listen)
         self.run_id = uuid.uuid4().hex[:12]
         ends = end_inputs(graph, classes)
-        all_procs = {
-            name: Proc(
-                spec=WorkerSpec(
-                    node=name, plugin=spec.plugin, config=spec.config, prefix=self.prefix,
-                    inputs={p: f"{self.prefix}/{link}" for p, link in spec.inputs.items()},
-                    connect=endpoints, peers=list(graph.nodes), end_inputs=ends[name],
-                    security=str(self.security) if self.security else None, limits=graph.limits,
-                    run=self.run_id,
-                ),
-                source=classes[name].is_source(), restart=spec.restart, max_restarts=spec.max_restarts,
+        specs = {
+            name: WorkerSpec(
+                node=name, plugin=spec.plugin, config=spec.config, prefix=self.prefix,
+                inputs={p: f"{self.prefix}/{link}" for p, link in spec.inputs.items()},
+                connect=endpoints, peers=list(graph.nodes), end_inputs=ends[name],
+                security=str(self.security) if self.security else None, limits=graph.limits,
+                run=self.run_id, queue=spec.queue, queue_size=spec.queue_size, wait_for=spec.wait_for,
+                linked=graph.linked_outputs(name),
             )
             for name, spec in graph.nodes.items()
         }
+        all_procs = {
+            name: Proc(spec=specs[name], source=classes[name].is_source(), restart=spec.restart,
+                       max_restarts=spec.max_restarts)
+            for name, spec in graph.nodes.items() if not spec.group
+        }
+        for group, members in graph.groups().items():
+            # One process for the group, restarted as one: with the strictest restart policy of its members.
+            nodes = [graph.nodes[m] for m in members]
+            all_procs[group] = Proc(
+                spec=specs[members[0]].model_copy(update={
+                    "node": group, "plugin": "group", "members": [specs[m] for m in members], "inputs": {},
+                    "queue": {}, "queue_size": max(n.queue_size for n in nodes)}),
+                source=any(classes[m].is_source() for m in members),
+                restart="never" if any(n.restart == "never" for n in nodes) else "on-failure",
+                max_restarts=min(n.max_restarts for n in nodes),
+            )
+            specs.update({m.node: m for m in all_procs[group].spec.members})  # the very specs the group runs
         self.supervisor = Supervisor([p for name, p in all_procs.items() if name not in placed])
         self.procs = self.supervisor.procs
         self.remote = {
@@ -118,7 +138,7 @@ class Launcher:
                              placed[name])
             for name, p in all_procs.items() if name in placed
         }
-        self.specs = {name: p.spec for name, p in all_procs.items()}
+        self.specs = specs
         self.lines = self.supervisor.lines
         self.stats: dict[str, NodeStats] = {}
         self.stop_reason: str | None = None
@@ -137,8 +157,8 @@ class Launcher:
                 r = self.remote[name]
                 yield name, r.spec.plugin, r.machine, r.state, r.pid, r.restarts
             else:
-                p = self.procs[name]
-                yield name, p.spec.plugin, "local", p.state, p.pid, p.restarts
+                p = self.procs[self.graph.process_of(name)]
+                yield name, self.graph.nodes[name].plugin, "local", p.state, p.pid, p.restarts
 
     def summarise(self) -> dict[str, dict[str, Any]]:
         """Per node: plugin, machine, state, restarts and its last statistics, as written by ``--summary``."""
@@ -151,7 +171,7 @@ class Launcher:
     def table(self) -> str:
         where = f"{'MACHINE':<14}" if self.remote else ""
         head = f"{'NODE':<14}{'PLUGIN':<20}{where}{'STATE':<11}{'PID':>8}{'RATE Hz':>9}{'P50 ms':>8}{'P99 ms':>8}" \
-               f"{'IN':>8}{'OUT':>8}{'DROPS':>6}{'ERR':>5}{'RESTARTS':>9}"
+               f"{'IN':>8}{'OUT':>8}{'DROPS':>6}{'BACKLOG':>12}{'ERR':>5}{'RESTARTS':>9}"
         rows = [head]
         for name, plugin, machine, state, pid, restarts in self._rows():
             s = self.stats.get(name)
@@ -162,7 +182,7 @@ class Launcher:
                 f"{fmt(s.rate_hz if s else None):>9}{fmt(s.latency_p50_ms if s else None):>8}"
                 f"{fmt(s.latency_p99_ms if s else None):>8}{(s.frames_in if s else 0):>8}"
                 f"{(s.frames_out if s else 0):>8}"
-                f"{(s.drops if s else 0):>6}{(s.errors if s else 0):>5}{restarts:>9}"
+                f"{(s.drops + s.skipped if s else 0):>6}{_backlog(s):>12}{(s.errors if s else 0):>5}{restarts:>9}"
             )
         return "\n".join(rows)
 
@@ -199,13 +219,14 @@ class Launcher:
         and is not back."""
         local = {p.name for p in self.supervisor.failed()}
         remote = {r.name for r in self.remote.values() if r.state == "failed" or (final and r.state == "lost")}
-        return [name for name in self.graph.nodes if name in local or name in remote]
+        return [name for name in self.graph.nodes if self.graph.process_of(name) in local or name in remote]
 
     def _exit_code(self, name: str) -> int | None:
-        return self.remote[name].exit_code if name in self.remote else self.procs[name].exit_code
+        return self.remote[name].exit_code if name in self.remote else self.procs[self.graph.process_of(name)].exit_code
 
     def _tail(self, name: str) -> list[str]:
-        return (self.remote[name].log_tail if name in self.remote else self.procs[name].log_tail)[-5:]
+        proc = self.remote[name] if name in self.remote else self.procs[self.graph.process_of(name)]
+        return proc.log_tail[-5:]
 
     # -- main loop ------------------------------------------------------------------------------------------------
     def run(self) -> int:

@@ -1,8 +1,15 @@
-"""One node, one process, one Zenoh session.
+"""One process, one Zenoh session, one node or a node group.
 
-The worker subscribes to the node's inputs, hands each message to the node on a single thread (so a node never needs
-locks), paces sources in real time, publishes statistics, holds a liveliness token while alive, and ends the node
-cleanly on end of stream or SIGTERM.
+The worker subscribes to its nodes' inputs, hands each message to its node (``mocapflow.runtime.runner``) on a single
+thread (so a node never needs locks), paces sources in real time, publishes statistics, holds a liveliness token per
+node while alive, and ends the nodes cleanly on end of stream or SIGTERM.
+
+A node group runs several nodes in this one process: what one member publishes for another is handed over as the
+Python object, in order, on the same thread, before anything else arrives from outside (so a feedback loop inside a
+group never races: the filler's prediction reaches the labeller before the tracker's next frame). Every output is still
+published on its key for outside subscribers: always when a node of the graph outside the group is linked to it,
+otherwise only while Zenoh reports a matching subscriber (a viewer, ``mocapflow echo``), so nobody's frames are
+encoded for no one.
 
 End of stream is a Zenoh DELETE sample on a data key: a source sends it when it has no more frames, and a node sends
 it on its own outputs once every data input it waits for has ended (``graph.end_inputs``: all linked data inputs
@@ -19,24 +26,25 @@ import argparse
 import ctypes
 import logging
 import os
-import queue
 import signal
 import sys
 import threading
 import time
 from collections import deque
+from dataclasses import dataclass, field
 from typing import Any
 
-import numpy as np
 import zenoh
 import zenoh.ext as zext
 from pydantic import BaseModel, Field, ValidationError
 
 from mocapflow.messages import DecodeError, Message, NodeStats, decode, encode
 from mocapflow.runtime import keys
+from mocapflow.runtime.inbox import DEFAULT_CAPACITY, Entry, Inbox, QueuePolicy
 from mocapflow.runtime.integrity import InputGuard, Refused, StreamLimits, new_identity
 from mocapflow.runtime.node import RUN_ENV, Node
 from mocapflow.runtime.plugins import PluginNotFound, load
+from mocapflow.runtime.runner import Runner
 from mocapflow.runtime.security import SecurityError
 from mocapflow.runtime.session import open_client
 from mocapflow.runtime.signals import stop_on_signals
@@ -45,7 +53,6 @@ EXIT_CONFIG = 2
 EXIT_FINISH = 3
 STATS_PERIOD_S = 0.5
 PEER_WAIT_S = 20.0
-QUEUE_CAPACITY = 100_000
 MAX_BATCH = 256
 
 log = logging.getLogger("mocapflow.worker")
@@ -71,169 +78,180 @@ class WorkerSpec(BaseModel):
         default=None, description="security settings file (TLS, login); its path, so no password is on a command line"
     )
     limits: StreamLimits = Field(default_factory=StreamLimits, description="what the data inputs accept")
+    queue: dict[str, QueuePolicy] = Field(default_factory=dict, description="input port -> policy (default 'all')")
+    queue_size: int = Field(default=DEFAULT_CAPACITY, ge=1, description="messages an 'all' inbox holds at most")
+    wait_for: dict[str, float] = Field(
+        default_factory=dict, description="input port -> ms: how long a frame waits for that input's message of the "
+        "same frame number (feedback from another process)")
+    linked: list[str] | None = Field(
+        default=None, description="outputs that nodes in other processes are linked to (always published); the "
+        "others only while someone subscribes. None: publish every output")
+    members: list[WorkerSpec] = Field(
+        default_factory=list, description="a node group: the nodes this process runs (``node`` names the group)")
+
+    def nodes(self) -> list[WorkerSpec]:
+        """The node specs this process runs: the group's members, or this one node."""
+        return self.members or [self]
     run: str = Field(default="", description="the launch this node belongs to (the same across its restarts)")
 
 
-class Stats:
-    """Counters and a latency window; latency is measured from the tracker's capture timestamp."""
 
-    def __init__(self) -> None:
-        self.frames_in = 0
-        self.frames_out = 0
-        self.handled = 0
-        self.drops = 0
-        self.errors = 0
-        self.refused = 0
-        self.last_error: str | None = None
-        self.latencies_ms: deque[float] = deque(maxlen=4096)
-        self._rate_mark = (time.monotonic(), 0)
-        self._first_done: float | None = None
-        self._last_done = 0.0
-        self.rate_hz = 0.0
+END = object()
+"""Handed over inside a group in place of a message: that output has ended."""
 
-    def frame_done(self, capture_ns: int) -> None:
-        self.handled += 1
-        self._last_done = time.monotonic()
-        if self._first_done is None:
-            self._first_done = self._last_done
-        self.latencies_ms.append((time.time_ns() - capture_ns) / 1e6)
 
-    def snapshot(self, node: str, state: str) -> NodeStats:
-        now = time.monotonic()
-        t0, n0 = self._rate_mark
-        if state in ("finished", "stopping") and self._first_done is not None and self.handled > 1:
-            self.rate_hz = (self.handled - 1) / max(self._last_done - self._first_done, 1e-9)  # whole-run mean
-        elif now - t0 > 0:
-            self.rate_hz = (self.handled - n0) / (now - t0)
-        self._rate_mark = (now, self.handled)
-        p50 = p99 = None
-        if self.latencies_ms:
-            p50, p99 = (float(v) for v in np.percentile(np.fromiter(self.latencies_ms, float), [50, 99]))
-        return NodeStats(
-            node=node, pid=os.getpid(), state=state, frames_in=self.frames_in, frames_out=self.frames_out,
-            rate_hz=round(self.rate_hz, 2), latency_p50_ms=p50, latency_p99_ms=p99, drops=self.drops,
-            errors=self.errors, refused=self.refused, last_error=self.last_error,
-        )
+@dataclass
+class Member:
+    """One node of this process, with its Zenoh side: publishers, input guards, statistics key, liveliness token."""
+
+    spec: WorkerSpec
+    publishers: dict[str, Any]
+    identity: bytes
+    guards: dict[str, InputGuard]
+    routes: dict[str, list[tuple[Member, str]]] = field(default_factory=dict)  # output -> members' inputs it feeds
+    internal: set[str] = field(default_factory=set)  # inputs fed by another member
+    wanted: dict[str, bool] = field(default_factory=dict)  # output -> published on Zenoh now
+    listeners: list[Any] = field(default_factory=list)
+    stats_pub: Any = None
+    token: Any = None
+    runner: Runner = field(init=False)
+
+    @property
+    def name(self) -> str:
+        return self.spec.node
 
 
 class Worker:
-    def __init__(self, spec: WorkerSpec, node_cls: type[Node], config: BaseModel, session: zenoh.Session) -> None:
+    def __init__(self, spec: WorkerSpec, classes: dict[str, type[Node]], configs: dict[str, BaseModel],
+                 session: zenoh.Session) -> None:
         self.spec = spec
         self.session = session
-        self.stats = Stats()
         self.state = "starting"
         self.stop_event = threading.Event()
         self.finished_ok = True
-        self.inbox: queue.Queue[tuple[str, zenoh.Sample]] = queue.Queue(QUEUE_CAPACITY)
-        self._publishers: dict[str, Any] = {}
-        self._last_frame: dict[str, int] = {}
-        self._last_capture_ns: int | None = None
         self.clock_origin_ns: int | None = None
-        self.identity = new_identity(spec.node)
-        self.guards = {
-            port: InputGuard(upstream=key.rsplit("/", 2)[-2], limits=spec.limits)
-            for port, key in spec.inputs.items() if port in node_cls.inputs and not node_cls.inputs[port].state
-        }
+        self.inbox: Inbox[zenoh.Sample] = Inbox(spec.queue_size, {
+            f"{n.node}/{p}" for n in spec.nodes() for p, q in n.queue.items() if q == "latest"})
+        self._local: deque[tuple[Member, str, Any]] = deque()  # hand-overs inside the group, in order
+        self._deferred: deque[Entry[zenoh.Sample]] = deque()  # from outside, set aside while waiting for feedback
+        self.members: dict[str, Member] = {}
+        for node in spec.nodes():
+            self.members[node.node] = self._member(node, classes[node.node], configs[node.node])
+        by_key = {keys.output_key(m.spec.prefix, m.name, port): (m, port)
+                  for m in self.members.values() for port in m.runner.node.outputs}
+        self._subscribers = []
+        for m in self.members.values():
+            for port, key in m.spec.inputs.items():
+                if key in by_key:
+                    src, out = by_key[key]
+                    src.routes.setdefault(out, []).append((m, port))
+                    m.internal.add(port)
+                else:
+                    self._subscribers.append(self._subscribe(m, port, key))
+        for m in self.members.values():
+            m.stats_pub = session.declare_publisher(
+                keys.stats_key(m.spec.prefix, m.name), encoding=zenoh.Encoding(NodeStats.encoding()))
+            m.token = session.liveliness().declare_token(keys.alive_key(m.spec.prefix, m.name))
+        sources = [m for m in self.members.values() if m.runner.node.is_source()]
+        if len(sources) > 1:
+            raise ValueError(f"a node group runs one source at most, not {', '.join(m.name for m in sources)}")
+        self.source = sources[0] if sources else None
+
+    def _member(self, spec: WorkerSpec, node_cls: type[Node], config: BaseModel) -> Member:
+        publishers: dict[str, Any] = {}
         for port, out in node_cls.outputs.items():
             key = keys.output_key(spec.prefix, spec.node, port)
             enc = zenoh.Encoding(out.type.encoding())
             if out.state:
-                self._publishers[port] = zext.declare_advanced_publisher(
-                    session, key, encoding=enc, cache=zext.CacheConfig(max_samples=1), publisher_detection=True
+                publishers[port] = zext.declare_advanced_publisher(
+                    self.session, key, encoding=enc, cache=zext.CacheConfig(max_samples=1), publisher_detection=True
                 )
             else:
-                self._publishers[port] = session.declare_publisher(
+                publishers[port] = self.session.declare_publisher(
                     key, encoding=enc, congestion_control=zenoh.CongestionControl.BLOCK
                 )
-        self.node = node_cls(config, self._publish, spec.node)
-        self._subscribers = [self._subscribe(port, key) for port, key in spec.inputs.items()]
-        self._open_inputs = set(spec.end_inputs) if spec.end_inputs is not None else {
+        ends = set(spec.end_inputs) if spec.end_inputs is not None else {
             p for p, i in node_cls.inputs.items() if i.required and not i.state and p in spec.inputs
         }
-        self._stats_pub = session.declare_publisher(
-            keys.stats_key(spec.prefix, spec.node), encoding=zenoh.Encoding(NodeStats.encoding())
-        )
-        self._token = session.liveliness().declare_token(keys.alive_key(spec.prefix, spec.node))
+        member = Member(spec=spec, publishers=publishers, identity=new_identity(spec.node),
+                        guards={port: InputGuard(upstream=key.rsplit("/", 2)[-2], limits=spec.limits)
+                                for port, key in spec.inputs.items()
+                                if port in node_cls.inputs and not node_cls.inputs[port].state})
+        for port, out in node_cls.outputs.items():
+            member.wanted[port] = out.state or spec.linked is None or port in spec.linked
+            if not member.wanted[port]:
+                def on_matching(status: zenoh.MatchingStatus, port: str = port) -> None:
+                    member.wanted[port] = status.matching
+                member.listeners.append(publishers[port].declare_matching_listener(on_matching))
+                member.wanted[port] = publishers[port].matching_status.matching
+        member.runner = Runner(spec.node, node_cls, config, lambda port, msg: self._send(member, port, msg), ends)
+        return member
 
     # -- plumbing -------------------------------------------------------------------------------------------------
-    def _subscribe(self, port: str, key: str) -> Any:
-        spec = self.node.inputs[port]
+    def _subscribe(self, member: Member, port: str, key: str) -> Any:
+        where = f"{member.name}/{port}"
 
         def on_sample(sample: zenoh.Sample) -> None:
-            try:
-                self.inbox.put_nowait((port, sample))
-            except queue.Full:
-                self.stats.drops += 1
+            self.inbox.put(where, sample, end=sample.kind == zenoh.SampleKind.DELETE)
 
-        if spec.state:
+        if member.runner.node.inputs[port].state:
             return zext.declare_advanced_subscriber(
                 self.session, key, on_sample,
                 history=zext.HistoryConfig(detect_late_publishers=True, max_samples=1),
             )
         return self.session.declare_subscriber(key, on_sample)
 
-    def _publish(self, port: str, message: Message) -> None:
-        if port not in self._publishers:
-            raise KeyError(f"node {self.spec.node!r} has no output {port!r}")
-        self._publishers[port].put(encode(message), attachment=self.identity)
-        self.stats.frames_out += 1
-        self._last_capture_ns = message.capture_ns
+    def _send(self, member: Member, port: str, message: Message) -> None:
+        for target, target_port in member.routes.get(port, ()):
+            self._local.append((target, target_port, message))
+        if member.wanted[port]:
+            member.publishers[port].put(encode(message), attachment=member.identity)
 
-    def _end_outputs(self) -> None:
-        for port, pub in self._publishers.items():
-            if not self.node.outputs[port].state:
-                pub.delete(attachment=self.identity)
-
-    def _report_error(self, where: str, exc: BaseException) -> None:
-        self.stats.errors += 1
-        self.stats.last_error = f"{where}: {exc}"
-        if self.stats.errors <= 3:
-            log.error("%s: %s", where, exc, exc_info=not isinstance(exc, (DecodeError, ValueError)))
-        elif self.stats.errors in (4, 100, 10_000):
-            log.error("%s: %s (%d errors so far; further ones counted in stats)", where, exc, self.stats.errors)
+    def _end_outputs(self, member: Member) -> None:
+        for port, pub in member.publishers.items():
+            if not member.runner.node.outputs[port].state:
+                for target, target_port in member.routes.get(port, ()):
+                    self._local.append((target, target_port, END))
+                pub.delete(attachment=member.identity)
 
     def _stats_loop(self) -> None:
         while not self.stop_event.wait(STATS_PERIOD_S):
             self.publish_stats()
 
     def publish_stats(self) -> None:
-        stats = self.stats.snapshot(self.spec.node, self.state)
-        stats.clock_origin_ns = self.clock_origin_ns
-        self._stats_pub.put(encode(stats))
+        for m in self.members.values():
+            state = self.state if not m.runner.ended or self.state != "running" else "finished"
+            figures = self.inbox.figures({f"{m.name}/{p}" for p in m.spec.inputs})
+            stats = m.runner.stats.snapshot(m.name, state, **figures)
+            if m is self.source:
+                stats.clock_origin_ns = self.clock_origin_ns
+            m.stats_pub.put(encode(stats))
 
     # -- running --------------------------------------------------------------------------------------------------
     def run(self) -> None:
-        threading.Thread(target=self._stats_loop, name="stats", daemon=True).start()
+        stats = threading.Thread(target=self._stats_loop, name="stats", daemon=True)
+        stats.start()
         try:
-            if self.node.is_source():
+            if self.source is not None:
                 self._wait_for_peers()
-                self.state = "running"
-                self._run_source()
-            else:
-                self.state = "running"
-                self._run_sink()
+            self.state = "running"
+            self._loop()
         finally:
             self.state = "finished" if not self.stop_event.is_set() else "stopping"
             try:
-                self.finished_ok = self._finish()
+                if self.source is not None and not self.source.runner.ended:  # stopped: its stream ends here
+                    self.source.runner.ended = True
+                    self._end_outputs(self.source)
+                self._drain()
+                self.finished_ok = all([m.runner.finish() for m in self.members.values()])
             finally:
-                self.publish_stats()
                 self.stop_event.set()
-
-    def _finish(self) -> bool:
-        """The node's ``finish()``; its failure is reported, never a crash to restart (the stream has ended)."""
-        try:
-            self.node.finish()
-        except Exception as exc:
-            self.stats.errors += 1
-            self.stats.last_error = f"finish: {exc}"
-            log.error("node %s: finish failed, its output is lost: %s", self.spec.node, exc)
-            return False
-        return True
+                stats.join()
+                self.publish_stats()
 
     def _wait_for_peers(self) -> None:
         """Sources wait for every other node's liveliness token so that no first frame goes unheard."""
-        wanted = set(self.spec.peers) - {self.spec.node}
+        wanted = set(self.spec.nodes()[0].peers) - set(self.members)
         deadline = time.monotonic() + PEER_WAIT_S
         while wanted and not self.stop_event.is_set():
             replies = self.session.liveliness().get(keys.alive_key(self.spec.prefix), timeout=1.0)
@@ -246,108 +264,126 @@ class Worker:
                 return
             time.sleep(0.05)
 
-    def _run_source(self) -> None:
-        period = 1.0 / self.node.rate
-        origin_ns = self.spec.clock_origin_ns or time.time_ns()
-        self.clock_origin_ns = origin_ns
-        self.publish_stats()
-        index = self.node.first_index(max(0.0, (time.time_ns() - origin_ns) / 1e9))
-        # Pace against the source's clock: frame i is due at origin + i * period, so a restarted source resumes on
-        # schedule and a late frame is caught up at once instead of shifting every later frame.
-        t0 = time.monotonic() - (time.time_ns() - origin_ns) / 1e9
-        while not self.stop_event.is_set():
-            delay = t0 + index * period - time.monotonic()
-            if delay > 0 and self.node.paced:
-                self.stop_event.wait(delay)
-                if self.stop_event.is_set():
-                    break
-            sent = self.stats.frames_out
-            if not self.node.emit(index):
-                break
-            if self._last_capture_ns is not None and self.stats.frames_out > sent:
-                self.stats.frame_done(self._last_capture_ns)
-            index += 1
-        self._end_outputs()
+    def _loop(self) -> None:
+        """Until every node has ended or a stop: what arrives from outside, then everything it causes inside the
+        group, then the source's next frame when it is due (paced against the source's clock)."""
+        src = self.source
+        index, period, t0 = 0, 0.0, 0.0
+        if src is not None:
+            node = src.runner.node
+            period = 1.0 / node.rate
+            origin_ns = src.spec.clock_origin_ns or time.time_ns()
+            resumed_s = (time.time_ns() - origin_ns) / 1e9 if src.spec.clock_origin_ns is not None else 0.0
+            index = node.first_index(max(0.0, resumed_s))  # a first start begins at frame 0, however busy we are
+            self.clock_origin_ns = origin_ns
+            self.publish_stats()
+            # Frame i is due at origin + i * period, so a restarted source resumes on schedule and a late frame is
+            # caught up at once instead of shifting every later frame.
+            t0 = time.monotonic() - (time.time_ns() - origin_ns) / 1e9
+        while not self.stop_event.is_set() and not all(m.runner.ended for m in self.members.values()):
+            due = None
+            if src is not None and not src.runner.ended:
+                due = t0 + index * period if src.runner.node.paced else 0.0
+            entry = self._next(0.1 if due is None else min(0.1, max(0.0, due - time.monotonic())))
+            if entry is not None:
+                self._external(entry)
+                self._drain()
+            if src is not None and due is not None and time.monotonic() >= due and not self.stop_event.is_set():
+                if not src.runner.emit(index):
+                    self._end_outputs(src)
+                index += 1
+                self._drain()
 
-    def _run_sink(self) -> None:
-        pending: tuple[str, zenoh.Sample] | None = None
-        while not self.stop_event.is_set():
-            if pending is None:
-                try:
-                    pending = self.inbox.get(timeout=0.1)
-                except queue.Empty:
-                    continue
-            port, sample = pending
-            pending = None
-            if sample.kind == zenoh.SampleKind.DELETE:
-                if port in self.guards and not self.guards[port].accept_end(_identity(sample)):
-                    self.stats.refused += 1
-                    self._report_error(f"input {port!r}", Refused(
-                        f"end of stream from {_who(sample)}, not from the stream's publisher: ignored"))
-                    continue
-                self._open_inputs.discard(port)
-                if not self._open_inputs and not self.node.inputs[port].state:
-                    self._end_outputs()
-                    return
+    def _drain(self) -> None:
+        """Hand over, in order, everything the group's members published for one another."""
+        while self._local:
+            member, port, message = self._local.popleft()
+            if message is END:
+                if member.runner.end_of(port):
+                    self._end_outputs(member)
                 continue
-            # A node that fell behind catches up on what has queued on this input since, in one batch.
-            batch = [sample]
-            while len(batch) < MAX_BATCH:
-                try:
-                    pending = self.inbox.get_nowait()
-                except queue.Empty:
-                    break
-                if pending[0] != port or pending[1].kind != zenoh.SampleKind.PUT:
-                    break
-                batch.append(pending[1])
-                pending = None
-            self._handle(port, batch)
+            if not member.runner.node.inputs[port].state:
+                member.runner.count_in(port, message)
+            member.runner.handle(port, [message])
 
-    def _decode(self, port: str, sample: zenoh.Sample) -> Message | None:
-        spec = self.node.inputs[port]
+    def _next(self, timeout: float) -> Entry[zenoh.Sample] | None:
+        """The next message from outside: one set aside while waiting for feedback first, else the inbox's."""
+        return self._deferred.popleft() if self._deferred else self.inbox.get(timeout=timeout)
+
+    def _external(self, entry: Entry[zenoh.Sample]) -> None:
+        """Handle ``entry`` and whatever queued after it on the same input, in one batch."""
+        name, _, port = entry.port.partition("/")
+        member = self.members[name]
+        sample = entry.item
+        if entry.end:
+            if port in member.guards and not member.guards[port].accept_end(_identity(sample)):
+                member.runner.stats.refused += 1
+                member.runner.report_error(f"input {port!r}", Refused(
+                    f"end of stream from {_who(sample)}, not from the stream's publisher: ignored"))
+            elif member.runner.end_of(port):
+                self._end_outputs(member)
+            return
+        # A node that fell behind catches up on what has queued on this input since, in one batch.
+        batch = [(sample, entry.skipped)]
+        while len(batch) < MAX_BATCH:
+            following = self._next(0)
+            if following is None:
+                break
+            if following.port != entry.port or following.end:
+                self._deferred.appendleft(following)
+                break
+            batch.append((following.item, following.skipped))
+        messages = [m for m in (self._decode(member, port, s, k) for s, k in batch) if m is not None]
+        if type(member.runner.node).process_batch is not Node.process_batch:
+            member.runner.handle(port, messages)  # vectorised: the batch at once
+            return
+        for message in messages:  # one at a time, each followed by all it causes inside the group
+            if port not in member.spec.wait_for and not member.runner.node.inputs[port].state:
+                self._wait_for(member, message.frame)
+            member.runner.handle(port, [message])
+            self._drain()
+
+    def _wait_for(self, member: Member, frame: int) -> None:
+        """Before ``frame`` is handled, wait (each up to its bound) for the inputs the graph says to wait for (the
+        filler's prediction for that frame) to reach it; what else arrives meanwhile is set aside, in order. A frame
+        handled without them is counted (``unpaired``)."""
+        for port, bound_ms in member.spec.wait_for.items():
+            if port in member.internal:  # handed over inside the group: it is there already
+                continue
+            deadline = time.monotonic() + bound_ms / 1e3
+            held: list[Entry[zenoh.Sample]] = []
+            while member.runner.last_frame(port) < frame and port not in member.runner.ended_inputs:
+                left = deadline - time.monotonic()
+                entry = self.inbox.get(timeout=left) if left > 0 else None
+                if entry is None:
+                    member.runner.stats.unpaired += 1
+                    break
+                if entry.port == f"{member.name}/{port}":
+                    self._external(entry)
+                else:
+                    held.append(entry)
+            self._deferred.extend(held)
+
+    def _decode(self, member: Member, port: str, sample: zenoh.Sample, skipped: int) -> Message | None:
+        spec = member.runner.node.inputs[port]
         try:
             message = decode(sample.payload.to_bytes(), spec.type)
         except DecodeError as exc:
-            self._report_error(f"input {port!r} ({sample.key_expr})", exc)
+            member.runner.report_error(f"input {port!r} ({sample.key_expr})", exc)
             return None
         if not spec.state:
-            self.stats.frames_in += 1
-            if port in self.guards:
-                guard = self.guards[port]
+            if port in member.guards:
+                guard = member.guards[port]
                 try:
                     guard.check_source(_identity(sample))
                     message = guard.check_frame(message)
                 except Refused as exc:
-                    self.stats.refused += 1
-                    self._report_error(f"input {port!r} ({_who(sample)})", exc)
+                    member.runner.stats.frames_in += 1
+                    member.runner.stats.refused += 1
+                    member.runner.report_error(f"input {port!r} ({_who(sample)})", exc)
                     return None
-            last = self._last_frame.get(port)
-            if last is not None and message.frame != last + 1:
-                if message.frame > last + 1:
-                    self.stats.drops += message.frame - last - 1
-                else:
-                    self._report_error(f"input {port!r}", ValueError(f"frame {message.frame} after {last}"))
-            self._last_frame[port] = message.frame
+            member.runner.count_in(port, message, skipped)
         return message
-
-    def _handle(self, port: str, samples: list[zenoh.Sample]) -> None:
-        messages = [m for m in (self._decode(port, s) for s in samples) if m is not None]
-        if type(self.node).process_batch is Node.process_batch:
-            groups = [[m] for m in messages]  # one at a time, so a bad frame costs only itself
-        else:
-            groups = [messages] if messages else []
-        for group in groups:
-            try:
-                if len(group) == 1:
-                    self.node.process(port, group[0])
-                else:
-                    self.node.process_batch(port, group)
-            except Exception as exc:  # a bad frame must not end the stage: log, count, go on
-                self._report_error(f"processing {port!r} frame {group[0].frame}", exc)
-                continue
-            if not self.node.inputs[port].state:
-                for message in group:
-                    self.stats.frame_done(message.capture_ns)
 
 
 def _identity(sample: zenoh.Sample) -> bytes | None:
@@ -370,15 +406,15 @@ def _die_with_parent() -> None:
 def run_worker(spec: WorkerSpec) -> int:
     os.environ[RUN_ENV] = spec.run
     try:
-        node_cls = load(spec.plugin)
-        config = node_cls.Config.model_validate(spec.config)
+        classes = {n.node: load(n.plugin) for n in spec.nodes()}
+        configs = {n.node: classes[n.node].Config.model_validate(n.config) for n in spec.nodes()}
         session = open_client(spec.connect, spec.security)
     except (PluginNotFound, ValidationError, SecurityError) as exc:
         log.error("node %s: %s", spec.node, exc)
         return EXIT_CONFIG
     try:
         try:
-            worker = Worker(spec, node_cls, config, session)
+            worker = Worker(spec, classes, configs, session)
         except Exception as exc:  # e.g. a file that cannot be opened: a configuration problem, not a crash
             log.error("node %s could not start: %s", spec.node, exc)
             return EXIT_CONFIG

@@ -1,0 +1,104 @@
+"""One frame's path through the grouped quickstart at 1000 Hz, step by step: where its latency goes.
+
+Run as ``python benchmarks/frame_path.py [--rate HZ] [--seconds S]`` (about 3 x S s of CPU on a quiet machine). The
+nodes of deployments/quickstart.yaml are built from that file (the tracker at ``--rate``) and driven in the order the
+runtime drives them: the tracker's frame is encoded (in the tracker's process) and decoded (in the group's), then the
+``frame`` group hands it from node to node as Python objects, each frame followed by all it causes (the filler's
+prediction back to the labeller); the labelled markers are encoded once for the clusterer and the joint estimator,
+which run in processes of their own and whose costs are shown apart (they do not hold the frame back; their models
+reach the group as they would live). Frames are produced as fast as they are handled, so each step's time is its
+cost alone, with no wait in a queue; Zenoh's own transport is what ``mocapflow bench`` measures next to it. Printed:
+per step, the wall-clock time per frame (p50 / p99 over the frames after the skeleton model arrived) and the sum along
+the frame's path.
+"""
+
+from __future__ import annotations
+
+import argparse
+import tempfile
+import time
+from collections import defaultdict
+from pathlib import Path
+from typing import Any
+
+import _common  # noqa: F401  (BLAS pinned to one thread, before numpy loads)
+import numpy as np
+import yaml
+
+from mocapflow.messages import MarkerFrame, decode, encode
+from mocapflow.runtime.plugins import load
+
+QUICKSTART = _common.ROOT / "deployments" / "quickstart.yaml"
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--rate", type=float, default=1000.0, help="tracker rate (default 1000 Hz)")
+    parser.add_argument("--seconds", type=float, default=14.0,
+                        help="frames of capture to run (default 14 s: the skeleton model comes after 10 s)")
+    args = parser.parse_args()
+    graph = yaml.safe_load(QUICKSTART.read_text())["nodes"]
+    graph["tracker"]["config"]["rate"] = args.rate
+    sent: list[tuple[str, str, Any]] = []
+    with tempfile.TemporaryDirectory() as tmp:
+        graph["recorder"]["config"]["path"] = str(Path(tmp) / "out.c3d")
+        nodes = {}
+        for name, spec in graph.items():
+            cls = load(spec["plugin"])
+            def publish(port: str, msg: Any, name: str = name) -> None:
+                sent.append((name, port, msg))
+
+            nodes[name] = cls(cls.Config.model_validate(spec.get("config", {})), publish, name)
+        links: dict[tuple[str, str], list[tuple[str, str]]] = defaultdict(list)  # (node, output) -> inputs
+        for name, spec in graph.items():
+            for port, link in spec.get("inputs", {}).items():
+                src, _, out = link.partition("/")
+                links[(src, out)].append((name, port))
+        group = {name for name, spec in graph.items() if spec.get("group") == "frame"}
+        costs: dict[str, list[float]] = defaultdict(list)
+        skeleton_at: int | None = None
+
+        def step(key: str, fn: Any, *a: Any) -> Any:
+            t = time.perf_counter()
+            out = fn(*a)
+            costs[key].append((time.perf_counter() - t) * 1e6)
+            return out
+
+        frames = int(args.seconds * args.rate)
+        for index in range(frames):
+            sent.clear()
+            step("tracker: simulate", nodes["tracker"].emit, index)
+            queue = [(n, p, m) for n, p, m in sent if not (n == "tracker" and p == "truth")]
+            sent.clear()
+            while queue:
+                src, out, message = queue.pop(0)
+                crosses = [n for n, _ in links[(src, out)] if n not in group or src not in group]
+                if crosses and isinstance(message, MarkerFrame):  # frames that leave a process (models: rarely)
+                    payload = step(f"{src}: encode {out}", encode, message)
+                    for target in crosses:
+                        step(f"{target}: decode", decode, payload, MarkerFrame)
+                if src == "joints" and skeleton_at is None:
+                    skeleton_at = index
+                for target, port in links[(src, out)]:
+                    label = f"{target}: {port}" if port != "markers" else target
+                    step(label, nodes[target].process, port, message)
+                    queue.extend(sent)
+                    sent.clear()
+        nodes["recorder"].finish()
+    start = skeleton_at if skeleton_at is not None else 0
+    print(f"quickstart frame path at {args.rate:g} Hz: {frames} frames, skeleton model from frame {skeleton_at}; "
+          f"wall-clock us per frame since (p50 / p99)")
+    path = 0.0
+    for key, values in costs.items():
+        node = key.split(":")[0]
+        where = "frame group" if node in group else "own process"
+        per_frame = len(values) >= frames - start
+        tail = np.asarray(values[-(frames - start):] if per_frame else values)
+        p50, p99 = np.percentile(tail, [50, 99])
+        if where == "frame group" and per_frame:
+            path += p50
+        print(f"  {key:<28} {where:<12} {p50:8.0f} {p99:8.0f}" + ("" if per_frame else f"   ({len(values)} calls)"))
+    print(f"  frame group, sum of p50 per frame: {path:.0f} us (one frame every {1e6 / args.rate:.0f} us)")
+
+if __name__ == "__main__":
+    main()

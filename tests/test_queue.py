@@ -1,0 +1,99 @@
+"""Inbox policies: ``queue: all`` keeps every message up to a bound and counts what it refuses, ``queue: latest`` keeps
+the newest and counts what it passes over; the backlog is reported. Unit tests of the inbox, then real runs."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+from pathlib import Path
+
+import pytest
+from conftest import CLI
+
+from mocapflow.errors import GraphError
+from mocapflow.runtime.graph import load_graph
+from mocapflow.runtime.inbox import Inbox
+
+TESTS = Path(__file__).resolve().parent
+
+
+def test_latest_keeps_the_newest_and_counts_the_rest() -> None:
+    inbox: Inbox[int] = Inbox(latest={"view"})
+    for i in range(5):
+        inbox.put("view", i)
+    inbox.put("data", 100)
+    inbox.put("view", 5)
+    assert inbox.backlog()[0] == 2
+    first, second = inbox.get(0), inbox.get(0)
+    assert first is not None and (first.port, first.item, first.skipped) == ("view", 5, 5)
+    assert second is not None and (second.port, second.item, second.skipped) == ("data", 100, 0)
+    assert inbox.get(0) is None and inbox.skipped == {"view": 5} and inbox.drops == {}
+    inbox.put("view", 6)
+    inbox.put("view", 0, end=True)  # end of stream is never replaced
+    inbox.put("view", 7)
+    got = [inbox.get(0) for _ in range(3)]  # 7 replaced 6 where it waited, ahead of the end
+    assert [(e.item, e.end, e.skipped) for e in got if e is not None] == [(7, False, 1), (0, True, 0)]
+
+
+def test_all_is_bounded_counts_what_it_refuses_and_never_refuses_an_end() -> None:
+    inbox: Inbox[int] = Inbox(capacity=3)
+    assert [inbox.put("m", i) for i in range(5)] == [True, True, True, False, False]
+    assert inbox.put("m", -1, end=True)
+    assert inbox.drops == {"m": 2} and inbox.backlog()[0] == 4
+    got = [inbox.get(0) for _ in range(4)]
+    assert [e.item for e in got if e is not None] == [0, 1, 2, -1]
+    assert got[3] is not None and got[3].end and got[3].skipped == 2  # the gap before the end is accounted for
+    figures = inbox.figures({"m"})
+    assert (figures["drops"], figures["skipped"], figures["backlog"], figures["backlog_max"]) == (2, 0, 0, 4)
+
+
+def test_a_queue_policy_must_name_a_linked_input(tmp_path: Path) -> None:
+    path = tmp_path / "g.yaml"
+    path.write_text("name: q\nnodes:\n  tracker: {plugin: simulator}\n"
+                    "  relay: {plugin: relay, inputs: {markers: tracker/markers}, queue: {marker: latest}}\n")
+    with pytest.raises(GraphError, match="nodes.relay.queue.marker: no linked input 'marker'"):
+        load_graph(path)
+    path.write_text("name: q\nnodes:\n  tracker: {plugin: simulator}\n"
+                    "  relay: {plugin: relay, inputs: {markers: tracker/markers}, queue: {markers: newest}}\n")
+    with pytest.raises(GraphError, match="nodes.relay.queue.markers"):
+        load_graph(path)
+
+
+def _run_slow_sink(tmp_path: Path, endpoint: str, frames: int, policy: str) -> tuple[list[int], dict]:
+    out = tmp_path / "handled.txt"
+    summary = tmp_path / "summary.json"
+    path = tmp_path / "g.yaml"
+    path.write_text(
+        f"name: queue\nzenoh: {{listen: ['{endpoint}']}}\nnodes:\n"
+        f"  tracker: {{plugin: simulator, config: {{rig: rods, rate: 200, frames: {frames}}}}}\n"
+        f"  sink: {{plugin: 'slow_sink:SlowSink', inputs: {{markers: tracker/markers}}, {policy},\n"
+        f"          config: {{path: '{out}', delay_s: 0.02}}}}\n"
+    )
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(TESTS), os.environ.get("PYTHONPATH")]))}
+    run = subprocess.run([*CLI, "run", str(path), "--summary", str(summary)], capture_output=True, text=True,
+                         timeout=90, env=env, check=False)
+    assert run.returncode == 0, run.stdout + run.stderr
+    handled = [int(line) for line in out.read_text().split()]
+    return handled, json.loads(summary.read_text())["sink"]
+
+
+@pytest.mark.integration
+def test_latest_drops_only_what_it_says(tmp_path: Path, free_endpoint: str) -> None:
+    """A sink four times too slow for its source: it handles the newest frames in order, and every frame it did
+    not handle is counted as skipped, none lost unaccounted."""
+    frames = 200
+    handled, stats = _run_slow_sink(tmp_path, free_endpoint, frames, "queue: {markers: latest}")
+    assert handled == sorted(set(handled)) and handled[-1] == frames - 1
+    assert 0 < stats["skipped"] and len(handled) + stats["skipped"] == frames, (len(handled), stats)
+    assert stats["drops"] == 0 and stats["frames_in"] == len(handled)
+    assert stats["backlog_max"] <= 2  # never more than the newest frame (and the end of stream) waiting
+
+
+@pytest.mark.integration
+def test_a_full_inbox_drops_and_counts(tmp_path: Path, free_endpoint: str) -> None:
+    frames = 200
+    handled, stats = _run_slow_sink(tmp_path, free_endpoint, frames, "queue_size: 10")
+    assert handled == sorted(set(handled)) and handled[:10] == list(range(10))
+    assert stats["drops"] > 0 and len(handled) + stats["drops"] == frames, (len(handled), stats)
+    assert stats["skipped"] == 0 and 10 <= stats["backlog_max"] <= 11 and stats["backlog_max_ms"] > 100
