@@ -8,8 +8,8 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
-from mocapflow.io.scene import Scene, close_stream, open_stream
-from mocapflow.messages import MarkerFrame, Message, Pose, Segments, Skeleton
+from mocapflow.io.scene import Scene, blueprint, close_stream, open_stream
+from mocapflow.messages import MarkerFrame, Message, NodeStats, Pose, Segments, Skeleton
 from mocapflow.runtime.node import Input, Node
 
 
@@ -24,7 +24,8 @@ class RerunConfig(BaseModel):
     web_port: int = Field(default=9090, ge=1, le=65535, description="web viewer port when serving")
     save: str | None = Field(default=None, description="write the scene to this .rrd file")
     rate: float | None = Field(default=60.0, gt=0, description="display rate, Hz; frames in between are skipped "
-                                                               "(null: every frame)")
+                               "(null: every frame received; with 'queue: {markers: all, pose: all}' on the node, "
+                               "every frame, even when the viewer falls behind)")
     memory_limit: str = Field(default="1GiB", description="memory of the spawned viewer or server; beyond it the "
                                                           "oldest data is dropped")
     up: Literal["+Z", "+Y", "+X", "-Z", "-Y", "-X"] = Field(default="+Z", description="the capture's up axis")
@@ -46,15 +47,17 @@ class RerunConfig(BaseModel):
 
 class RerunSink(Node[RerunConfig]):
     """Draws markers (coloured by segment, and by flag where estimated), rays, joint centres and bones at up to
-    ``rate`` frames a second. Only the latest frame of each input is drawn: frames that queued while drawing are
-    skipped in one go, so the viewer never holds the pipeline back."""
+    ``rate`` frames a second, and, linked to ``_stats/*``, each node's latency and rate as time series beside the
+    scene. Its frame inputs keep only the newest waiting frame (``queue: latest``), and frames that arrive faster
+    than ``rate`` are passed over, so the viewer never holds the pipeline back."""
 
     Config = RerunConfig
     inputs = {
-        "markers": Input(MarkerFrame, doc="markers to draw"),
-        "pose": Input(Pose, required=False, doc="joint centres and bones to draw"),
+        "markers": Input(MarkerFrame, doc="markers to draw", queue="latest"),
+        "pose": Input(Pose, required=False, doc="joint centres and bones to draw", queue="latest"),
         "skeleton": Input(Skeleton, required=False, state=True, doc="joint tree for the bones"),
         "segments": Input(Segments, required=False, state=True, doc="marker colours by segment"),
+        "health": Input(NodeStats, required=False, state=True, doc="node latency and rate: link to '_stats/*'"),
     }
 
     def setup(self) -> None:
@@ -66,11 +69,19 @@ class RerunSink(Node[RerunConfig]):
         self.period = 1.0 / config.rate if config.rate else 0.0
         self.due: dict[str, float] = {}
         self.skipped: dict[str, Message] = {}
+        self.health_shown = False
 
     def process(self, port: str, message: Message) -> None:
         self.process_batch(port, [message])
 
     def process_batch(self, port: str, messages: list[Message]) -> None:
+        if port == "health":
+            if not self.health_shown:  # lay out the time series beside the scene once there is health to show
+                self.stream.send_blueprint(blueprint(health=True))
+                self.health_shown = True
+            for stats in messages:
+                self.scene.log(port, stats, time.time_ns())
+            return
         if self.inputs[port].state or self.config.rate is None:
             for message in messages:
                 self.scene.log(f"world/{port}", message)

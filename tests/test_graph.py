@@ -95,3 +95,21 @@ def test_validate_command_exit_codes(tmp_path: Path) -> None:
     result = run_cli("validate", bad)
     assert result.returncode == 2
     assert "nodes.tracker.config.rate" in result.stderr and len(result.stderr.strip().splitlines()) == 1
+
+
+def test_node_health_links_only_to_the_stats_of_this_graph(tmp_path: Path) -> None:
+    path = tmp_path / "g.yaml"
+    head = "name: h\nnodes:\n  tracker: {plugin: simulator}\n"
+    sink = "  view: {plugin: rerun, config: {save: s.rrd}, inputs: {markers: tracker/markers, health: %s}}\n"
+    for link in ("_stats/*", "_stats/tracker"):
+        path.write_text(head + sink % link)
+        load_graph(path)
+    for link in ("_stats/nobody", "tracker/markers"):
+        path.write_text(head + sink % link)
+        with pytest.raises(GraphError, match=rf"nodes.view.inputs.health: node health is linked as '_stats/\*' "
+                                             rf"\(every node\) or '_stats/NODE' .*, not '{link}'"):
+            load_graph(path)
+    path.write_text(head + "  view: {plugin: rerun, config: {save: s.rrd}, inputs: {markers: _stats/*}}\n")
+    with pytest.raises(GraphError, match="nodes.view.inputs.markers: '_stats/\\*' carries NodeStats, input expects "
+                                         "MarkerFrame"):
+        load_graph(path)

@@ -135,8 +135,9 @@ def check_bones(table: dict[str, list[Any]], entity: str, recorded: MarkerData) 
 @pytest.mark.integration
 def test_sink_draws_a_simulated_capture_with_rays(tmp_path: Path, free_endpoint: str) -> None:
     sinks = {
-        "viewer": {"plugin": "rerun", "inputs": SINK, "config": {"save": str(tmp_path / "scene.rrd"), "rate": None}},
-        "rays": {"plugin": "rerun", "inputs": {"markers": "labeller/markers"},
+        "viewer": {"plugin": "rerun", "inputs": SINK, "config": {"save": str(tmp_path / "scene.rrd"), "rate": None},
+                   "queue": {"markers": "all", "pose": "all"}},  # every frame: none passed over, even when behind
+        "rays": {"plugin": "rerun", "inputs": {"markers": "labeller/markers", "health": "_stats/*"},
                  "config": {"save": str(tmp_path / "rays.rrd"), "ray_length_mm": 3000}},
     }
     graph = graph_with_sinks(tmp_path, "cameras.yaml", free_endpoint, sinks, {"frames": 1200, "rate": 120}, True)
@@ -164,6 +165,10 @@ def test_sink_draws_a_simulated_capture_with_rays(tmp_path: Path, free_endpoint:
     assert len(np.unique(segments[:, 0].round(1), axis=0)) <= 8  # every ray starts at one of the 8 cameras
     colours = {rgb(c) for row in rays["/world/markers/rays:LineStrips3D:colors"] if row for c in row}
     assert colours == {FLAG_COLOURS[7]}
+    health = read_rrd(tmp_path / "rays.rrd", "capture_time")  # node health as time series, from the graph's stats
+    for node in ("tracker", "labeller", "filler", "skeleton", "recorder", "viewer"):
+        assert any(v for v in health[f"/health/rate_hz/{node}:Scalars:scalars"]), node
+        assert f"/health/latency_p99_ms/{node}:Scalars:scalars" in health
 
 
 @pytest.mark.integration

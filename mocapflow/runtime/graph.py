@@ -14,12 +14,14 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
 from mocapflow.errors import GraphError
+from mocapflow.messages import NodeStats
 from mocapflow.runtime.inbox import DEFAULT_CAPACITY, QueuePolicy
 from mocapflow.runtime.integrity import StreamLimits
-from mocapflow.runtime.node import Node
+from mocapflow.runtime.node import Input, Node
 from mocapflow.runtime.plugins import PluginNotFound, load
 
 NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_-]*$")
+HEALTH = "_stats/"  # links to the nodes' health: the stats keys, ``keys.stats_key``, under the graph's prefix
 KEY_PREFIX = re.compile(r"^[A-Za-z0-9_.-]+(/[A-Za-z0-9_.-]+)*$")
 
 
@@ -52,7 +54,8 @@ class NodeSpec(RestartPolicy):
     group: str | None = Field(default=None, description="node group: the nodes of a group run in one process and "
                               "hand messages to one another as Python objects (see docs/ARCHITECTURE.md)")
     queue: dict[str, QueuePolicy] = Field(
-        default_factory=dict, description="input port -> 'all' (every message, the default) or 'latest' (the newest)")
+        default_factory=dict, description="input port -> 'all' (every message) or 'latest' (the newest); "
+        "default: the plugin's choice for that input, 'all' unless it says otherwise")
     queue_size: int = Field(default=DEFAULT_CAPACITY, ge=1,
                             description="messages the inbox holds at most; beyond, new ones are dropped and counted")
     wait_for: dict[str, float] = Field(
@@ -218,6 +221,9 @@ def validate(graph: Graph, source: str = "graph") -> dict[str, type[Node]]:
                 errors.append(f"{where}: plugin {spec.plugin!r} has no input {port!r} "
                               f"(inputs: {', '.join(cls.inputs) or 'none'})")
                 continue
+            if cls.inputs[port].type is NodeStats or link.startswith(HEALTH):
+                errors += _health_errors(where, link, spec.plugin, cls.inputs[port], graph)
+                continue
             src, slash, out = link.partition("/")
             if not slash or src not in graph.nodes:
                 errors.append(f"{where}: {link!r} must be 'node/output' with a node of this graph")
@@ -238,6 +244,19 @@ def validate(graph: Graph, source: str = "graph") -> dict[str, type[Node]]:
         raise GraphError(f"{source}: " + "; ".join(errors) if len(errors) == 1
                          else f"{source}:\n  " + "\n  ".join(errors))
     return classes
+
+
+def _health_errors(where: str, link: str, plugin: str, port: Input, graph: Graph) -> list[str]:
+    """An input of the nodes' health: of type NodeStats, a state input, linked to ``_stats/*`` or ``_stats/NODE``."""
+    if port.type is not NodeStats:
+        return [f"{where}: {link!r} carries NodeStats, input expects {port.type.type_name}"]
+    if not port.state:
+        return [f"{where}: plugin {plugin!r} takes node health on an input that is not a state input"]
+    node = link.removeprefix(HEALTH)
+    if not link.startswith(HEALTH) or (node != "*" and node not in graph.nodes):
+        return [f"{where}: node health is linked as '{HEALTH}*' (every node) or '{HEALTH}NODE' with a node of this "
+                f"graph, not {link!r}"]
+    return []
 
 
 def _group_errors(graph: Graph, classes: dict[str, type[Node]]) -> list[str]:
@@ -268,7 +287,8 @@ def end_inputs(graph: Graph, classes: dict[str, type[Node]]) -> dict[str, list[s
     feeds: dict[str, set[str]] = {name: set() for name in graph.nodes}
     for name, spec in graph.nodes.items():
         for link in spec.inputs.values():
-            feeds[link.partition("/")[0]].add(name)
+            if not link.startswith(HEALTH):
+                feeds[link.partition("/")[0]].add(name)
 
     def downstream(start: str) -> set[str]:
         seen, todo = set(), [start]

@@ -15,7 +15,8 @@ from typing import Any, ClassVar, Generic, TypeVar
 
 from pydantic import BaseModel, ConfigDict
 
-from mocapflow.messages import Message
+from mocapflow.messages import Message, MessageType
+from mocapflow.runtime.inbox import QueuePolicy
 
 RUN_ENV = "MOCAPFLOW_RUN"
 """The run a worker belongs to, set by the worker from its spec: a restarted node sees the same value."""
@@ -35,12 +36,15 @@ ConfigT = TypeVar("ConfigT", bound=BaseModel)
 class Input:
     """An input port. ``state`` inputs carry models (segments, skeleton): a late joiner receives the latest one at
     once. A ``required`` input must be linked. A node finishes when every data input it is fed by (feedback loops
-    aside, see ``graph.end_inputs``) has ended."""
+    aside, see ``graph.end_inputs``) has ended. ``queue`` is the port's inbox policy unless the graph sets one:
+    ``latest`` for a sink that only ever shows the newest frame. An input of type ``NodeStats`` is linked to the
+    nodes' health, ``_stats/*`` (every node) or ``_stats/NODE``, and must be a ``state`` input (it never ends)."""
 
-    type: type[Message]
+    type: MessageType
     required: bool = True
     state: bool = False
     doc: str = ""
+    queue: QueuePolicy = "all"
 
 
 @dataclass(frozen=True)

@@ -127,7 +127,7 @@ class Runner:
                 else:
                     self.node.process_batch(port, group)
             except Exception as exc:  # a bad frame must not end the stage: log, count, go on
-                self.report_error(f"processing {port!r} frame {group[0].frame}", exc)
+                self.report_error(f"processing {port!r} frame {getattr(group[0], 'frame', '-')}", exc)
                 continue
             if not self.node.inputs[port].state:
                 for message in group:

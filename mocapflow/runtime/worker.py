@@ -78,7 +78,8 @@ class WorkerSpec(BaseModel):
         default=None, description="security settings file (TLS, login); its path, so no password is on a command line"
     )
     limits: StreamLimits = Field(default_factory=StreamLimits, description="what the data inputs accept")
-    queue: dict[str, QueuePolicy] = Field(default_factory=dict, description="input port -> policy (default 'all')")
+    queue: dict[str, QueuePolicy] = Field(default_factory=dict,
+                                          description="input port -> policy (default: the plugin's)")
     queue_size: int = Field(default=DEFAULT_CAPACITY, ge=1, description="messages an 'all' inbox holds at most")
     wait_for: dict[str, float] = Field(
         default_factory=dict, description="input port -> ms: how long a frame waits for that input's message of the "
@@ -131,7 +132,8 @@ class Worker:
         self.finished_ok = True
         self.clock_origin_ns: int | None = None
         self.inbox: Inbox[zenoh.Sample] = Inbox(spec.queue_size, {
-            f"{n.node}/{p}" for n in spec.nodes() for p, q in n.queue.items() if q == "latest"})
+            f"{n.node}/{p}" for n in spec.nodes() for p, i in classes[n.node].inputs.items()
+            if n.queue.get(p, i.queue) == "latest"})
         self._local: deque[tuple[Member, str, Any]] = deque()  # hand-overs inside the group, in order
         self._deferred: deque[Entry[zenoh.Sample]] = deque()  # from outside, set aside while waiting for feedback
         self.members: dict[str, Member] = {}
