@@ -8,8 +8,7 @@ measured at a rate it sustains). Each round runs the graph three times, in turn:
 sink on the filled markers, the pose and the skeleton, drawing at its default 60 Hz into an .rrd file; and with the
 sink drawing every frame it receives (``rate: null``; its inputs keep the newest waiting frame), the worst case. Per
 run it prints the skeleton node's pose latency from the tracker's capture timestamp (p50 / p99 over its last 4096
-frames, as the launcher's summary gives them), its poses,
-drops and rate, and the frames the sink received.
+frames, as the launcher's summary gives them), its poses, drops and rate, and the frames the sink received.
 """
 
 from __future__ import annotations
