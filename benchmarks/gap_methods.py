@@ -1,6 +1,7 @@
-"""Reference gap-filling methods of the literature, each written from its paper, for the benchmarks only (mocapflow
-does not use them): interpolation, Gløersen & Federolf's PCA reconstruction (PLoS ONE 2016) and Burke & Lasenby's
-low-dimensional Kalman smoother (J Biomech 2016). Every method takes (F, N, 3) positions with NaN gaps and returns
+"""Reference gap-filling methods of the literature, each written from its paper, for the benchmarks: interpolation,
+Gløersen & Federolf's PCA reconstruction (PLoS ONE 2016; mocapflow's offline fill uses it, with each gap made to meet
+the observed trajectory, in ``mocapflow.mocap.filling.posture``) and Burke & Lasenby's low-dimensional Kalman smoother
+(J Biomech 2016). Every method takes (F, N, 3) positions with NaN gaps and returns
 them filled (NaN only where it cannot fill).
 
 Both PCA methods work on the world coordinates, whose variance the subject's travel dominates: they keep the
@@ -12,10 +13,14 @@ from __future__ import annotations
 import numpy as np
 from scipy.interpolate import CubicSpline
 
+from mocapflow.mocap.filling.posture import interpolate_linear, posture_fill, training_frames
+
 
 def interpolate(x: np.ndarray, kind: str) -> np.ndarray:
     """Linear or cubic-spline interpolation of every marker over its gaps; a gap at an end holds the nearest seen
     position (neither extrapolates sensibly)."""
+    if kind == "linear":
+        return interpolate_linear(x)
     out = x.copy()
     frames = np.arange(len(x))
     for m in range(x.shape[1]):
@@ -24,70 +29,18 @@ def interpolate(x: np.ndarray, kind: str) -> np.ndarray:
             continue
         f = frames[known]
         inside = (frames > f[0]) & (frames < f[-1]) & ~known
-        if kind == "linear":
-            for axis in range(3):
-                out[inside, m, axis] = np.interp(frames[inside], f, x[known, m, axis])
-        else:
-            out[inside, m] = CubicSpline(f, x[known, m])(frames[inside])
+        out[inside, m] = CubicSpline(f, x[known, m])(frames[inside])
         out[frames < f[0], m] = x[f[0], m]
         out[frames > f[-1], m] = x[f[-1], m]
     return out
 
 
-def _matrix(x: np.ndarray) -> np.ndarray:
-    return x.reshape(len(x), -1)
-
-
-def _training_frames(flat: np.ndarray, least: int, variance: float) -> np.ndarray:
-    """The frames the principal components are learnt from: the complete ones, as both papers do; when fewer than
-    ``least`` are (the random protocol can leave a short recording with few), every frame with its gaps imputed by
-    iterated low-rank reconstruction (linear interpolation first, then 20 rounds of replacing the missing entries by
-    their reconstruction from the components explaining ``variance``), so the components are not those of straight
-    interpolated lines."""
-    missing = ~np.isfinite(flat)
-    complete = ~missing.any(axis=1)
-    if complete.sum() >= least:
-        return flat[complete]
-    filled = interpolate(flat.reshape(len(flat), -1, 3), "linear").reshape(flat.shape)
-    usable = np.isfinite(filled).all(axis=1)
-    filled, missing = filled[usable], missing[usable]
-    for _ in range(20):
-        mean = filled.mean(axis=0)
-        u, s, vt = np.linalg.svd(filled - mean, full_matrices=False)
-        keep = int(np.searchsorted(np.cumsum(s**2) / (s**2).sum(), variance)) + 1
-        filled = np.where(missing, mean + (u[:, :keep] * s[:keep]) @ vt[:keep], filled)
-    return filled
-
-
 def pca_fill(x: np.ndarray, variance: float = 0.9999) -> np.ndarray:
-    """Gløersen & Federolf (2016): the marker coordinates, centred and weighted by each marker's distance to the
-    markers with gaps (their weighting's idea: nearer markers count more; here w = exp(-d^2 / (2 s^2)), s the median
-    distance between two markers),
-    decomposed into principal components learnt from the complete frames; in every frame with gaps, the scores of
-    the components explaining ``variance`` of the variance are fitted to the visible coordinates (least squares)
-    and the missing coordinates reconstructed from them."""
-    n = x.shape[1]
-    flat = _matrix(x)
-    missing = ~np.isfinite(flat)
-    if not missing.any():
-        return x.copy()
-    gappy = ~np.isfinite(x).all(axis=2).all(axis=0)  # markers with a gap
-    centre = np.nanmean(x, axis=(0,))
-    distance = np.linalg.norm(centre[:, None] - centre[None, gappy], axis=-1).min(axis=1)  # to the nearest gappy
-    scale = np.median(np.linalg.norm(centre[:, None] - centre[None], axis=-1)[np.triu_indices(n, 1)])
-    weight = np.repeat(np.exp(-(distance**2) / (2 * scale**2)), 3)
-    train = _training_frames(flat, 20, variance)
-    mean = train.mean(axis=0)
-    _, s, vt = np.linalg.svd((train - mean) * weight, full_matrices=False)
-    keep = int(np.searchsorted(np.cumsum(s**2) / (s**2).sum(), variance)) + 1
-    basis = vt[:keep].T / weight[:, None]  # back to unweighted coordinates
-    out = flat.copy()
-    for f in np.flatnonzero(missing.any(axis=1)):
-        seen = ~missing[f]
-        scores, *_ = np.linalg.lstsq(basis[seen] * weight[seen, None], (flat[f, seen] - mean[seen]) * weight[seen],
-                                     rcond=None)
-        out[f, ~seen] = mean[~seen] + basis[~seen] @ scores
-    return out.reshape(x.shape)
+    """Gløersen & Federolf (2016), as the paper has it (mocapflow's ``posture_fill`` without meeting the ends): the
+    marker coordinates, weighted by each marker's distance to the markers with gaps, decomposed into principal
+    components learnt from the complete frames; in every frame with gaps, the scores of the components explaining
+    ``variance`` of the variance fitted to the visible coordinates and the missing coordinates read from them."""
+    return posture_fill(x, variance, meet_ends=False)
 
 
 def kalman_smoother_fill(x: np.ndarray, rate: float, variance: float = 0.9999) -> np.ndarray:
@@ -97,12 +50,12 @@ def kalman_smoother_fill(x: np.ndarray, rate: float, variance: float = 0.9999) -
     coordinates, then smoothed backwards (Rauch-Tung-Striebel); the missing coordinates are read from the smoothed
     scores. Process noise per component from the second differences of its scores, measurement noise from the
     variance the discarded components leave."""
-    flat = _matrix(x)
+    flat = x.reshape(len(x), -1)
     missing = ~np.isfinite(flat)
     if not missing.any():
         return x.copy()
     frames, dims = flat.shape
-    train = _training_frames(flat, 20, variance)
+    train = training_frames(flat, variance)
     mean = train.mean(axis=0)
     _, s, vt = np.linalg.svd(train - mean, full_matrices=False)
     d = int(np.searchsorted(np.cumsum(s**2) / (s**2).sum(), variance)) + 1

@@ -42,6 +42,7 @@ FLAG_COLOURS: Final[dict[int, tuple[int, int, int]]] = {
     FillCase.CONSTANT_ROTOR: (150, 90, 255),
     FillCase.RAY: (0, 225, 225),
     FillCase.LEARNT: (90, 200, 90),
+    FillCase.POSTURE: (230, 80, 80),
 }
 """Estimated samples, by how they were estimated (``FillCase``); observed ones take their segment's colour."""
 OTHER_ESTIMATE: Final = (255, 170, 90)

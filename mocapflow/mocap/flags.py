@@ -19,6 +19,7 @@ class FillCase(IntEnum):
     CONSTANT_ROTOR = 6  # segment and neighbours hidden: through an estimated neighbour's joint, else constant rotor
     RAY = 7  # seen by a single camera: on its ray
     LEARNT = 8  # whole segment hidden, placed by the kinematic model learnt from its visible neighbours
+    POSTURE = 9  # offline only: from the whole body's postures fitted to the visible markers (filling.posture)
 
 
 SampleFlag = FillCase

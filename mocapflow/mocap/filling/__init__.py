@@ -43,7 +43,8 @@ Changes to the thesis, each backed by its results (tables 6.1-6.6) or needed for
 The filler never reads a future frame: ``update`` uses the current frame and its own state only, so filling a
 recording frame by frame (``fill_sequence``) gives exactly what a live stream would have given. A file may also be
 filled both ways (``fill_both_ways``, ``mocapflow fill --offline``): the same filler run forwards and backwards, blended
-across each gap, which uses the frames after a gap as no live stream can.
+across each gap, which uses the frames after a gap as no live stream can, and weighed against the whole body's
+postures (``posture``; code 9, ``FillCase.POSTURE``) by their errors on trial gaps.
 """
 
 

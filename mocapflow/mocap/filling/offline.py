@@ -8,8 +8,9 @@ from typing import NamedTuple
 
 import numpy as np
 
-from mocapflow.mocap.filling.config import FillerConfig
+from mocapflow.mocap.filling.config import FillCase, FillerConfig
 from mocapflow.mocap.filling.filter import GapFiller
+from mocapflow.mocap.filling.posture import posture_fill
 from mocapflow.mocap.model import SkeletonModel
 from mocapflow.mocap.report import Progress, steps
 
@@ -59,16 +60,51 @@ def fill_both_ways(
     skeleton: SkeletonModel | None = None, *, rays: np.ndarray | None = None, joints: Sequence[str] = (),
     progress: Progress | None = None,
 ) -> FilledRecording:
-    """Fill a recording with the frames on both sides of every gap: the same causal filler run forwards and
-    backwards in time, blended across each gap from the forward estimate at its start to the backward one at its end.
+    """Fill a recording with the frames on both sides of every gap, by two estimates weighed by how well each did on
+    this very recording.
 
-    A gap at the start of the recording is the backward pass's alone, one at the end the forward pass's. Neither pass
-    gives a marker up (``extrapolate_max_s``): a marker the constraints cannot place coasts to rest from each side,
-    and the blend of the two is a straight line across the gap, so every marker seen once is filled in every frame.
-    A sample's flag is that of the pass with the larger weight. Files only: a live stream has no frames after a gap.
+    - The rigid-body filler both ways (``_both_passes``): the same causal filler run forwards and backwards in time,
+      blended across each gap from the forward estimate at its start to the backward one at its end.
+    - The whole body's postures (``posture.posture_fill``), which meet the marker's trajectory at both ends of its gap.
+
+    Each marker's samples are their mean weighted by the inverse of each estimate's mean squared error on trial gaps:
+    for every gap of the marker, a stretch of the same length where it is seen, nearest the gap, hidden and filled both
+    ways (``trial_gaps``). A marker with no such stretch takes the rigid-body filler's estimate, except where no body
+    constraint placed it (flag ``KALMAN``: its filter coasting from each side, a straight line), which the postures
+    replace. A sample's flag is that of the estimate that weighs more (``POSTURE`` for the postures). Where a frame
+    shows no marker at all, the filler's estimate stays. Every marker seen once is filled in every frame. Files only:
+    a live stream has no frames after a gap.
     """
     positions = np.asarray(positions, dtype=float)
     config = (config or FillerConfig()).model_copy(update={"extrapolate_max_s": None})
+    filled = _both_passes(positions, labels, rate, config, skeleton, rays, joints, progress)
+    hidden = ~np.isfinite(positions).all(axis=-1)
+    if not hidden.any():
+        return filled
+    postures = posture_fill(positions)
+    trial = trial_gaps(hidden)
+    weight = np.where(filled.flags == FillCase.KALMAN, 1.0, 0.0)  # of the postures: no constraint, no trial
+    if trial.any():
+        tried = np.where(trial[..., None], np.nan, positions)
+        errors = [np.where(trial, ((estimate - positions) ** 2).sum(-1), 0.0).sum(0) / np.maximum(trial.sum(0), 1)
+                  for estimate in (_both_passes(tried, labels, rate, config, skeleton, rays, (), None).positions,
+                                   posture_fill(tried))]
+        known = trial.any(0) & np.isfinite(errors[0]) & np.isfinite(errors[1])
+        share = errors[0] / np.maximum(errors[0] + errors[1], 1e-12)  # 1/e_p^2 / (1/e_f^2 + 1/e_p^2)
+        weight = np.where(known[None] & (filled.flags != FillCase.KALMAN), share[None], weight)
+    weight = np.where(hidden & np.isfinite(postures).all(-1), weight, 0.0)
+    w = weight[..., None]
+    out = filled.positions * (1 - w) + np.where(w > 0, postures, 0.0) * w
+    flags = np.where(weight > 0.5, FillCase.POSTURE, filled.flags).astype(filled.flags.dtype)
+    return FilledRecording(out, flags, filled.joint_centres)
+
+
+def _both_passes(positions: np.ndarray, labels: list[str], rate: float, config: FillerConfig,
+                 skeleton: SkeletonModel | None, rays: np.ndarray | None, joints: Sequence[str],
+                 progress: Progress | None) -> FilledRecording:
+    """The causal filler forwards and backwards, blended across each gap (the forward pass alone for a gap at the end
+    of the recording, the backward one for a gap at its start). A sample's flag is that of the pass with the larger
+    weight."""
     reverse = None if rays is None else rays[::-1]
     ahead = fill_recording(positions, labels, rate, config, skeleton, rays=rays, joints=joints, progress=progress)
     behind = fill_recording(positions[::-1], labels, rate, config, skeleton, rays=reverse, joints=joints,
@@ -81,6 +117,28 @@ def fill_both_ways(
     centres = {name: either_or_mean(ahead.joint_centres[name], behind.joint_centres[name][::-1])
                for name in ahead.joint_centres}
     return FilledRecording(out, flags, centres)
+
+
+def trial_gaps(hidden: np.ndarray) -> np.ndarray:
+    """(F, N) for every gap of every marker in ``hidden`` (F, N), a stretch of the same length where the marker is
+    seen, with a seen frame on either side, nearest the gap and apart from its other gaps and trial stretches; none
+    for a gap no such stretch fits."""
+    frames, n = hidden.shape
+    trial = np.zeros_like(hidden)
+    for m in range(n):
+        taken = hidden[:, m].copy()
+        edges = np.flatnonzero(np.diff(np.concatenate([[0], taken.astype(np.int8), [0]])))
+        for start, stop in zip(edges[::2], edges[1::2], strict=True):
+            length = stop - start
+            # c is free when frames c - 1 .. c + length are neither hidden nor taken
+            busy = np.concatenate([[0], np.cumsum(taken)])
+            first = np.arange(1, frames - length)
+            free = first[busy[first + length + 1] - busy[first - 1] == 0]
+            if len(free):
+                c = free[np.argmin(np.abs(free - start))]
+                trial[c:c + length, m] = True
+                taken[c - 1:c + length + 1] = True
+    return trial
 
 
 def either_or_mean(a: np.ndarray, b: np.ndarray) -> np.ndarray:
