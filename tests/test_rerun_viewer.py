@@ -205,7 +205,7 @@ def test_view_attaches_to_a_running_graph_and_replays_its_recording(tmp_path: Pa
                                  stderr=subprocess.STDOUT, text=True)
     try:
         recorder = subprocess.Popen([*CLI, "record", f"{prefix}/**", "-o", str(tmp_path / "run.mcap"), "--connect",
-                                     free_endpoint, "--duration", "120"], stdout=subprocess.PIPE,
+                                     free_endpoint, "--duration", "120", "--timeout", "90"], stdout=subprocess.PIPE,
                                     stderr=subprocess.STDOUT, text=True)
         live_out = run("view", graph, "--save", tmp_path / "live.rrd", "--rate", "30", timeout=180)
         out, _ = run_graph.communicate(timeout=180)
@@ -213,8 +213,9 @@ def test_view_attaches_to_a_running_graph_and_replays_its_recording(tmp_path: Pa
     finally:
         run_graph.kill()
         recorder.terminate()
-        recorder.communicate(timeout=30)
+        recorded_out, _ = recorder.communicate(timeout=30)
     assert f"up axis: +Z ({graph} does not say" in live_out
+    assert (tmp_path / "run.mcap").is_file(), recorded_out
     replay_out = run("view", tmp_path / "run.mcap", "--save", tmp_path / "replay.rrd")
     recorded = read_markers(tmp_path / "recorded.c3d")
     live, replay = read_rrd(tmp_path / "live.rrd"), read_rrd(tmp_path / "replay.rrd")
