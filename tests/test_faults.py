@@ -179,7 +179,8 @@ def test_replay_reads_what_a_killed_record_left(tmp_path: Path, free_endpoint: s
     run = start(["run", str(path), "--duration", "40"], tmp_path)
     live = tmp_path / "live.mcap"
     rec = subprocess.Popen([sys.executable, "-m", "mocapflow.cli", "record", f"{prefix}/tracker/markers", "-o",
-                            str(live), "--connect", free_endpoint], stdout=subprocess.PIPE, text=True)
+                            str(live), "--connect", free_endpoint, "--timeout", "90"],
+                           stdout=subprocess.PIPE, text=True)
     try:
         wait_for_frames(free_endpoint, prefix, "recorder", 2 * RATE)
         time.sleep(3)
