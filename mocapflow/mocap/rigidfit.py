@@ -126,12 +126,22 @@ class PoseFit:
 
 
 def quaternion_matrices(quaternions: np.ndarray) -> np.ndarray:
-    """(..., 3, 3) matrices of scalar-last quaternions, NaN rows giving NaN matrices (scipy rejects NaN)."""
+    """(..., 3, 3) matrices of scalar-last quaternions, NaN rows giving NaN matrices (scipy rejects NaN).
+
+    The arithmetic of scipy's ``Rotation.from_quat(q).as_matrix()`` (normalise, then the products below), operation
+    for operation, so the matrices are bit for bit scipy's, without building a ``Rotation`` on every call."""
     q = np.asarray(quaternions, dtype=np.float64)
-    known = np.isfinite(q).all(-1)
-    out = np.full((*q.shape[:-1], 3, 3), np.nan)
-    if known.any():
-        out[known] = Rotation.from_quat(q[known]).as_matrix()
+    x, y, z, w = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    norm = np.sqrt(x * x + y * y + z * z + w * w)
+    if (norm == 0).any():
+        raise ValueError("Found zero norm quaternions in `quat`.")
+    x, y, z, w = x / norm, y / norm, z / norm, w / norm
+    x2, y2, z2, w2 = x * x, y * y, z * z, w * w
+    xy, zw, xz, yw, yz, xw = x * y, z * w, x * z, y * w, y * z, x * w
+    out = np.empty((*q.shape[:-1], 3, 3))
+    out[..., 0, 0], out[..., 0, 1], out[..., 0, 2] = x2 - y2 - z2 + w2, 2 * (xy - zw), 2 * (xz + yw)
+    out[..., 1, 0], out[..., 1, 1], out[..., 1, 2] = 2 * (xy + zw), -x2 + y2 - z2 + w2, 2 * (yz - xw)
+    out[..., 2, 0], out[..., 2, 1], out[..., 2, 2] = 2 * (xz - yw), 2 * (yz + xw), -x2 - y2 + z2 + w2
     return out
 
 
