@@ -41,12 +41,15 @@ def rotor(reference: np.ndarray, observed: np.ndarray,
     sxx, sxy, sxz = s[..., 0, 0], s[..., 0, 1], s[..., 0, 2]
     syx, syy, syz = s[..., 1, 0], s[..., 1, 1], s[..., 1, 2]
     szx, szy, szz = s[..., 2, 0], s[..., 2, 1], s[..., 2, 2]
-    n = np.stack([
-        np.stack([sxx + syy + szz, syz - szy, szx - sxz, sxy - syx], -1),
-        np.stack([syz - szy, sxx - syy - szz, sxy + syx, szx + sxz], -1),
-        np.stack([szx - sxz, sxy + syx, -sxx + syy - szz, syz + szy], -1),
-        np.stack([sxy - syx, szx + sxz, syz + szy, -sxx - syy + szz], -1),
-    ], -2)
+    n = np.empty((*s.shape[:-2], 4, 4))
+    n[..., 0, 0], n[..., 1, 1] = sxx + syy + szz, sxx - syy - szz
+    n[..., 2, 2], n[..., 3, 3] = -sxx + syy - szz, -sxx - syy + szz
+    n[..., 0, 1] = n[..., 1, 0] = syz - szy
+    n[..., 0, 2] = n[..., 2, 0] = szx - sxz
+    n[..., 0, 3] = n[..., 3, 0] = sxy - syx
+    n[..., 1, 2] = n[..., 2, 1] = sxy + syx
+    n[..., 1, 3] = n[..., 3, 1] = szx + sxz
+    n[..., 2, 3] = n[..., 3, 2] = syz + szy
     values, vectors = np.linalg.eigh(n)
     q = vectors[..., :, 3]  # Horn's (w, x, y, z) for the largest eigenvalue
     scale = np.abs(values).max(-1)
@@ -131,18 +134,23 @@ def quaternion_matrices(quaternions: np.ndarray) -> np.ndarray:
     The arithmetic of scipy's ``Rotation.from_quat(q).as_matrix()`` (normalise, then the products below), operation
     for operation, so the matrices are bit for bit scipy's, without building a ``Rotation`` on every call."""
     q = np.asarray(quaternions, dtype=np.float64)
-    x, y, z, w = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
-    norm = np.sqrt(x * x + y * y + z * z + w * w)
+    norm = np.sqrt(((q[..., 0] * q[..., 0] + q[..., 1] * q[..., 1]) + q[..., 2] * q[..., 2]) + q[..., 3] * q[..., 3])
     if (norm == 0).any():
         raise ValueError("Found zero norm quaternions in `quat`.")
-    x, y, z, w = x / norm, y / norm, z / norm, w / norm
-    x2, y2, z2, w2 = x * x, y * y, z * z, w * w
-    xy, zw, xz, yw, yz, xw = x * y, z * w, x * z, y * w, y * z, x * w
-    out = np.empty((*q.shape[:-1], 3, 3))
-    out[..., 0, 0], out[..., 0, 1], out[..., 0, 2] = x2 - y2 - z2 + w2, 2 * (xy - zw), 2 * (xz + yw)
-    out[..., 1, 0], out[..., 1, 1], out[..., 1, 2] = 2 * (xy + zw), -x2 + y2 - z2 + w2, 2 * (yz - xw)
-    out[..., 2, 0], out[..., 2, 1], out[..., 2, 2] = 2 * (xz - yw), 2 * (yz + xw), -x2 - y2 + z2 + w2
-    return out
+    u = q / norm[..., None]
+    p = (u[..., :, None] * u[..., None, :]).reshape(*q.shape[:-1], 16)  # p[4 i + j] = u_i u_j, (x, y, z, w)
+    out = np.empty((*q.shape[:-1], 9))
+    # diagonal: x2 - y2 - z2 + w2, -x2 + y2 - z2 + w2, -x2 - y2 + z2 + w2; the signs only flip exactly
+    out[..., _DIAGONAL] = ((p[..., [0, 0, 0]] * _FIRST + p[..., [5, 5, 5]] * _SECOND) + p[..., [10, 10, 10]] * _THIRD
+                           ) + p[..., [15, 15, 15]]
+    # off the diagonal: 2 (xy - zw), 2 (xz + yw), 2 (xy + zw), 2 (yz - xw), 2 (xz - yw), 2 (yz + xw)
+    out[..., _OFF] = 2 * (p[..., [1, 2, 1, 6, 2, 6]] + p[..., [11, 7, 11, 3, 7, 3]] * _SIGNS)
+    return out.reshape(*q.shape[:-1], 3, 3)
+
+
+_DIAGONAL, _OFF = [0, 4, 8], [1, 2, 3, 5, 6, 7]
+_FIRST, _SECOND, _THIRD = np.array([1.0, -1.0, -1.0]), np.array([-1.0, 1.0, -1.0]), np.array([-1.0, -1.0, 1.0])
+_SIGNS = np.array([-1.0, 1.0, 1.0, -1.0, -1.0, 1.0])
 
 
 def fit_pose(local: np.ndarray, observed: np.ndarray, pivot_local: np.ndarray | None = None,
