@@ -50,9 +50,9 @@ class SkeletonPose:
         return out
 
 
-def _place(matrices: np.ndarray, translations: np.ndarray, offset: np.ndarray) -> np.ndarray:
-    """(F, 3) world position of a point at ``offset`` (3,) in a segment posed by (F, 3, 3) and (F, 3)."""
-    return np.einsum("fab,b->fa", matrices, offset) + translations
+def _place(matrices: np.ndarray, translations: np.ndarray, offsets: np.ndarray) -> np.ndarray:
+    """(F, S, 3) world positions of points at ``offsets`` (S, 3) in segments posed by (F, S, 3, 3) and (F, S, 3)."""
+    return np.einsum("fsab,sb->fsa", matrices, offsets) + translations
 
 
 def trilaterate(points: np.ndarray, radii: np.ndarray, start: np.ndarray, iterations: int = 10,
@@ -76,11 +76,13 @@ def trilaterate(points: np.ndarray, radii: np.ndarray, start: np.ndarray, iterat
 class PoseSolver:
     """``solve`` for one skeleton and one label order, compiled once and reused frame after frame.
 
-    Everything that depends on the model and the labels alone is worked out when the solver is built: which column
-    of the positions holds each segment's markers, the marker and joint offsets as arrays, the segments in top-down
-    order with the joints they pivot on and the joints their children place, and the distances trilateration needs.
-    A call then only does the per-frame arithmetic. The cache is the solver itself: build a new one when the model or
-    the labels change (the skeleton node keeps one while they do not)."""
+    Everything that depends on the model and the labels alone is worked out when the solver is built: the segments
+    grouped by depth in the tree (all segments of one depth are fitted in one batched ``fit_pose`` call, as their
+    parents are already posed), where in the positions and in the joints placed by children each segment's points
+    are (index arrays, segments padded to a common size with a never-seen NaN column), the marker and joint offsets
+    as arrays, and the distances trilateration needs. A call then only does the per-frame arithmetic. The cache is
+    the solver itself: build a new one when the model or the labels change (the skeleton node keeps one while they
+    do not)."""
 
     def __init__(self, skeleton: SkeletonModel, labels: Sequence[str]) -> None:
         for j in skeleton.joints:
@@ -97,26 +99,35 @@ class PoseSolver:
         joints = skeleton.joints
         inner = {j.child: k for k, j in enumerate(joints)}  # segment -> index of the joint with its parent
         self.parents = [index[joints[inner[n]].parent] if n in inner else -1 for n in self.names]
-        self.order = [index[skeleton.root]]
-        for s in self.order:
-            self.order += [index[j.child] for j in joints if j.parent == self.names[s]]
         self.joint_parent = np.array([index[j.parent] for j in joints], dtype=np.intp)
         self.joint_child = np.array([index[j.child] for j in joints], dtype=np.intp)
         self.parent_offsets = np.array([j.parent_offset for j in joints], dtype=np.float64).reshape(-1, 3)
         self.child_offsets = np.array([j.child_offset for j in joints], dtype=np.float64).reshape(-1, 3)
-        # column of every segment marker in the positions, len(labels) (a NaN column) for a label not there
-        self.columns = [np.array([column.get(m, len(self.labels)) for m in s.markers], dtype=np.intp)
-                        for s in skeleton.segments]
-        self.local = [np.asarray(s.marker_offsets, dtype=np.float64).reshape(-1, 3) for s in skeleton.segments]
-        self.outer = [[k for k, j in enumerate(joints) if j.parent == n] for n in self.names]
-        self.points_local = [np.concatenate([self.local[s], self.parent_offsets[self.outer[s]]])
-                             for s in range(len(self.names))]
-        self.inner = [inner.get(n, -1) for n in self.names]
+        nan = len(self.labels)  # the NaN column appended to the positions: a marker not among the labels
+        local = [np.asarray(s.marker_offsets, dtype=np.float64).reshape(-1, 3) for s in skeleton.segments]
+        self.sizes = [len(m) for m in local]
+        self.columns, self.local = _padded([[column.get(m, nan) for m in s.markers] for s in skeleton.segments],
+                                           local, nan)
+        # the tree by depth; a segment's points are its markers, then the joints its children place (columns after
+        # the NaN one), in the segment's frame its marker offsets, then those joints' parent offsets
+        self.levels: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []
+        level = [index[skeleton.root]]
+        while level:
+            outer = [[k for k, j in enumerate(joints) if j.parent == self.names[s]] for s in level]
+            columns, points_local = _padded(
+                [[column.get(m, nan) for m in skeleton.segments[s].markers] + [nan + 1 + k for k in out]
+                 for s, out in zip(level, outer, strict=True)],
+                [np.concatenate([local[s], self.parent_offsets[out]]) for s, out in zip(level, outer, strict=True)],
+                nan)
+            self.levels.append((np.array(level, dtype=np.intp), np.array([inner.get(self.names[s], -1)
+                                                                          for s in level], dtype=np.intp),
+                                columns, points_local))
+            level = [int(self.joint_child[k]) for out in outer for k in out]
         # trilateration of joint k: its distances to the markers of both segments and to the parent's own joint
         self.up = [inner.get(j.parent, -1) for j in joints]
         self.radii = [np.concatenate([
-            np.linalg.norm(self.local[self.joint_parent[k]] - self.parent_offsets[k], axis=1),
-            np.linalg.norm(self.local[self.joint_child[k]] - self.child_offsets[k], axis=1),
+            np.linalg.norm(local[self.joint_parent[k]] - self.parent_offsets[k], axis=1),
+            np.linalg.norm(local[self.joint_child[k]] - self.child_offsets[k], axis=1),
             [np.linalg.norm(self.child_offsets[self.up[k]] - self.parent_offsets[k])] if self.up[k] >= 0 else []])
             for k in range(len(joints))]
         self.least_own = [2 if up >= 0 else 3 for up in self.up]
@@ -126,75 +137,85 @@ class PoseSolver:
         positions = np.asarray(positions, dtype=np.float64)
         frames = positions.shape[0]
         padded = np.concatenate([positions, np.full((frames, 1, 3), np.nan)], axis=1)
-        observed = [padded[:, c] for c in self.columns]
-        placed = [np.full((frames, 3), np.nan) for _ in self.joint_names]
-        for k, c in enumerate(self.joint_child):
-            alone = fit_pose(self.local[c], observed[c])
-            placed[k] = np.where(alone.determined[:, None], _place(
-                alone.matrices(), alone.translations, self.child_offsets[k]), np.nan)
-        matrices, translations, rotations, residual, fit = self._top_down(observed, placed, progress)
+        observed = padded[:, self.columns]  # (F, S, n, 3)
+        children = self.joint_child
+        alone = fit_pose(self.local[children], observed[:, children])
+        placed = np.where(alone.determined[..., None], _place(alone.matrices(), alone.translations,
+                                                              self.child_offsets), np.nan)
+        matrices, translations, rotations, residual, fit = self._top_down(padded, observed, placed, progress)
         centres = self._centres(matrices, translations)
         # a parent showing too few points of its own, whose child's markers cannot place their joint either (fewer
         # than three visible), gets that joint where its distances to every visible marker of both segments and to
         # the parent's own joint are right, and is fitted again with it
         again = False
-        for k, p in enumerate(self.joint_parent):
-            short = np.isfinite(observed[p]).all(-1).sum(1) < self.least_own[k]
+        visible = np.isfinite(observed).all(-1).sum(-1)
+        for k, (p, c) in enumerate(zip(self.joint_parent, children, strict=True)):
+            short = visible[:, p] < self.least_own[k]
             if not short.any():
                 continue
-            points = [observed[p][short], observed[self.joint_child[k]][short]]
+            points = [observed[short, p, :self.sizes[p]], observed[short, c, :self.sizes[c]]]
             if self.up[k] >= 0:
                 points.append(centres[short][:, [self.up[k]]])
             found = trilaterate(np.concatenate(points, axis=1), self.radii[k], centres[short, k])
-            fill = np.isnan(placed[k][short]) & np.isfinite(found)
+            fill = np.isnan(placed[short, k]) & np.isfinite(found)
             if fill.any():
                 again = True
-                placed[k][short] = np.where(fill, found, placed[k][short])
+                placed[short, k] = np.where(fill, found, placed[short, k])
         if again:
-            matrices, translations, rotations, residual, fit = self._top_down(observed, placed, progress)
+            matrices, translations, rotations, residual, fit = self._top_down(padded, observed, placed, progress)
             centres = self._centres(matrices, translations)
         return SkeletonPose(self.names, self.joint_names, self.parents, rotations, translations, centres, residual,
                             fit)
 
-    def _top_down(self, observed: list[np.ndarray], placed: list[np.ndarray], progress: Progress | None
+    def _top_down(self, padded: np.ndarray, observed: np.ndarray, placed: np.ndarray, progress: Progress | None
                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float]:
-        """Every segment fitted from the root down: matrices, translations, quaternions, residuals, marker fit."""
-        frames, count = observed[0].shape[0] if observed else 0, len(self.names)
-        distances = []
+        """Every segment fitted from the root down, a depth at a time: matrices, translations, quaternions,
+        residuals (F, S) and the mean marker fit."""
+        frames, count = padded.shape[0], len(self.names)
         matrices = np.full((frames, count, 3, 3), np.nan)
         rotations = np.full((frames, count, 4), np.nan)
         translations = np.full((frames, count, 3), np.nan)
-        residual = np.full((frames, count), np.nan)
         determined = np.zeros((frames, count), bool)
-        for s in steps(self.order, len(self.order), "solve", progress):
-            points = np.concatenate([observed[s], *(placed[k][:, None] for k in self.outer[s])], axis=1)
+        sources = np.concatenate([padded, placed], axis=1)
+        for segments, joints, columns, points_local in steps(self.levels, len(self.levels), "solve", progress):
+            points = sources[:, columns]
             pivot_local = pivot_world = None
-            if self.parents[s] >= 0:
-                k, p = self.inner[s], self.parents[s]
-                pivot_local = self.child_offsets[k]
-                pivot_world = _place(matrices[:, p], translations[:, p], self.parent_offsets[k])
-                own = np.isfinite(points).all(-1).sum(1) >= 3
+            if joints[0] >= 0:  # below the root: each turns about the joint its parent places
+                p = self.joint_parent[joints]
+                pivot_local = self.child_offsets[joints]
+                pivot_world = _place(matrices[:, p], translations[:, p], self.parent_offsets[joints])
+                own = np.isfinite(points).all(-1).sum(-1) >= 3
                 pivot_world[~determined[:, p] & own] = np.nan
-            fit = fit_pose(self.points_local[s], points, pivot_local, pivot_world, hold=True)
-            rotations[:, s], translations[:, s], determined[:, s] = fit.rotations, fit.translations, fit.determined
-            matrices[:, s] = fit.matrices()
-            fitted = np.einsum("fab,nb->fna", matrices[:, s], self.local[s]) + fit.translations[:, None]
-            seen = np.isfinite(observed[s]).all(-1)
-            err = np.where(seen, ((fitted - observed[s]) ** 2).sum(-1), 0.0)
-            residual[:, s] = np.where(seen.any(1), np.sqrt(err.sum(1) / np.maximum(seen.sum(1), 1)), np.nan)
-            distances.append(np.sqrt(err[seen & np.isfinite(err)]))
-        every = np.concatenate(distances) if distances else np.zeros(0)
+            fit = fit_pose(points_local, points, pivot_local, pivot_world, hold=True)
+            rotations[:, segments], translations[:, segments] = fit.rotations, fit.translations
+            determined[:, segments], matrices[:, segments] = fit.determined, fit.matrices()
+        fitted = np.einsum("fsab,snb->fsna", matrices, self.local) + translations[:, :, None]
+        seen = np.isfinite(observed).all(-1)
+        err = np.where(seen, ((fitted - observed) ** 2).sum(-1), 0.0)
+        residual = np.where(seen.any(-1), np.sqrt(err.sum(-1) / np.maximum(seen.sum(-1), 1)), np.nan)
+        every = np.sqrt(err[seen & np.isfinite(err)])
         return matrices, translations, rotations, residual, float(every.mean()) if len(every) else np.nan
 
     def _centres(self, matrices: np.ndarray, translations: np.ndarray) -> np.ndarray:
         """(F, J, 3) joint centres: ``joint_track`` of every joint at once."""
         p, c = self.joint_parent, self.joint_child
-        a = np.einsum("fjab,jb->fja", matrices[:, p], self.parent_offsets) + translations[:, p]
-        b = np.einsum("fjab,jb->fja", matrices[:, c], self.child_offsets) + translations[:, c]
+        a = _place(matrices[:, p], translations[:, p], self.parent_offsets)
+        b = _place(matrices[:, c], translations[:, c], self.child_offsets)
         known_a, known_b = np.isfinite(a).all(-1, keepdims=True), np.isfinite(b).all(-1, keepdims=True)
         total = np.where(known_a, a, 0.0) + np.where(known_b, b, 0.0)
         count = known_a.astype(np.float64) + known_b
         return np.where(count > 0, total / np.maximum(count, 1), np.nan)
+
+
+def _padded(columns: list[list[int]], local: list[np.ndarray], nan: int) -> tuple[np.ndarray, np.ndarray]:
+    """Per-segment point columns and local points as (S, n) and (S, n, 3) arrays padded to the longest with the NaN
+    column and zeros (points never seen)."""
+    size = max((len(c) for c in columns), default=0)
+    out_columns = np.full((len(columns), size), nan, dtype=np.intp)
+    out_local = np.zeros((len(columns), size, 3))
+    for s, (c, x) in enumerate(zip(columns, local, strict=True)):
+        out_columns[s, :len(c)], out_local[s, :len(c)] = c, x
+    return out_columns, out_local
 
 
 def solve(skeleton: SkeletonModel, positions: np.ndarray, labels: Sequence[str], *,
