@@ -192,12 +192,12 @@ def fit_pose(local: np.ndarray, observed: np.ndarray, pivot_local: np.ndarray | 
     usable = np.where(free, count >= 2, count >= 1)
     quats[~usable] = np.nan
     determined = usable & (gap >= min_gap)
-    if hold:
-        if local.ndim == 2:
-            _hold(quats, determined, local, obs, origin_loc, origin_obs)
-        else:
-            for s in range(local.shape[0]):
-                _hold(quats[:, s], determined[:, s], local[s], obs[:, s], origin_loc[:, s], origin_obs[:, s])
+    if hold and local.ndim == 2:
+        _hold(quats, determined, local, obs, origin_loc, origin_obs)
+    elif hold:  # only segments with a frame to hold and one to hold it from
+        todo = (np.isfinite(quats).all(-1) & ~determined).any(0) & determined.any(0)
+        for s in np.flatnonzero(todo):
+            _hold(quats[:, s], determined[:, s], local[s], obs[:, s], origin_loc[:, s], origin_obs[:, s])
     matrices = quaternion_matrices(quats)
     t = origin_obs - np.einsum("f...ab,f...b->f...a", matrices, origin_loc)
     fitted = np.einsum("f...ab,...nb->f...na", matrices, local) + t[..., None, :]
