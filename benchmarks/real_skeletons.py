@@ -3,7 +3,7 @@
 Run: python benchmarks/real_skeletons.py [FILE ...]. For every real file in ../shared/data (or the ones named) it
 calibrates with the defaults, solves, and prints one row of checks: no segment mixes two limbs or a leg and the
 trunk, each limb is one chain hanging from the body by one joint, each leg has at least thigh, shank and foot, and
-the mean marker fit, and what the pose solve costs per frame (median microseconds, the solver compiled once as the
+the mean marker fit, and what the pose solve costs per frame (median CPU microseconds, the solver compiled once as the
 live skeleton node keeps it) on batches of 1, 10 and 1000 frames (fewer when the file is shorter). The marker-name
 -> body-region maps below are the checks' truth only; calibration never sees them.
 tests/test_real_skeletons.py runs the same checks.
@@ -100,8 +100,8 @@ def check(skeleton: SkeletonModel, positions: np.ndarray, labels: Sequence[str])
 
 def solve_cost(skeleton: SkeletonModel, positions: np.ndarray, labels: Sequence[str],
                batches: Sequence[int] = (1, 10, 1000), calls: int = 200) -> list[float]:
-    """Median cost of the pose solve per frame (us) for each batch size, over up to ``calls`` consecutive batches
-    (at least three) from the start of the (F, N, 3) trajectories."""
+    """Median CPU cost of the pose solve per frame (us) for each batch size, over up to ``calls`` consecutive
+    batches (at least three) from the start of the (F, N, 3) trajectories."""
     solver = PoseSolver(skeleton, labels)
     costs = []
     for size in batches:
@@ -109,9 +109,7 @@ def solve_cost(skeleton: SkeletonModel, positions: np.ndarray, labels: Sequence[
         times = []
         for i in range(max(3, min(calls, calls * 10 // size))):
             batch = positions[i * size % (len(positions) - size + 1):][:size]
-            start = time.perf_counter()
-            solver(batch)
-            times.append(time.perf_counter() - start)
+            times.append(_common.timed(solver, batch)[1])
         costs.append(float(np.median(times)) / size * 1e6)
     return costs
 
