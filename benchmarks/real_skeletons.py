@@ -3,8 +3,10 @@
 Run: python benchmarks/real_skeletons.py [FILE ...]. For every real file in ../shared/data (or the ones named) it
 calibrates with the defaults, solves, and prints one row of checks: no segment mixes two limbs or a leg and the
 trunk, each limb is one chain hanging from the body by one joint, each leg has at least thigh, shank and foot, and
-the mean marker fit. The marker-name -> body-region maps below are the checks' truth only; calibration never sees
-them. tests/test_real_skeletons.py runs the same checks.
+the mean marker fit, and what the pose solve costs per frame (median CPU microseconds, the solver compiled once as the
+live skeleton node keeps it) on batches of 1, 10 and 1000 frames (fewer when the file is shorter). The marker-name
+-> body-region maps below are the checks' truth only; calibration never sees them.
+tests/test_real_skeletons.py runs the same checks.
 """
 
 from __future__ import annotations
@@ -22,7 +24,7 @@ import numpy as np
 from mocapflow.io.markers import read_markers
 from mocapflow.mocap.calibration import calibrate
 from mocapflow.mocap.model import SkeletonModel
-from mocapflow.mocap.solve import solve
+from mocapflow.mocap.solve import PoseSolver, solve
 
 FILES = ("cmu_85_02.c3d", "cmu_85_12_breakdance.c3d", "cmu_02_05.c3d", "cmu_dribble_shoot_basketball.c3d",
          "hamner_run200.trc", "sprinter_JA1Gait35.c3d", "lowerbody_clusters_knee_0401.c3d")
@@ -96,14 +98,30 @@ def check(skeleton: SkeletonModel, positions: np.ndarray, labels: Sequence[str])
     return Checks(mixed, not_chains, short_legs, pose.marker_fit, float(np.nanmean(pose.residual)))
 
 
+def solve_cost(skeleton: SkeletonModel, positions: np.ndarray, labels: Sequence[str],
+               batches: Sequence[int] = (1, 10, 1000), calls: int = 200) -> list[float]:
+    """Median CPU cost of the pose solve per frame (us) for each batch size, over up to ``calls`` consecutive
+    batches (at least three) from the start of the (F, N, 3) trajectories."""
+    solver = PoseSolver(skeleton, labels)
+    costs = []
+    for size in batches:
+        size = min(size, len(positions))
+        times = []
+        for i in range(max(3, min(calls, calls * 10 // size))):
+            batch = positions[i * size % (len(positions) - size + 1):][:size]
+            times.append(_common.timed(solver, batch)[1])
+        costs.append(float(np.median(times)) / size * 1e6)
+    return costs
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("files", nargs="*", default=[str(_common.DATA / f) for f in FILES])
     parser.add_argument("-v", "--verbose", action="store_true", help="print each skeleton's segments and joints")
     args = parser.parse_args()
     print("| file | segments | joints | mixed segments | limbs not one chain | legs under 3 segments | fit mm "
-          "| segment RMS mm | s |")
-    print("|---|---|---|---|---|---|---|---|---|")
+          "| segment RMS mm | s | solve us/frame, 1 / 10 / 1000 frames |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
     for path in args.files:
         data = read_markers(path)
         start = time.perf_counter()
@@ -114,9 +132,10 @@ def main() -> None:
             continue
         seconds = time.perf_counter() - start
         c = check(skeleton, data.positions, data.labels)
+        cost = " / ".join(f"{us:.0f}" for us in solve_cost(skeleton, data.positions, data.labels))
         print(f"| {Path(path).name} | {len(skeleton.segments)} | {len(skeleton.joints)} | {', '.join(c.mixed) or '-'}"
               f" | {', '.join(c.not_chains) or '-'} | {', '.join(c.short_legs) or '-'} | {c.fit_mm:.2f} | "
-              f"{c.segment_rms_mm:.2f} | {seconds:.1f} |")
+              f"{c.segment_rms_mm:.2f} | {seconds:.1f} | {cost} |")
         if args.verbose:
             for s in skeleton.segments:
                 print(f"    {s.name:12s} {' '.join(m.split(':')[-1] for m in s.markers)}")

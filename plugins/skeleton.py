@@ -8,7 +8,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from mocapflow.io.skeleton import read_skeleton
 from mocapflow.messages import MarkerFrame, Pose, Skeleton
 from mocapflow.mocap.model import SkeletonModel
-from mocapflow.mocap.solve import solve
+from mocapflow.mocap.solve import PoseSolver
 from mocapflow.runtime.node import Input, Node, Output
 
 
@@ -31,17 +31,19 @@ class SkeletonPublisher(Node[SkeletonConfig]):
 
     def setup(self) -> None:
         self.model: SkeletonModel | None = read_skeleton(self.config.skeleton) if self.config.skeleton else None
+        self.solver: PoseSolver | None = None  # compiled for self.model and the labels last seen; None when stale
         self.frames = self.posed = 0
 
     def process(self, port: str, message: MarkerFrame | Skeleton) -> None:
         self.process_batch(port, [message])
 
     def process_batch(self, port: str, messages: list[MarkerFrame | Skeleton]) -> None:
-        """Frames that queued up are solved together: the solver is vectorised over frames."""
+        """Frames that queued up are solved together: the solver is vectorised over frames. It is compiled once for
+        the model and the frames' labels and kept until either changes."""
         if port == "skeleton":
             last = messages[-1]
             assert isinstance(last, Skeleton)
-            self.model = last.skeleton
+            self.model, self.solver = last.skeleton, None
             return
         self._solve([m for m in messages if isinstance(m, MarkerFrame)])
 
@@ -55,7 +57,9 @@ class SkeletonPublisher(Node[SkeletonConfig]):
             self._solve(frames[:cut])
             self._solve(frames[cut:])
             return
-        pose = solve(self.model, np.stack([m.positions for m in frames]).astype(np.float64), labels)
+        if self.solver is None or self.solver.labels != labels:
+            self.solver = PoseSolver(self.model, labels)
+        pose = self.solver(np.stack([m.positions for m in frames]).astype(np.float64))
         self.frames += len(frames)
         self.posed += len(frames)
         for i, m in enumerate(frames):

@@ -41,12 +41,15 @@ def rotor(reference: np.ndarray, observed: np.ndarray,
     sxx, sxy, sxz = s[..., 0, 0], s[..., 0, 1], s[..., 0, 2]
     syx, syy, syz = s[..., 1, 0], s[..., 1, 1], s[..., 1, 2]
     szx, szy, szz = s[..., 2, 0], s[..., 2, 1], s[..., 2, 2]
-    n = np.stack([
-        np.stack([sxx + syy + szz, syz - szy, szx - sxz, sxy - syx], -1),
-        np.stack([syz - szy, sxx - syy - szz, sxy + syx, szx + sxz], -1),
-        np.stack([szx - sxz, sxy + syx, -sxx + syy - szz, syz + szy], -1),
-        np.stack([sxy - syx, szx + sxz, syz + szy, -sxx - syy + szz], -1),
-    ], -2)
+    n = np.empty((*s.shape[:-2], 4, 4))
+    n[..., 0, 0], n[..., 1, 1] = sxx + syy + szz, sxx - syy - szz
+    n[..., 2, 2], n[..., 3, 3] = -sxx + syy - szz, -sxx - syy + szz
+    n[..., 0, 1] = n[..., 1, 0] = syz - szy
+    n[..., 0, 2] = n[..., 2, 0] = szx - sxz
+    n[..., 0, 3] = n[..., 3, 0] = sxy - syx
+    n[..., 1, 2] = n[..., 2, 1] = sxy + syx
+    n[..., 1, 3] = n[..., 3, 1] = szx + sxz
+    n[..., 2, 3] = n[..., 3, 2] = syz + szy
     values, vectors = np.linalg.eigh(n)
     q = vectors[..., :, 3]  # Horn's (w, x, y, z) for the largest eigenvalue
     scale = np.abs(values).max(-1)
@@ -126,13 +129,30 @@ class PoseFit:
 
 
 def quaternion_matrices(quaternions: np.ndarray) -> np.ndarray:
-    """(..., 3, 3) matrices of scalar-last quaternions, NaN rows giving NaN matrices (scipy rejects NaN)."""
+    """(..., 3, 3) matrices of scalar-last quaternions, NaN rows giving NaN matrices (scipy rejects NaN).
+
+    The arithmetic of scipy's ``Rotation.from_quat(q).as_matrix()`` (normalise, then the products below), operation
+    for operation, so the matrices are bit for bit scipy's, without building a ``Rotation`` on every call."""
     q = np.asarray(quaternions, dtype=np.float64)
-    known = np.isfinite(q).all(-1)
-    out = np.full((*q.shape[:-1], 3, 3), np.nan)
-    if known.any():
-        out[known] = Rotation.from_quat(q[known]).as_matrix()
-    return out
+    norm = np.sqrt(((q[..., 0] * q[..., 0] + q[..., 1] * q[..., 1]) + q[..., 2] * q[..., 2]) + q[..., 3] * q[..., 3])
+    if (norm == 0).any():
+        raise ValueError("Found zero norm quaternions in `quat`.")
+    u = q / norm[..., None]
+    p = (u[..., :, None] * u[..., None, :]).reshape(*q.shape[:-1], 16)  # p[4 i + j] = u_i u_j, (x, y, z, w)
+    out = np.empty((*q.shape[:-1], 9))
+    # diagonal: x2 - y2 - z2 + w2, -x2 + y2 - z2 + w2, -x2 - y2 + z2 + w2; the signs only flip exactly
+    out[..., _DIAGONAL] = ((p[..., _SQUARES[0]] * _FIRST + p[..., _SQUARES[1]] * _SECOND)
+                           + p[..., _SQUARES[2]] * _THIRD) + p[..., _SQUARES[3]]
+    # off the diagonal: 2 (xy - zw), 2 (xz + yw), 2 (xy + zw), 2 (yz - xw), 2 (xz - yw), 2 (yz + xw)
+    out[..., _OFF] = 2 * (p[..., _PRODUCTS[0]] + p[..., _PRODUCTS[1]] * _SIGNS)
+    return out.reshape(*q.shape[:-1], 3, 3)
+
+
+_DIAGONAL, _OFF = np.array([0, 4, 8]), np.array([1, 2, 3, 5, 6, 7])
+_SQUARES = np.array([[0, 0, 0], [5, 5, 5], [10, 10, 10], [15, 15, 15]])
+_PRODUCTS = np.array([[1, 2, 1, 6, 2, 6], [11, 7, 11, 3, 7, 3]])
+_FIRST, _SECOND, _THIRD = np.array([1.0, -1.0, -1.0]), np.array([-1.0, 1.0, -1.0]), np.array([-1.0, -1.0, 1.0])
+_SIGNS = np.array([-1.0, 1.0, 1.0, -1.0, -1.0, 1.0])
 
 
 def fit_pose(local: np.ndarray, observed: np.ndarray, pivot_local: np.ndarray | None = None,
@@ -147,33 +167,41 @@ def fit_pose(local: np.ndarray, observed: np.ndarray, pivot_local: np.ndarray | 
     ``min_gap``: one direction only) are flagged in ``determined``; with ``hold`` their rotation becomes the smallest
     turn of the previous frame's (before a first determined frame: the next one's) that matches the visible
     direction, so a segment seen through two points keeps turning plausibly instead of spinning about them.
+
+    Several segments are fitted in one call by giving them a batch axis after the frames: ``local`` (S, n, 3),
+    ``observed`` (F, S, n, 3), pivots (S, 3) and (F, S, 3), each segment's markers padded to a common n with rows
+    that are never seen (any finite ``local``, NaN ``observed``); every result then has that axis too, and each
+    segment's numbers are exactly those of fitting it alone.
     """
     local = np.asarray(local, dtype=np.float64)
     obs = np.asarray(observed, dtype=np.float64)
-    frames = obs.shape[0]
     seen = np.asarray(np.isfinite(obs).all(-1))
-    count = seen.sum(1)
+    count = seen.sum(-1)
     seen_f = seen.astype(np.float64)
     safe = np.where(seen[..., None], obs, 0.0)
-    origin_loc = np.einsum("fn,nk->fk", seen_f, local) / np.maximum(count, 1)[:, None]
-    origin_obs = np.einsum("fn,fnk->fk", seen_f, safe) / np.maximum(count, 1)[:, None]
-    free = np.ones(frames, bool)
+    origin_loc = np.einsum("f...n,...nk->f...k", seen_f, local) / np.maximum(count, 1)[..., None]
+    origin_obs = np.einsum("f...n,f...nk->f...k", seen_f, safe) / np.maximum(count, 1)[..., None]
+    free = np.ones(count.shape, bool)
     if pivot_local is not None and pivot_world is not None:
         pivot_world = np.asarray(pivot_world, dtype=np.float64)
         pinned = np.isfinite(pivot_world).all(-1)
         free = ~pinned
-        origin_loc = np.where(pinned[:, None], np.asarray(pivot_local, dtype=np.float64), origin_loc)
-        origin_obs = np.where(pinned[:, None], pivot_world, origin_obs)
-    quats, gap = rotor(local[None] - origin_loc[:, None], obs - origin_obs[:, None])
+        origin_loc = np.where(pinned[..., None], np.asarray(pivot_local, dtype=np.float64), origin_loc)
+        origin_obs = np.where(pinned[..., None], pivot_world, origin_obs)
+    quats, gap = rotor(local[None] - origin_loc[..., None, :], obs - origin_obs[..., None, :])
     usable = np.where(free, count >= 2, count >= 1)
     quats[~usable] = np.nan
     determined = usable & (gap >= min_gap)
-    if hold:
+    if hold and local.ndim == 2:
         _hold(quats, determined, local, obs, origin_loc, origin_obs)
+    elif hold:  # only segments with a frame to hold and one to hold it from
+        todo = (np.isfinite(quats).all(-1) & ~determined).any(0) & determined.any(0)
+        for s in np.flatnonzero(todo):
+            _hold(quats[:, s], determined[:, s], local[s], obs[:, s], origin_loc[:, s], origin_obs[:, s])
     matrices = quaternion_matrices(quats)
-    t = origin_obs - np.einsum("fab,fb->fa", matrices, origin_loc)
-    fitted = np.einsum("fab,nb->fna", matrices, local) + t[:, None]
-    err = np.where(seen, np.linalg.norm(fitted - obs, axis=-1) ** 2, 0.0).sum(1)
+    t = origin_obs - np.einsum("f...ab,f...b->f...a", matrices, origin_loc)
+    fitted = np.einsum("f...ab,...nb->f...na", matrices, local) + t[..., None, :]
+    err = np.where(seen, np.linalg.norm(fitted - obs, axis=-1) ** 2, 0.0).sum(-1)
     residual = np.where(usable, np.sqrt(err / np.maximum(count, 1)), np.nan)
     return PoseFit(quats, t, residual, determined)
 
