@@ -31,18 +31,31 @@ def gated_cost(pred: np.ndarray, gate: np.ndarray, points: np.ndarray) -> np.nda
     option costing half a gate on each side, so a match is made only when it lowers the total distance.
     """
     if pred.ndim == 2:
-        cost = cdist(pred, points) / gate[:, None]
+        cost = cdist(pred, points)
+        cost /= gate[:, None]
     else:
-        d = cdist(pred.reshape(-1, 3), points).reshape(*pred.shape[:2], -1) / gate[..., None]
+        d = cdist(pred.reshape(-1, 3), points).reshape(*pred.shape[:2], -1)
+        d /= gate[..., None]
         cost = np.fmin.reduce(d, axis=1)
         cost[np.isnan(cost)] = np.inf
-    return np.minimum(cost - 1.0, 0.0)
+    cost -= 1.0
+    return np.minimum(cost, 0.0, out=cost)
 
 
 def match(cost: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Optimal one-to-one assignment on a cost matrix where only negative entries are admissible pairs."""
+    """Optimal one-to-one assignment on a cost matrix where only negative entries are admissible pairs.
+
+    With one track or one point the optimum is the single cheapest pair (the first of equal ones, as
+    ``linear_sum_assignment`` picks), found without the solver's fixed cost.
+    """
     if cost.size == 0:
         return np.empty(0, np.intp), np.empty(0, np.intp)
+    if cost.shape[0] == 1 or cost.shape[1] == 1:
+        best = int(cost.argmin())
+        if not cost.flat[best] < 0.0:
+            return np.empty(0, np.intp), np.empty(0, np.intp)
+        pair = np.zeros(1, np.intp), np.array([best], np.intp)
+        return pair if cost.shape[0] == 1 else pair[::-1]
     rows, cols = linear_sum_assignment(cost)
     keep = cost[rows, cols] < 0.0
     return rows[keep], cols[keep]

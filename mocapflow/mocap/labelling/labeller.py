@@ -71,30 +71,23 @@ class Labeller:
             if predictions.shape != (n_tracks, 3):
                 raise ValueError(f"predictions must have shape ({n_tracks}, 3), got {predictions.shape}")
         cur = np.full((n_tracks, 3), np.nan)
+        tracks = self._tracks
 
         # 1. tracks seen in the previous frame: constant-velocity prediction, gated optimal assignment
-        live = np.flatnonzero(self._tracks.streak > 0)
-        pred = self._tracks.pos[live] + self._tracks.vel[live] * (time - self._tracks.last[live])[:, None]
+        live = np.flatnonzero(tracks.streak > 0)
+        pred = tracks.pos[live] + tracks.vel[live] * (time - tracks.last[live])[:, None]
         ti, pi = assign(pred, np.full(len(live), cfg.gate_mm), z)
         cur[live[ti]] = z[pi]
         taken[pi] = live[ti]
 
-        # 2. the others: re-identification from rigid neighbours or outside predictions, else a short coast
+        # 2. the others: re-identification from rigid neighbours or outside predictions, else a short coast; with no
+        # point left over (most frames) there is nothing to re-identify, and nothing to confirm in step 3 either
         lost = np.flatnonzero(np.isnan(cur[:, 0]))
-        lost_pred, lost_gate, instant = self._lost_predictions(lost, cur, time, predictions, z[taken < 0])
-        now_pred = lost_pred.copy()
-        now_pred[~instant, 0] = np.nan
-        has = np.flatnonzero(np.isfinite(now_pred[..., 0]).any(axis=1))
         free = np.flatnonzero(taken < 0)
-        ti = pi = np.empty(0, np.intp)
-        if len(has) and len(free):
-            cost = gated_cost(now_pred[has], lost_gate[has], z[free])
-            broken, partners, violated = self._signature(lost[has], cur, z[free])
-            cost = screened(cost, broken, partners, violated)
-            ti, pi = match(cost)
-        cur[lost[has[ti]]] = z[free[pi]]
-        taken[free[pi]] = lost[has[ti]]
-        self._tracks.observe(cur, time)
+        if len(free):
+            lost_pred, lost_gate, instant = self._lost_predictions(lost, cur, time, predictions, z[free])
+            self._reidentify(lost, lost_pred, lost_gate, instant, cur, z, taken, free)
+        tracks.observe(cur, time)
 
         # 3. tentative tracks on what is left; the long-lived ones become markers
         ready, ready_rows = self._advance_tentatives(z, taken, time)
@@ -112,11 +105,29 @@ class Labeller:
             if rays.shape != (len(pts), 6):
                 raise ValueError(f"rays must have shape ({len(pts)}, 6), one per row of points, got {rays.shape}")
             ray_out = self._ray_owners(rays, cur, time, predictions)
-        self._tracks.learn(cur, time, self.frame)
+        tracks.learn(cur, time, self.frame)
         self.frame += 1
         point_track = np.full(len(pts), -1, np.intp)
         point_track[rows] = taken
         return LabelResult(positions=cur, point_track=point_track, history=history, rays=ray_out)
+
+    def _reidentify(self, lost: np.ndarray, pred: np.ndarray, gate: np.ndarray, instant: np.ndarray, cur: np.ndarray,
+                    z: np.ndarray, taken: np.ndarray, free: np.ndarray) -> None:
+        """Give the ``free`` points of ``z`` to the ``lost`` tracks whose hypotheses (``_lost_predictions``; the
+        placement by neighbours only where ``instant``) they fit, screened by their rigid partners; in place in
+        ``cur`` and ``taken``. The screening only ever raises a cost, so it is skipped when no point is in a gate."""
+        now_pred = pred.copy()
+        now_pred[~instant, 0] = np.nan
+        has = np.flatnonzero(np.isfinite(now_pred[..., 0]).any(axis=1))
+        if len(has) == 0:
+            return
+        cost = gated_cost(now_pred[has], gate[has], z[free])
+        if not (cost < 0.0).any():
+            return
+        broken, partners, violated = self._signature(lost[has], cur, z[free])
+        ti, pi = match(screened(cost, broken, partners, violated))
+        cur[lost[has[ti]]] = z[free[pi]]
+        taken[free[pi]] = lost[has[ti]]
 
     def _ray_owners(self, rays: np.ndarray, cur: np.ndarray, time: float,
                     outside: np.ndarray | None) -> np.ndarray:
@@ -175,22 +186,24 @@ class Labeller:
         instant = np.zeros(len(lost), bool)
         if len(lost) == 0:
             return pred, gate, instant
-        # each snapshot fitted to the neighbours matched in this frame; the best-fitting pose places the marker
-        anchors = self._tracks.anchors[lost]
-        now = np.where((anchors >= 0)[..., None], cur[anchors], np.nan)
-        if len(free):
-            near = np.flatnonzero(self._tracks.plausible(lost, cur, free).any(axis=1))
-            place, misfit, spread = place_marker(self._tracks.poses[lost[near]], now[near],
-                                                 self._tracks.anchor_w[lost[near]], cfg.instant_fit_mm)
-            doubt = np.fmax(misfit, spread)
-            usable = doubt <= cfg.reid_gate_mm
-            pred[near[usable], 0] = place[usable]
-            gate[near, 0] += np.where(np.isnan(doubt), 0.0, doubt)
-            instant[near] = doubt <= cfg.instant_fit_mm
+        # an outside prediction replaces the placement, so only the others are placed
+        given = np.zeros(len(lost), bool) if outside is None else np.isfinite(outside[lost]).all(axis=1)
+        unknown = np.flatnonzero(~given)
+        if len(free) and len(unknown):
+            # each snapshot fitted to the neighbours matched in this frame; the best-fitting pose places the marker
+            near = unknown[self._tracks.plausible(lost[unknown], cur, free).any(axis=1)]
+            if len(near):
+                anchors = self._tracks.anchors[lost[near]]
+                now = np.where((anchors >= 0)[..., None], cur[anchors], np.nan)
+                place, misfit, spread = place_marker(self._tracks.poses[lost[near]], now,
+                                                     self._tracks.anchor_w[lost[near]], cfg.instant_fit_mm)
+                doubt = np.fmax(misfit, spread)
+                usable = doubt <= cfg.reid_gate_mm
+                pred[near[usable], 0] = place[usable]
+                gate[near, 0] += np.where(np.isnan(doubt), 0.0, doubt)
+                instant[near] = doubt <= cfg.instant_fit_mm
         if outside is not None:
-            given = np.isfinite(outside[lost]).all(axis=1)
             pred[given, 0] = outside[lost[given]]
-            gate[given, 0] = cfg.reid_gate_mm
             instant |= given
         dt = time - self._tracks.last[lost]
         coast = dt <= cfg.max_coast_s
