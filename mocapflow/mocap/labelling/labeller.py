@@ -75,8 +75,8 @@ class Labeller:
 
         # 1. tracks seen in the previous frame: constant-velocity prediction, gated optimal assignment
         live = np.flatnonzero(tracks.streak > 0)
-        pred = tracks.pos[live] + tracks.vel[live] * (time - tracks.last[live])[:, None]
-        ti, pi = assign(pred, np.full(len(live), cfg.gate_mm), z)
+        pred = tracks.pos + tracks.vel * (time - tracks.last)[:, None]
+        ti, pi = assign(pred if len(live) == n_tracks else pred[live], np.full(len(live), cfg.gate_mm), z)
         cur[live[ti]] = z[pi]
         taken[pi] = live[ti]
 
@@ -84,15 +84,17 @@ class Labeller:
         # point left over (most frames) there is nothing to re-identify, and nothing to confirm in step 3 either
         lost = np.flatnonzero(np.isnan(cur[:, 0]))
         free = np.flatnonzero(taken < 0)
-        if len(free):
+        if len(free) and len(lost):
             lost_pred, lost_gate, instant = self._lost_predictions(lost, cur, time, predictions, z[free])
             self._reidentify(lost, lost_pred, lost_gate, instant, cur, z, taken, free)
+        else:  # no hypotheses needed
+            lost_pred, lost_gate = np.empty((len(lost), 2, 3)), np.empty((len(lost), 2))
         tracks.observe(cur, time)
 
         # 3. tentative tracks on what is left; the long-lived ones become markers
         ready, ready_rows = self._advance_tentatives(z, taken, time)
         history: list[tuple[int, np.ndarray, np.ndarray]] = []
-        if len(ready):
+        if len(ready):  # some point was left over, so any lost track has its hypotheses
             still = np.isnan(cur[lost, 0])
             owners = self._owners(z[ready_rows], cur, lost[still], lost_pred[still], lost_gate[still])
             cur = np.vstack([cur, np.full((len(self.labels) - n_tracks, 3), np.nan)])
@@ -254,14 +256,16 @@ class Labeller:
         cfg = self.config
         tent = self._tentative
         free = np.flatnonzero(taken < 0)
-        if len(free) == 0 and len(tent.pos) == 0:
-            return free, free
-        pred = tent.pos + tent.vel * (time - tent.last)[:, None]
+        if len(tent.hits) == 0 or len(free) == 0:  # nothing carried on: every free point starts a tentative track
+            tent.start(z[free], time, self.frame)
+            return free[:0], free[:0]
+        dt = time - tent.time
+        pred = tent.pos + tent.vel * dt
         # a point seen once has no velocity yet: its first step may be as long as the fastest marker moves
-        gate = cfg.gate_mm + np.where(tent.hits == 1, cfg.max_speed_mm_s * (time - tent.last), 0.0)
+        gate = cfg.gate_mm + np.where(tent.hits == 1, cfg.max_speed_mm_s * dt, 0.0)
         ui, pi = assign(pred, gate, z[free])
         zu = z[free[pi]]
-        measured = (zu - tent.pos[ui]) / (time - tent.last[ui])[:, None]
+        measured = (zu - tent.pos[ui]) / dt
         smooth = tent.vel[ui] + cfg.velocity_smoothing * (measured - tent.vel[ui])
         vel = np.where((tent.hits[ui] >= 2)[:, None], smooth, measured)
         kept = [tent.points[u] for u in ui]
@@ -269,16 +273,17 @@ class Labeller:
             points.append((self.frame, p))
             if len(points) > self.rate:  # only a tentative track held back by expected_markers grows this long
                 del points[0]
+        hits = tent.hits[ui] + 1
         unclaimed = np.ones(len(free), bool)
         unclaimed[pi] = False
-        fresh = np.flatnonzero(unclaimed)
-        rows = np.concatenate([free[pi], free[fresh]])
+        fresh = free[unclaimed]
+        tent.start(z[fresh], time, self.frame)  # new tracks on the unclaimed points, after the carried ones:
+        rows = np.concatenate([free[pi], fresh])
         tent.pos = z[rows]
-        tent.vel = np.concatenate([vel, np.zeros((len(fresh), 3))])
-        tent.last = np.full(len(rows), time)
-        tent.hits = np.concatenate([tent.hits[ui] + 1, np.ones(len(fresh), np.int64)])
-        tent.points = kept + [[(self.frame, p)] for p in z[free[fresh]]]
-        ready = np.flatnonzero(tent.hits >= cfg.confirm_frames)
+        tent.vel = np.concatenate([vel, tent.vel])
+        tent.hits = np.concatenate([hits, tent.hits])
+        tent.points = kept + tent.points
+        ready = np.flatnonzero(hits >= cfg.confirm_frames)
         return ready, rows[ready]
 
     def _owners(self, z: np.ndarray, cur: np.ndarray, lost: np.ndarray, pred: np.ndarray,
@@ -332,7 +337,7 @@ class Labeller:
             frames = np.array([f for f, _ in tent.points[u]])
             pos = np.array([p for _, p in tent.points[u]])
             tracks = self._tracks
-            tracks.pos[track], tracks.vel[track], tracks.last[track] = tent.pos[u], tent.vel[u], tent.last[u]
+            tracks.pos[track], tracks.vel[track], tracks.last[track] = tent.pos[u], tent.vel[u], tent.time
             tracks.streak[track] = tent.hits[u]
             history.append((int(track), frames[:-1], pos[:-1]))
         keep = np.ones(len(tent.hits), bool)
