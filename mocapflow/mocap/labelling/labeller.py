@@ -62,28 +62,31 @@ class Labeller:
             raise ValueError(f"frame times must increase: {time} after {self._time}")
         self._time = time
         pts = np.asarray(points, dtype=float).reshape(-1, 3)
-        rows = np.flatnonzero(np.isfinite(pts).all(axis=1))
-        z = pts[rows]
-        taken = np.full(len(z), -1, np.intp)
+        finite = np.isfinite(pts)
+        rows = (finite[:, 0] & finite[:, 1] & finite[:, 2]).nonzero()[0]
+        z = pts if len(rows) == len(pts) else pts[rows]
         n_tracks = len(self.labels)
         if predictions is not None:
             predictions = np.asarray(predictions, dtype=float)
             if predictions.shape != (n_tracks, 3):
                 raise ValueError(f"predictions must have shape ({n_tracks}, 3), got {predictions.shape}")
-        cur = np.full((n_tracks, 3), np.nan)
         tracks = self._tracks
 
         # 1. tracks seen in the previous frame: constant-velocity prediction, gated optimal assignment
-        live = np.flatnonzero(tracks.streak > 0)
+        live = (tracks.streak > 0).nonzero()[0]
         pred = tracks.pos + tracks.vel * (time - tracks.last)[:, None]
-        ti, pi = assign(pred if len(live) == n_tracks else pred[live], np.full(len(live), cfg.gate_mm), z)
-        cur[live[ti]] = z[pi]
-        taken[pi] = live[ti]
+        every = len(live) == n_tracks  # all seen in the previous frame (most frames): no subset to take
+        ti, pi = assign(pred if every else pred[live], cfg.gate_mm, z)
+        matched = ti if every else live[ti]
+        cur = np.full((n_tracks, 3), np.nan)
+        cur[matched] = z[pi]
+        taken = np.full(len(z), -1, np.intp)
+        taken[pi] = matched
 
         # 2. the others: re-identification from rigid neighbours or outside predictions, else a short coast; with no
         # point left over (most frames) there is nothing to re-identify, and nothing to confirm in step 3 either
-        lost = np.flatnonzero(np.isnan(cur[:, 0]))
-        free = np.flatnonzero(taken < 0)
+        lost = np.isnan(cur[:, 0]).nonzero()[0]
+        free = (taken < 0).nonzero()[0]
         if len(free) and len(lost):
             lost_pred, lost_gate, instant = self._lost_predictions(lost, cur, time, predictions, z[free])
             self._reidentify(lost, lost_pred, lost_gate, instant, cur, z, taken, free)
@@ -92,7 +95,7 @@ class Labeller:
         tracks.observe(cur, time)
 
         # 3. tentative tracks on what is left; the long-lived ones become markers
-        ready, ready_rows = self._advance_tentatives(z, taken, time)
+        ready, ready_rows = self._advance_tentatives(z, free[taken[free] < 0], time)
         history: list[tuple[int, np.ndarray, np.ndarray]] = []
         if len(ready):  # some point was left over, so any lost track has its hypotheses
             still = np.isnan(cur[lost, 0])
@@ -247,15 +250,14 @@ class Labeller:
         fits = best < 1.0
         return np.where(fits, best, 0.0).max(axis=1, initial=0.0), fits.sum(axis=1)
 
-    def _advance_tentatives(self, z: np.ndarray, taken: np.ndarray, time: float) -> tuple[np.ndarray, np.ndarray]:
-        """Carry tentative tracks on the points no marker took and start new ones on the rest.
+    def _advance_tentatives(self, z: np.ndarray, free: np.ndarray, time: float) -> tuple[np.ndarray, np.ndarray]:
+        """Carry tentative tracks on the ``free`` points of ``z`` (those no marker took) and start new ones on the rest.
 
         A tentative track missing one frame dies: a new marker must be tracked without a gap to be believed. Returns
         the tentative tracks now old enough to confirm and their rows in ``z``.
         """
         cfg = self.config
         tent = self._tentative
-        free = np.flatnonzero(taken < 0)
         if len(tent.hits) == 0 or len(free) == 0:  # nothing carried on: every free point starts a tentative track
             tent.start(z[free], time, self.frame)
             return free[:0], free[:0]
@@ -283,7 +285,7 @@ class Labeller:
         tent.vel = np.concatenate([vel, tent.vel])
         tent.hits = np.concatenate([hits, tent.hits])
         tent.points = kept + tent.points
-        ready = np.flatnonzero(hits >= cfg.confirm_frames)
+        ready = (hits >= cfg.confirm_frames).nonzero()[0]
         return ready, rows[ready]
 
     def _owners(self, z: np.ndarray, cur: np.ndarray, lost: np.ndarray, pred: np.ndarray,
