@@ -107,7 +107,7 @@ class Tracks:
         vel = self.vel + self.config.velocity_smoothing * (measured - self.vel)
         # a track seen for the first or second time in a row has no velocity to smooth yet: it takes the measured
         # one, and none measured across a long gap, which says little about the motion now
-        first = np.flatnonzero(seen & (self.streak < 2))
+        first = (seen & (self.streak < 2)).nonzero()[0]
         if len(first):
             across = np.where((dt[first] <= self.config.max_coast_s)[:, None], measured[first], 0.0)
             vel[first] = np.where((self.streak[first] == 1)[:, None], measured[first], across)
@@ -120,7 +120,7 @@ class Tracks:
     def learn(self, cur: np.ndarray, time: float, frame: int) -> None:
         """Learn from this frame's labelled points: distance statistics and neighbour sets (at up to ``STATS_HZ``),
         and snapshots."""
-        seen = np.flatnonzero(np.isfinite(cur[:, 0]))
+        seen = np.isfinite(cur[:, 0]).nonzero()[0]
         self._remember(seen, cur, time)
         if len(seen) < 2 or frame % self.stats_every:
             return
