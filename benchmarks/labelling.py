@@ -2,8 +2,9 @@
 
 Two sets of cases, identities stripped, occlusions and ghosts added, rows shuffled every frame (``unlabel``):
 
-- mild: the simulator's human rig at 240 Hz at a moderate and a heavy level of damage, seen directly and through the
-  simulator's camera model (4 and 8 cameras), and three real captures;
+- mild: the quickstart graph's simulated stream (deployments/quickstart.yaml), the simulator's human rig at 240 Hz at
+  a moderate and a heavy level of damage, seen directly and through the simulator's camera model (4 and 8 cameras),
+  and three real captures;
 - stress: ordinary but harsh capture conditions, on every labelled real capture of the shared data folder and on the
   simulated human and quadruped: each marker hidden in independent gaps of 0.2-2 s, a third of the time in all, and a
   one-frame ghost in about a fifth of the frames.
@@ -29,6 +30,7 @@ from pathlib import Path
 
 import _common
 import numpy as np
+import yaml
 from scipy.spatial.distance import cdist
 
 from mocapflow.mocap.calibration import CalibrationError, calibrate
@@ -53,8 +55,17 @@ STRESS_RIGS = (("human", 120.0), ("quadruped", 120.0))
 Case = tuple[str, list[np.ndarray], list[np.ndarray], float, int]  # name, points, identity, rate, true marker count
 
 
+def _quickstart(frames: int) -> Case:
+    """The stream of the quickstart graph's tracker (deployments/quickstart.yaml): the simulated human with its
+    ghosts and gaps, whose cost per frame the live graph's budget is set for."""
+    graph = yaml.safe_load((_common.ROOT / "deployments" / "quickstart.yaml").read_text())
+    rec = simulate(SimulatorConfig(**{"seed": 7, **graph["nodes"]["tracker"]["config"]}), frames)
+    assert rec.points is not None and rec.identity is not None
+    return f"quickstart stream, simulated human {rec.rate:g} Hz", rec.points, rec.identity, rec.rate, len(rec.labels)
+
+
 def _mild(frames: int, data: Path) -> list[Case]:
-    cases = []
+    cases = [_quickstart(frames)]
     simulated = [(level, damage, 0) for level, (damage, _) in LEVELS.items()]
     simulated += [("moderate", LEVELS["moderate"][0], cameras) for cameras in CAMERAS]
     for level, damage, cameras in simulated:

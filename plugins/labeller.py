@@ -42,6 +42,8 @@ class LabellerNode(Node[LabellerConfig]):
         if self.labeller is not None:
             self.log.info("resuming %d tracks after a restart", len(self.labeller.labels))
         self.predictions: MarkerFrame | None = None
+        self._rows_for: tuple[list[str], int] | None = None  # prediction labels and track count self._rows serves
+        self._rows = np.empty(0, np.intp), np.empty(0, np.intp)  # tracks, and their rows in the predictions
         self.segments: Segments | None = None
 
     def process(self, port: str, message: MarkerFrame | Segments) -> None:
@@ -86,15 +88,20 @@ class LabellerNode(Node[LabellerConfig]):
         clear_state(self.run_id, self.name)
 
     def _predicted(self, frame: MarkerFrame) -> np.ndarray | None:
-        """The filler's predictions for this very frame, in track order; None when there are none for it."""
+        """The filler's predictions for this very frame, in track order; None when there are none for it.
+
+        Which prediction row serves which track is kept while both label lists stay the same (they only grow)."""
         p = self.predictions
         if p is None or p.frame != frame.frame or p.labels is None or self.labeller is None:
             return None
-        index = {label: i for i, label in enumerate(p.labels)}
-        out = np.full((len(self.labeller.labels), 3), np.nan)
-        for t, label in enumerate(self.labeller.labels):
-            if label in index:
-                out[t] = p.positions[index[label]]
+        labels = self.labeller.labels
+        if self._rows_for != (p.labels, len(labels)):
+            index = {label: i for i, label in enumerate(p.labels)}
+            tracks = [t for t, label in enumerate(labels) if label in index]
+            self._rows = np.array(tracks, np.intp), np.array([index[labels[t]] for t in tracks], np.intp)
+            self._rows_for = (list(p.labels), len(labels))
+        out = np.full((len(labels), 3), np.nan)
+        out[self._rows[0]] = p.positions[self._rows[1]]
         return out
 
     def _apply_segments(self) -> None:

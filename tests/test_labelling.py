@@ -334,3 +334,35 @@ def test_the_labeller_node_labels_as_the_streaming_labeller() -> None:
         assert live.labels == labeller.labels
         np.testing.assert_array_equal(live.positions, expected.astype(live.positions.dtype))
     assert len(labeller.labels) >= len(rec.labels)
+
+
+def test_the_labeller_node_gives_the_labeller_the_predictions_of_its_tracks() -> None:
+    """Predictions arriving in their own label order, some labels missing, reach the labeller in track order: the
+    node labels as the streaming labeller given those predictions directly (here the true positions of the markers
+    the tracks hold, which change the labelling)."""
+    from mocapflow.messages import MarkerFrame
+    from mocapflow.plugins.labeller import LabellerNode
+
+    rec = simulate(SimulatorConfig(rig="human", rate=240, noise_mm=0.5, dropout_rate=0.5, long_gaps=6, ghosts=2,
+                                   unlabelled=True, seed=5), 200)
+    assert rec.points is not None and rec.identity is not None
+    published: list[MarkerFrame] = []
+    node = LabellerNode(LabellerConfig(), lambda _port, message: published.append(message), "labeller")
+    labeller, alone = Labeller(LabellerConfig(), rec.rate), Labeller(LabellerConfig(), rec.rate)
+    holds: dict[int, int] = {}  # track -> true marker
+    differ = 0
+    for i, points in enumerate(rec.points):
+        known = [m for m in labeller.labels[::-1] if labeller.labels.index(m) in holds][1:]  # reversed, one left out
+        given = np.array([rec.true_positions[i, holds[labeller.labels.index(m)]] for m in known]).reshape(-1, 3)
+        node.process("predictions", MarkerFrame(frame=i, capture_ns=0, rate=rec.rate, positions=given, labels=known))
+        node.process("markers", MarkerFrame(frame=i, capture_ns=0, rate=rec.rate, positions=points))
+        predictions = np.full((len(labeller.labels), 3), np.nan)
+        for row, m in enumerate(known):
+            predictions[labeller.labels.index(m)] = given[row]
+        result = labeller.update(points, i / rec.rate, predictions)
+        np.testing.assert_array_equal(published[-1].positions, result.positions.astype(published[-1].positions.dtype))
+        assert published[-1].labels == labeller.labels
+        differ += not np.array_equal(result.point_track, alone.update(points, i / rec.rate).point_track)
+        holds.update({int(t): int(m) for t, m in zip(result.point_track, rec.identity[i], strict=True)
+                      if t >= 0 and m >= 0})
+    assert differ > 0, "the predictions never mattered"

@@ -23,32 +23,55 @@ def nanmedian(x: np.ndarray) -> np.ndarray:
     return np.where(n[..., 0] > 0, (low + high) / 2, np.nan)
 
 
-def gated_cost(pred: np.ndarray, gate: np.ndarray, points: np.ndarray) -> np.ndarray:
+def gated_cost(pred: np.ndarray, gate: np.ndarray | float, points: np.ndarray) -> np.ndarray:
     """Cost ``(A, B)`` of giving each point to each track: ``d / gate - 1`` inside the track's gate, 0 outside.
 
     ``pred`` is ``(A, 3)``, or ``(A, H, 3)`` for tracks with several hypotheses (NaN where absent) of which the best
-    counts; ``gate`` is ``(A,)`` or ``(A, H)``. With 0 for "unmatched" this is the classic assignment with a dummy
-    option costing half a gate on each side, so a match is made only when it lowers the total distance.
+    counts; ``gate`` is ``(A,)`` or ``(A, H)``, or one for all. With 0 for "unmatched" this is the classic assignment
+    with a dummy option costing half a gate on each side, so a match is made only when it lowers the total distance.
     """
+    gate = np.asarray(gate)[..., None]
     if pred.ndim == 2:
-        cost = cdist(pred, points) / gate[:, None]
+        cost = cdist(pred, points)
+        cost /= gate
     else:
-        d = cdist(pred.reshape(-1, 3), points).reshape(*pred.shape[:2], -1) / gate[..., None]
+        d = cdist(pred.reshape(-1, 3), points).reshape(*pred.shape[:2], -1)
+        d /= gate
         cost = np.fmin.reduce(d, axis=1)
         cost[np.isnan(cost)] = np.inf
-    return np.minimum(cost - 1.0, 0.0)
+    cost -= 1.0
+    return np.minimum(cost, 0.0, out=cost)
 
 
 def match(cost: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Optimal one-to-one assignment on a cost matrix where only negative entries are admissible pairs."""
+    """Optimal one-to-one assignment on a cost matrix where only negative entries are admissible pairs.
+
+    Two common cases are answered without the solver's fixed cost. With one track or one point the optimum is the
+    single cheapest pair (the first of equal ones, as ``linear_sum_assignment`` picks). When no row and no column
+    holds two admissible entries (every track near its own point and no other, most frames) the optimum is all of
+    them: leaving one out could only raise the total.
+    """
     if cost.size == 0:
         return np.empty(0, np.intp), np.empty(0, np.intp)
+    if cost.shape[0] == 1 or cost.shape[1] == 1:
+        best = int(cost.argmin())
+        if not cost.flat[best] < 0.0:
+            return np.empty(0, np.intp), np.empty(0, np.intp)
+        pair = np.zeros(1, np.intp), np.array([best], np.intp)
+        return pair if cost.shape[0] == 1 else pair[::-1]
+    nearest = cost.argmin(axis=1)
+    rows = (cost[np.arange(len(cost)), nearest] < 0.0).nonzero()[0]
+    cols = nearest[rows]
+    taken = np.zeros(cost.shape[1], bool)
+    taken[cols] = True
+    if np.count_nonzero(cost < 0.0) == len(rows) == np.count_nonzero(taken):
+        return rows, cols
     rows, cols = linear_sum_assignment(cost)
     keep = cost[rows, cols] < 0.0
     return rows[keep], cols[keep]
 
 
-def assign(pred: np.ndarray, gate: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def assign(pred: np.ndarray, gate: np.ndarray | float, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Optimal one-to-one matching of tracks to points, each pair inside the track's gate (see ``gated_cost``)."""
     if len(pred) == 0 or len(points) == 0:
         return np.empty(0, np.intp), np.empty(0, np.intp)

@@ -62,44 +62,42 @@ class Labeller:
             raise ValueError(f"frame times must increase: {time} after {self._time}")
         self._time = time
         pts = np.asarray(points, dtype=float).reshape(-1, 3)
-        rows = np.flatnonzero(np.isfinite(pts).all(axis=1))
-        z = pts[rows]
-        taken = np.full(len(z), -1, np.intp)
+        finite = np.isfinite(pts)
+        rows = (finite[:, 0] & finite[:, 1] & finite[:, 2]).nonzero()[0]
+        z = pts if len(rows) == len(pts) else pts[rows]
         n_tracks = len(self.labels)
         if predictions is not None:
             predictions = np.asarray(predictions, dtype=float)
             if predictions.shape != (n_tracks, 3):
                 raise ValueError(f"predictions must have shape ({n_tracks}, 3), got {predictions.shape}")
-        cur = np.full((n_tracks, 3), np.nan)
+        tracks = self._tracks
 
         # 1. tracks seen in the previous frame: constant-velocity prediction, gated optimal assignment
-        live = np.flatnonzero(self._tracks.streak > 0)
-        pred = self._tracks.pos[live] + self._tracks.vel[live] * (time - self._tracks.last[live])[:, None]
-        ti, pi = assign(pred, np.full(len(live), cfg.gate_mm), z)
-        cur[live[ti]] = z[pi]
-        taken[pi] = live[ti]
+        live = (tracks.streak > 0).nonzero()[0]
+        pred = tracks.pos + tracks.vel * (time - tracks.last)[:, None]
+        every = len(live) == n_tracks  # all seen in the previous frame (most frames): no subset to take
+        ti, pi = assign(pred if every else pred[live], cfg.gate_mm, z)
+        matched = ti if every else live[ti]
+        cur = np.full((n_tracks, 3), np.nan)
+        cur[matched] = z[pi]
+        taken = np.full(len(z), -1, np.intp)
+        taken[pi] = matched
 
-        # 2. the others: re-identification from rigid neighbours or outside predictions, else a short coast
-        lost = np.flatnonzero(np.isnan(cur[:, 0]))
-        lost_pred, lost_gate, instant = self._lost_predictions(lost, cur, time, predictions, z[taken < 0])
-        now_pred = lost_pred.copy()
-        now_pred[~instant, 0] = np.nan
-        has = np.flatnonzero(np.isfinite(now_pred[..., 0]).any(axis=1))
-        free = np.flatnonzero(taken < 0)
-        ti = pi = np.empty(0, np.intp)
-        if len(has) and len(free):
-            cost = gated_cost(now_pred[has], lost_gate[has], z[free])
-            broken, partners, violated = self._signature(lost[has], cur, z[free])
-            cost = screened(cost, broken, partners, violated)
-            ti, pi = match(cost)
-        cur[lost[has[ti]]] = z[free[pi]]
-        taken[free[pi]] = lost[has[ti]]
-        self._tracks.observe(cur, time)
+        # 2. the others: re-identification from rigid neighbours or outside predictions, else a short coast; with no
+        # point left over (most frames) there is nothing to re-identify, and nothing to confirm in step 3 either
+        lost = np.isnan(cur[:, 0]).nonzero()[0]
+        free = (taken < 0).nonzero()[0]
+        if len(free) and len(lost):
+            lost_pred, lost_gate, instant = self._lost_predictions(lost, cur, time, predictions, z[free])
+            self._reidentify(lost, lost_pred, lost_gate, instant, cur, z, taken, free)
+        else:  # no hypotheses needed
+            lost_pred, lost_gate = np.empty((len(lost), 2, 3)), np.empty((len(lost), 2))
+        tracks.observe(cur, time)
 
         # 3. tentative tracks on what is left; the long-lived ones become markers
-        ready, ready_rows = self._advance_tentatives(z, taken, time)
+        ready, ready_rows = self._advance_tentatives(z, free[taken[free] < 0], time)
         history: list[tuple[int, np.ndarray, np.ndarray]] = []
-        if len(ready):
+        if len(ready):  # some point was left over, so any lost track has its hypotheses
             still = np.isnan(cur[lost, 0])
             owners = self._owners(z[ready_rows], cur, lost[still], lost_pred[still], lost_gate[still])
             cur = np.vstack([cur, np.full((len(self.labels) - n_tracks, 3), np.nan)])
@@ -112,11 +110,29 @@ class Labeller:
             if rays.shape != (len(pts), 6):
                 raise ValueError(f"rays must have shape ({len(pts)}, 6), one per row of points, got {rays.shape}")
             ray_out = self._ray_owners(rays, cur, time, predictions)
-        self._tracks.learn(cur, time, self.frame)
+        tracks.learn(cur, time, self.frame)
         self.frame += 1
         point_track = np.full(len(pts), -1, np.intp)
         point_track[rows] = taken
         return LabelResult(positions=cur, point_track=point_track, history=history, rays=ray_out)
+
+    def _reidentify(self, lost: np.ndarray, pred: np.ndarray, gate: np.ndarray, instant: np.ndarray, cur: np.ndarray,
+                    z: np.ndarray, taken: np.ndarray, free: np.ndarray) -> None:
+        """Give the ``free`` points of ``z`` to the ``lost`` tracks whose hypotheses (``_lost_predictions``; the
+        placement by neighbours only where ``instant``) they fit, screened by their rigid partners; in place in
+        ``cur`` and ``taken``. The screening only ever raises a cost, so it is skipped when no point is in a gate."""
+        now_pred = pred.copy()
+        now_pred[~instant, 0] = np.nan
+        has = np.flatnonzero(np.isfinite(now_pred[..., 0]).any(axis=1))
+        if len(has) == 0:
+            return
+        cost = gated_cost(now_pred[has], gate[has], z[free])
+        if not (cost < 0.0).any():
+            return
+        broken, partners, violated = self._signature(lost[has], cur, z[free])
+        ti, pi = match(screened(cost, broken, partners, violated))
+        cur[lost[has[ti]]] = z[free[pi]]
+        taken[free[pi]] = lost[has[ti]]
 
     def _ray_owners(self, rays: np.ndarray, cur: np.ndarray, time: float,
                     outside: np.ndarray | None) -> np.ndarray:
@@ -175,22 +191,24 @@ class Labeller:
         instant = np.zeros(len(lost), bool)
         if len(lost) == 0:
             return pred, gate, instant
-        # each snapshot fitted to the neighbours matched in this frame; the best-fitting pose places the marker
-        anchors = self._tracks.anchors[lost]
-        now = np.where((anchors >= 0)[..., None], cur[anchors], np.nan)
-        if len(free):
-            near = np.flatnonzero(self._tracks.plausible(lost, cur, free).any(axis=1))
-            place, misfit, spread = place_marker(self._tracks.poses[lost[near]], now[near],
-                                                 self._tracks.anchor_w[lost[near]], cfg.instant_fit_mm)
-            doubt = np.fmax(misfit, spread)
-            usable = doubt <= cfg.reid_gate_mm
-            pred[near[usable], 0] = place[usable]
-            gate[near, 0] += np.where(np.isnan(doubt), 0.0, doubt)
-            instant[near] = doubt <= cfg.instant_fit_mm
+        # an outside prediction replaces the placement, so only the others are placed
+        given = np.zeros(len(lost), bool) if outside is None else np.isfinite(outside[lost]).all(axis=1)
+        unknown = np.flatnonzero(~given)
+        if len(free) and len(unknown):
+            # each snapshot fitted to the neighbours matched in this frame; the best-fitting pose places the marker
+            near = unknown[self._tracks.plausible(lost[unknown], cur, free).any(axis=1)]
+            if len(near):
+                anchors = self._tracks.anchors[lost[near]]
+                now = np.where((anchors >= 0)[..., None], cur[anchors], np.nan)
+                place, misfit, spread = place_marker(self._tracks.poses[lost[near]], now,
+                                                     self._tracks.anchor_w[lost[near]], cfg.instant_fit_mm)
+                doubt = np.fmax(misfit, spread)
+                usable = doubt <= cfg.reid_gate_mm
+                pred[near[usable], 0] = place[usable]
+                gate[near, 0] += np.where(np.isnan(doubt), 0.0, doubt)
+                instant[near] = doubt <= cfg.instant_fit_mm
         if outside is not None:
-            given = np.isfinite(outside[lost]).all(axis=1)
             pred[given, 0] = outside[lost[given]]
-            gate[given, 0] = cfg.reid_gate_mm
             instant |= given
         dt = time - self._tracks.last[lost]
         coast = dt <= cfg.max_coast_s
@@ -232,23 +250,24 @@ class Labeller:
         fits = best < 1.0
         return np.where(fits, best, 0.0).max(axis=1, initial=0.0), fits.sum(axis=1)
 
-    def _advance_tentatives(self, z: np.ndarray, taken: np.ndarray, time: float) -> tuple[np.ndarray, np.ndarray]:
-        """Carry tentative tracks on the points no marker took and start new ones on the rest.
+    def _advance_tentatives(self, z: np.ndarray, free: np.ndarray, time: float) -> tuple[np.ndarray, np.ndarray]:
+        """Carry tentative tracks on the ``free`` points of ``z`` (those no marker took) and start new ones on the rest.
 
         A tentative track missing one frame dies: a new marker must be tracked without a gap to be believed. Returns
         the tentative tracks now old enough to confirm and their rows in ``z``.
         """
         cfg = self.config
         tent = self._tentative
-        free = np.flatnonzero(taken < 0)
-        if len(free) == 0 and len(tent.pos) == 0:
-            return free, free
-        pred = tent.pos + tent.vel * (time - tent.last)[:, None]
+        if len(tent.hits) == 0 or len(free) == 0:  # nothing carried on: every free point starts a tentative track
+            tent.start(z[free], time, self.frame)
+            return free[:0], free[:0]
+        dt = time - tent.time
+        pred = tent.pos + tent.vel * dt
         # a point seen once has no velocity yet: its first step may be as long as the fastest marker moves
-        gate = cfg.gate_mm + np.where(tent.hits == 1, cfg.max_speed_mm_s * (time - tent.last), 0.0)
+        gate = cfg.gate_mm + np.where(tent.hits == 1, cfg.max_speed_mm_s * dt, 0.0)
         ui, pi = assign(pred, gate, z[free])
         zu = z[free[pi]]
-        measured = (zu - tent.pos[ui]) / (time - tent.last[ui])[:, None]
+        measured = (zu - tent.pos[ui]) / dt
         smooth = tent.vel[ui] + cfg.velocity_smoothing * (measured - tent.vel[ui])
         vel = np.where((tent.hits[ui] >= 2)[:, None], smooth, measured)
         kept = [tent.points[u] for u in ui]
@@ -256,16 +275,17 @@ class Labeller:
             points.append((self.frame, p))
             if len(points) > self.rate:  # only a tentative track held back by expected_markers grows this long
                 del points[0]
+        hits = tent.hits[ui] + 1
         unclaimed = np.ones(len(free), bool)
         unclaimed[pi] = False
-        fresh = np.flatnonzero(unclaimed)
-        rows = np.concatenate([free[pi], free[fresh]])
+        fresh = free[unclaimed]
+        tent.start(z[fresh], time, self.frame)  # new tracks on the unclaimed points, after the carried ones:
+        rows = np.concatenate([free[pi], fresh])
         tent.pos = z[rows]
-        tent.vel = np.concatenate([vel, np.zeros((len(fresh), 3))])
-        tent.last = np.full(len(rows), time)
-        tent.hits = np.concatenate([tent.hits[ui] + 1, np.ones(len(fresh), np.int64)])
-        tent.points = kept + [[(self.frame, p)] for p in z[free[fresh]]]
-        ready = np.flatnonzero(tent.hits >= cfg.confirm_frames)
+        tent.vel = np.concatenate([vel, tent.vel])
+        tent.hits = np.concatenate([hits, tent.hits])
+        tent.points = kept + tent.points
+        ready = (hits >= cfg.confirm_frames).nonzero()[0]
         return ready, rows[ready]
 
     def _owners(self, z: np.ndarray, cur: np.ndarray, lost: np.ndarray, pred: np.ndarray,
@@ -319,7 +339,7 @@ class Labeller:
             frames = np.array([f for f, _ in tent.points[u]])
             pos = np.array([p for _, p in tent.points[u]])
             tracks = self._tracks
-            tracks.pos[track], tracks.vel[track], tracks.last[track] = tent.pos[u], tent.vel[u], tent.last[u]
+            tracks.pos[track], tracks.vel[track], tracks.last[track] = tent.pos[u], tent.vel[u], tent.time
             tracks.streak[track] = tent.hits[u]
             history.append((int(track), frames[:-1], pos[:-1]))
         keep = np.ones(len(tent.hits), bool)

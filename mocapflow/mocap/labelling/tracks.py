@@ -102,27 +102,34 @@ class Tracks:
     def observe(self, cur: np.ndarray, time: float) -> None:
         """Update the kinematic state of confirmed tracks from this frame's matches."""
         seen = np.isfinite(cur[:, 0])
-        m = np.flatnonzero(seen)
-        dt = time - self.last[m]
-        measured = (cur[m] - self.pos[m]) / dt[:, None]
-        prev = self.streak[m]
-        smooth = self.vel[m] + self.config.velocity_smoothing * (measured - self.vel[m])
-        # a velocity measured across a long gap says little about the motion now
-        across = np.where((dt <= self.config.max_coast_s)[:, None], measured, 0.0)
-        self.vel[m] = np.where((prev >= 2)[:, None], smooth, np.where((prev == 1)[:, None], measured, across))
-        self.pos[m] = cur[m]
-        self.last[m] = time
-        self.streak = np.where(seen, np.where(self.streak > 0, self.streak + 1, 1), 0)
+        dt = time - self.last
+        measured = (cur - self.pos) / dt[:, None]  # NaN where unseen
+        vel = self.vel + self.config.velocity_smoothing * (measured - self.vel)
+        # a track seen for the first or second time in a row has no velocity to smooth yet: it takes the measured
+        # one, and none measured across a long gap, which says little about the motion now
+        first = (seen & (self.streak < 2)).nonzero()[0]
+        if len(first):
+            across = np.where((dt[first] <= self.config.max_coast_s)[:, None], measured[first], 0.0)
+            vel[first] = np.where((self.streak[first] == 1)[:, None], measured[first], across)
+        where = seen[:, None]
+        np.copyto(self.vel, vel, where=where)
+        np.copyto(self.pos, cur, where=where)
+        np.copyto(self.last, time, where=seen)
+        self.streak = np.where(seen, self.streak + 1, 0)
 
     def learn(self, cur: np.ndarray, time: float, frame: int) -> None:
         """Learn from this frame's labelled points: distance statistics and neighbour sets (at up to ``STATS_HZ``),
         and snapshots."""
-        seen = np.flatnonzero(np.isfinite(cur[:, 0]))
+        seen = np.isfinite(cur[:, 0]).nonzero()[0]
         self._remember(seen, cur, time)
         if len(seen) < 2 or frame % self.stats_every:
             return
-        block = np.ix_(seen, seen)
-        d = cdist(cur[seen], cur[seen])
+        # with every track seen (most frames) the whole matrices are updated in place rather than through a copied
+        # block
+        every = len(seen) == len(cur)
+        block = np.s_[:, :] if every else np.ix_(seen, seen)
+        x = cur if every else cur[seen]
+        d = cdist(x, x)
         n = self.pair_n[block] + 1.0
         mean = self.pair_mean[block]
         delta = d - mean
@@ -186,26 +193,37 @@ class Tracks:
         x = np.concatenate([cur[seen, None], np.where((anchors >= 0)[..., None], cur[anchors], np.nan)], axis=1)
         due = np.isfinite(x[:, 1:, 0]).sum(axis=1) >= 3
         tracks = seen[due]
-        self.poses[tracks, self.pose_count[tracks] % self.config.poses] = x[due]
+        x = x[due]
+        self.poses[tracks, self.pose_count[tracks] % self.config.poses] = x
         self.pose_count[tracks] += 1
         self.pose_time[tracks] = time
-        d = norm(x[due, 1:] - x[due, :1])
-        self.span[tracks, :, 0] = np.fmin(self.span[tracks, :, 0], d)
-        self.span[tracks, :, 1] = np.fmax(self.span[tracks, :, 1], d)
+        d = norm(x[:, 1:] - x[:, :1])
+        span = self.span[tracks]
+        np.fmin(span[..., 0], d, out=span[..., 0])
+        np.fmax(span[..., 1], d, out=span[..., 1])
+        self.span[tracks] = span
 
 
 @dataclass
 class Tentatives:
-    """Tentative tracks, in step with each other: last position, velocity, time and consecutive frames seen, and the
-    points each has collected so far as ``(frame, position)``."""
+    """Tentative tracks, in step with each other: last position, velocity and consecutive frames seen, and the points
+    each has collected so far as ``(frame, position)``; all were last seen at ``time`` (one missing a frame dies)."""
 
     pos: np.ndarray = field(default_factory=lambda: np.empty((0, 3)))
     vel: np.ndarray = field(default_factory=lambda: np.empty((0, 3)))
-    last: np.ndarray = field(default_factory=lambda: np.empty(0))
     hits: np.ndarray = field(default_factory=lambda: np.empty(0, np.int64))
     points: list[list[tuple[int, np.ndarray]]] = field(default_factory=list)
+    time: float = -np.inf
+
+    def start(self, pos: np.ndarray, time: float, frame: int) -> None:
+        """Replace the tentative tracks by new ones on the points ``pos`` ``(N, 3)`` seen at ``time`` in ``frame``."""
+        self.pos = pos
+        self.vel = np.zeros((len(pos), 3))
+        self.hits = np.ones(len(pos), np.int64)
+        self.points = [[(frame, p)] for p in pos]
+        self.time = time
 
     def keep(self, mask: np.ndarray) -> None:
         """Keep the tentative tracks selected by ``mask`` (T,) bool, drop the others."""
-        self.pos, self.vel, self.last, self.hits = self.pos[mask], self.vel[mask], self.last[mask], self.hits[mask]
+        self.pos, self.vel, self.hits = self.pos[mask], self.vel[mask], self.hits[mask]
         self.points = [h for h, k in zip(self.points, mask, strict=True) if k]
