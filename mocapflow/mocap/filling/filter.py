@@ -219,9 +219,11 @@ class GapFiller:
     def _outliers(self, z: np.ndarray, seen: np.ndarray) -> np.ndarray:
         """Samples of markers seen in the previous frame that are ``outlier_mm`` or more from their prediction: no
         marker moves so in one frame, so they would only pull the filter and the segment fits off."""
-        followed = seen & (self._unmeasured == 0) & np.isfinite(self.kf.position).all(axis=1)
-        far = np.zeros(len(z), bool)
-        far[followed] = np.linalg.norm(z[followed] - self.kf.position[followed], axis=1) >= self.config.outlier_mm
+        step = z - self.kf.position  # NaN rows (not seen, or never seen before) compare False below
+        with np.errstate(invalid="ignore"):
+            far = np.sqrt((step * step).sum(axis=1)) >= self.config.outlier_mm
+        far &= seen
+        far &= self._unmeasured == 0
         return far
 
     def _current_poses(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -235,13 +237,13 @@ class GapFiller:
         assert body is not None
         flags = flags.copy()  # the caller may edit the result's arrays before reading the centres
         r, t, ok = self._pose_r[0].copy(), self._pose_t[0].copy(), self._pose_ok[0].copy()
-        stale = np.flatnonzero(~self._pose_fresh[0])
-        if not len(stale):
-            return lambda: joint_centres(body, (r, t, ok), flags)
+        fresh = self._pose_fresh[0].copy()
         z = z.copy()
 
         def centres() -> np.ndarray:
-            r[stale], t[stale], ok[stale] = self._fitted_poses_for(body, z, stale)
+            stale = np.flatnonzero(~fresh)
+            if len(stale):
+                r[stale], t[stale], ok[stale] = self._fitted_poses_for(body, z, stale)
             return joint_centres(body, (r, t, ok), flags)
         return centres
 
@@ -258,7 +260,6 @@ class GapFiller:
         near = np.zeros(0, dtype=int)
         if body is not None:
             near = body.around(~seen)
-            self._ensure_poses(near)
         visible = seen.copy()
         if rays is not None:
             rays = np.asarray(rays, dtype=float).reshape(n, 6)
@@ -330,6 +331,8 @@ class GapFiller:
             est[rows] = (r_all[seg] @ layout.target_local[direct, :, None])[..., 0] + t_all[seg]
             codes[rows] = CASE_ONE_MISSING
         pending = sorted(segments[~posed[segments]].tolist(), key=lambda k: -seg_vis[k])
+        if pending:  # placed from the last frames' poses, fitted now where skipped
+            self._ensure_poses(near)
         force = False  # set once no pending segment can be anchored: the rest keep their last rotation rate
         while pending:
             progress = False
