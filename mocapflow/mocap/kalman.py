@@ -81,9 +81,11 @@ class ConstantVelocityBank:
                 has = has & ~fresh
         p00, p01 = self.p00, self.p01
         s = p00 + variance  # H P H^T + R
-        k0 = np.where(has, p00 / s, 0.0)  # gain K = P H^T / s
-        k1 = np.where(has, p01 / s, 0.0)
-        innovation = np.where(has[:, None], z - self.pos, 0.0)
+        k0, k1, innovation = p00 / s, p01 / s, z - self.pos  # gain K = P H^T / s
+        if not has.all():  # the others keep their state
+            k0 = np.where(has, k0, 0.0)
+            k1 = np.where(has, k1, 0.0)
+            innovation = np.where(has[:, None], innovation, 0.0)
         self.pos += k0[:, None] * innovation
         self.vel += k1[:, None] * innovation
         self.p11 -= k1 * p01  # P <- P - K H P

@@ -188,13 +188,18 @@ class GapFiller:
         z[~seen] = np.nan
         body = self.body
         flags = seen.astype(np.uint8)
-        poses = None if seen.all() else self._fill_missing(z, seen, flags, rays)
-        measured = flags >= CASE_OBSERVED
-        measured &= flags != CASE_KALMAN
-        self.kf.update(z, self._variance[flags], measured)
-        estimated = flags >= CASE_ONE_MISSING
-        z[estimated] = self.kf.position[estimated]
-        self._unmeasured = np.where(measured & ~self._extrapolated, 0, self._unmeasured + 1)
+        poses = None
+        if seen.all():  # every marker observed: each is its own measurement and its own output
+            self.kf.update(z, self._variance[flags], seen)
+            self._unmeasured[:] = 0
+        else:
+            poses = self._fill_missing(z, seen, flags, rays)
+            measured = flags >= CASE_OBSERVED
+            measured &= flags != CASE_KALMAN
+            self.kf.update(z, self._variance[flags], measured)
+            estimated = flags >= CASE_ONE_MISSING
+            z[estimated] = self.kf.position[estimated]
+            self._unmeasured = np.where(measured & ~self._extrapolated, 0, self._unmeasured + 1)
 
         self._last[1] = self._last[0]
         self._last[0] = z
