@@ -34,8 +34,8 @@ CAUSAL_TARGET_FPS = 5000  # for 40 markers with gaps, on one core
 
 
 def labelled_stream(frames: int) -> tuple[list[tuple[list[str], np.ndarray]], float]:
-    """The quickstart's labelled stream: per frame the labels confirmed so far and their positions (NaN where not
-    seen), the filler's predictions fed back to the labeller."""
+    """The quickstart's labelled stream, from its first confirmed marker on: per frame the labels confirmed so far
+    and their positions (NaN where not seen), the filler's predictions fed back to the labeller."""
     rec = simulate(QUICKSTART, frames)
     assert rec.points is not None
     labeller = Labeller(LabellerConfig(), rec.rate)
@@ -48,7 +48,8 @@ def labelled_stream(frames: int) -> tuple[list[tuple[list[str], np.ndarray]], fl
             predicted[: len(filler.labels)] = filler.predict_next()
         positions = labeller.update(points, f / rec.rate, predicted).positions
         labels = list(labeller.labels)
-        stream.append((labels, positions))
+        if labels:  # the filler starts with the first confirmed marker
+            stream.append((labels, positions))
         if labels and filler is None:
             filler = GapFiller(labels, rec.rate, FillerConfig(kinematic_model=False))
         elif filler is not None and labels != filler.labels:
