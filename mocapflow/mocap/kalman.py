@@ -81,7 +81,9 @@ class ConstantVelocityBank:
                 has = has & ~fresh
         p00, p01 = self.p00, self.p01
         s = p00 + variance  # H P H^T + R
-        k0, k1, innovation = p00 / s, p01 / s, z - self.pos  # gain K = P H^T / s
+        k0: np.ndarray = p00 / s  # gain K = P H^T / s
+        k1: np.ndarray = p01 / s
+        innovation: np.ndarray = z - self.pos
         if not has.all():  # the others keep their state
             k0 = np.where(has, k0, 0.0)
             k1 = np.where(has, k1, 0.0)
