@@ -225,8 +225,7 @@ class GapFiller:
         """Samples of markers seen in the previous frame that are ``outlier_mm`` or more from their prediction: no
         marker moves so in one frame, so they would only pull the filter and the segment fits off."""
         step = z - self.kf.position  # NaN rows (not seen, or never seen before) compare False below
-        with np.errstate(invalid="ignore"):
-            far = np.sqrt((step * step).sum(axis=1)) >= self.config.outlier_mm
+        far = np.sqrt((step * step).sum(axis=1)) >= self.config.outlier_mm
         far &= seen
         far &= self._unmeasured == 0
         return far
@@ -295,7 +294,8 @@ class GapFiller:
             fresh = np.zeros(len(body.members), dtype=bool)
             fresh[near] = True
             poses = r, t, posed, fresh
-            self._holds = {k: hold for k, hold in self._holds.items() if k in self._held}
+            if self._holds:
+                self._holds = {k: hold for k, hold in self._holds.items() if k in self._held}
             memory.kinematic.end_frame()
             done = targets & np.isfinite(est).all(axis=1)
             if self._max_coast is not None:
