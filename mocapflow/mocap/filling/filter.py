@@ -265,14 +265,16 @@ class GapFiller:
         if body is not None:
             near = body.around(~seen)
         visible = seen.copy()
+        fit_all = False  # pose every segment near the gaps, not only those holding one (see ``_constrain``)
         if rays is not None:
             rays = np.asarray(rays, dtype=float).reshape(n, 6)
             ray_rows = ~seen & np.isfinite(rays).all(axis=1) & (np.linalg.norm(rays[:, 3:], axis=1) > 0)
             if ray_rows.any():
+                fit_all = True
                 guess = prior.copy()
                 anchored = np.zeros(n, dtype=bool)
                 if body is not None:
-                    est, _, _ = self._constrain(z, visible, prior, ray_rows & body.in_segment, near, keep=False)
+                    est, _, _ = self._constrain(z, visible, prior, ray_rows & body.in_segment, near, False, fit_all)
                     anchored = np.isfinite(est).all(axis=1)
                     guess[anchored] = est[anchored]
                 ok = ray_rows & np.isfinite(guess).all(axis=1)
@@ -290,10 +292,7 @@ class GapFiller:
             memory = self._memory
             assert memory is not None
             memory.kinematic.start_frame()
-            est, codes, (r, t, posed) = self._constrain(z, visible, prior, targets, near, keep=True)
-            fresh = np.zeros(len(body.members), dtype=bool)
-            fresh[near] = True
-            poses = r, t, posed, fresh
+            est, codes, poses = self._constrain(z, visible, prior, targets, near, True, fit_all)
             if self._holds:
                 self._holds = {k: hold for k, hold in self._holds.items() if k in self._held}
             memory.kinematic.end_frame()
@@ -311,12 +310,16 @@ class GapFiller:
 
     def _constrain(
         self, filled: np.ndarray, visible: np.ndarray, prior: np.ndarray, targets: np.ndarray, near: np.ndarray,
-        keep: bool,
-    ) -> tuple[np.ndarray, np.ndarray, tuple[np.ndarray, np.ndarray, np.ndarray]]:
+        keep: bool, fit_all: bool,
+    ) -> tuple[np.ndarray, np.ndarray, tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
         """Rigid-body estimates (5.3) of the ``targets`` markers from the ``visible`` ones: (N, 3), case codes, and
-        the poses this frame (R, t, known) of the segments ``near`` the targets (holding one, or a neighbour of
-        one; the others are left unknown): fitted to their visible markers when three or more are, else as placed
-        here. ``keep`` stores the two-anchor holds (off for the single-camera pass)."""
+        the poses this frame (R, t, known, and which segments these were worked out for) of the segments holding a
+        target and, when one of them must be placed through its neighbours or with ``fit_all``, of the other
+        segments ``near`` them (the others are left unknown): fitted to their visible markers when three or more
+        are, else as placed here. A neighbour left out has all its markers visible, so its pose is fitted from the
+        filled frame later, alike, if a gap or a reader needs it; ``fit_all`` (single-camera markers, whose filled
+        positions are not their measurements) poses them all now. ``keep`` stores the two-anchor holds (off for the
+        single-camera pass)."""
         body = self.body
         memory = self._memory
         assert body is not None and memory is not None
@@ -326,16 +329,22 @@ class GapFiller:
         codes = np.zeros(n, dtype=np.uint8)
         layout = body.layout(visible, targets, near)
         seg_vis, segments = layout.seg_vis, layout.segments
-        r_all, t_all = np.zeros((len(body.members), 3, 3)), np.zeros((len(body.members), 3))
-        posed = np.zeros(len(body.members), dtype=bool)
-        r_all[near], t_all[near], posed[near] = layout.fit(filled)  # three visible markers fix a pose
-        seen_posed = posed.copy()  # placed with at least one of their own markers visible
+        s = len(body.members)
+        r_all, t_all = np.zeros((s, 3, 3)), np.zeros((s, 3))
+        posed, fresh = np.zeros(s, dtype=bool), np.zeros(s, dtype=bool)
+        r_all[segments], t_all[segments], posed[segments] = layout.fit_held(filled)  # three visible markers fix a
+        fresh[segments] = True  # pose
         direct = posed[layout.target_seg]  # per target: its segment is fitted
         if direct.any():
             rows, seg = layout.target_rows[direct], layout.target_seg[direct]
             est[rows] = (r_all[seg] @ layout.target_local[direct, :, None])[..., 0] + t_all[seg]
             codes[rows] = CASE_ONE_MISSING
         pending = sorted(segments[~posed[segments]].tolist(), key=lambda k: -seg_vis[k])
+        if (pending or fit_all) and len(layout.rest):
+            rest = layout.rest
+            r_all[rest], t_all[rest], posed[rest] = layout.fit_rest(filled)
+            fresh[rest] = True
+        seen_posed = posed.copy()  # placed with at least one of their own markers visible
         if pending:  # placed from the last frames' poses, fitted now where skipped
             self._ensure_poses(near)
         force = False  # set once no pending segment can be anchored: the rest keep their last rotation rate
@@ -392,7 +401,7 @@ class GapFiller:
                     r_all[k], t_all[k], posed[k] = r, t, True
                     seen_posed[k] = seg_vis[k] > 0
             force = not progress
-        return est, codes, (r_all, t_all, posed)
+        return est, codes, (r_all, t_all, posed, fresh)
 
     def _estimate_segment(
         self, k: int, p: np.ndarray, a: np.ndarray, w: np.ndarray, anchors: tuple[tuple[str, int], ...],
