@@ -81,9 +81,13 @@ class ConstantVelocityBank:
                 has = has & ~fresh
         p00, p01 = self.p00, self.p01
         s = p00 + variance  # H P H^T + R
-        k0 = np.where(has, p00 / s, 0.0)  # gain K = P H^T / s
-        k1 = np.where(has, p01 / s, 0.0)
-        innovation = np.where(has[:, None], z - self.pos, 0.0)
+        k0: np.ndarray = p00 / s  # gain K = P H^T / s
+        k1: np.ndarray = p01 / s
+        innovation: np.ndarray = z - self.pos
+        if not has.all():  # the others keep their state
+            k0 = np.where(has, k0, 0.0)
+            k1 = np.where(has, k1, 0.0)
+            innovation = np.where(has[:, None], innovation, 0.0)
         self.pos += k0[:, None] * innovation
         self.vel += k1[:, None] * innovation
         self.p11 -= k1 * p01  # P <- P - K H P

@@ -161,8 +161,8 @@ class Layout:
     estimate, segments ``near`` them).
 
     ``seg_vis``: visible markers per segment; ``target_rows``, ``target_seg``, ``target_local``: each target's row,
-    segment and offset in it; ``segments``: the segments holding a target; ``fit``: the pose fit of the ``near``
-    segments; ``parts``: per segment holding a target, its ``SegmentPart``.
+    segment and offset in it; ``segments``: the segments holding a target; ``rest``: the other ``near`` segments;
+    ``fit_held``, ``fit_rest``: the pose fits of both; ``parts``: per segment holding a target, its ``SegmentPart``.
     """
 
     def __init__(self, body: Body, visible: np.ndarray, targets: np.ndarray, near: np.ndarray) -> None:
@@ -171,7 +171,9 @@ class Layout:
         self.target_seg = body.marker_seg[self.target_rows]
         self.target_local = body.marker_local[self.target_rows]
         self.segments = np.unique(self.target_seg)
-        self.fit = body.fit_for(visible, near)
+        self.rest = np.setdiff1d(near, self.segments)
+        self.fit_held = body.fit_for(visible, self.segments)
+        self.fit_rest = body.fit_for(visible, self.rest)
         self.parts: dict[int, SegmentPart] = {}
         for k in self.segments.tolist():
             members = body.members[k]

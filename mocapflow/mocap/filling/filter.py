@@ -188,13 +188,18 @@ class GapFiller:
         z[~seen] = np.nan
         body = self.body
         flags = seen.astype(np.uint8)
-        poses = None if seen.all() else self._fill_missing(z, seen, flags, rays)
-        measured = flags >= CASE_OBSERVED
-        measured &= flags != CASE_KALMAN
-        self.kf.update(z, self._variance[flags], measured)
-        estimated = flags >= CASE_ONE_MISSING
-        z[estimated] = self.kf.position[estimated]
-        self._unmeasured = np.where(measured & ~self._extrapolated, 0, self._unmeasured + 1)
+        poses = None
+        if seen.all():  # every marker observed: each is its own measurement and its own output
+            self.kf.update(z, self._variance[flags], seen)
+            self._unmeasured[:] = 0
+        else:
+            poses = self._fill_missing(z, seen, flags, rays)
+            measured = flags >= CASE_OBSERVED
+            measured &= flags != CASE_KALMAN
+            self.kf.update(z, self._variance[flags], measured)
+            estimated = flags >= CASE_ONE_MISSING
+            z[estimated] = self.kf.position[estimated]
+            self._unmeasured = np.where(measured & ~self._extrapolated, 0, self._unmeasured + 1)
 
         self._last[1] = self._last[0]
         self._last[0] = z
@@ -219,9 +224,10 @@ class GapFiller:
     def _outliers(self, z: np.ndarray, seen: np.ndarray) -> np.ndarray:
         """Samples of markers seen in the previous frame that are ``outlier_mm`` or more from their prediction: no
         marker moves so in one frame, so they would only pull the filter and the segment fits off."""
-        followed = seen & (self._unmeasured == 0) & np.isfinite(self.kf.position).all(axis=1)
-        far = np.zeros(len(z), bool)
-        far[followed] = np.linalg.norm(z[followed] - self.kf.position[followed], axis=1) >= self.config.outlier_mm
+        step = z - self.kf.position  # NaN rows (not seen, or never seen before) compare False below
+        far = np.sqrt((step * step).sum(axis=1)) >= self.config.outlier_mm
+        far &= seen
+        far &= self._unmeasured == 0
         return far
 
     def _current_poses(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -235,13 +241,13 @@ class GapFiller:
         assert body is not None
         flags = flags.copy()  # the caller may edit the result's arrays before reading the centres
         r, t, ok = self._pose_r[0].copy(), self._pose_t[0].copy(), self._pose_ok[0].copy()
-        stale = np.flatnonzero(~self._pose_fresh[0])
-        if not len(stale):
-            return lambda: joint_centres(body, (r, t, ok), flags)
+        fresh = self._pose_fresh[0].copy()
         z = z.copy()
 
         def centres() -> np.ndarray:
-            r[stale], t[stale], ok[stale] = self._fitted_poses_for(body, z, stale)
+            stale = np.flatnonzero(~fresh)
+            if len(stale):
+                r[stale], t[stale], ok[stale] = self._fitted_poses_for(body, z, stale)
             return joint_centres(body, (r, t, ok), flags)
         return centres
 
@@ -258,16 +264,17 @@ class GapFiller:
         near = np.zeros(0, dtype=int)
         if body is not None:
             near = body.around(~seen)
-            self._ensure_poses(near)
         visible = seen.copy()
+        fit_all = False  # pose every segment near the gaps, not only those holding one (see ``_constrain``)
         if rays is not None:
             rays = np.asarray(rays, dtype=float).reshape(n, 6)
             ray_rows = ~seen & np.isfinite(rays).all(axis=1) & (np.linalg.norm(rays[:, 3:], axis=1) > 0)
             if ray_rows.any():
+                fit_all = True
                 guess = prior.copy()
                 anchored = np.zeros(n, dtype=bool)
                 if body is not None:
-                    est, _, _ = self._constrain(z, visible, prior, ray_rows & body.in_segment, near, keep=False)
+                    est, _, _ = self._constrain(z, visible, prior, ray_rows & body.in_segment, near, False, fit_all)
                     anchored = np.isfinite(est).all(axis=1)
                     guess[anchored] = est[anchored]
                 ok = ray_rows & np.isfinite(guess).all(axis=1)
@@ -285,11 +292,9 @@ class GapFiller:
             memory = self._memory
             assert memory is not None
             memory.kinematic.start_frame()
-            est, codes, (r, t, posed) = self._constrain(z, visible, prior, targets, near, keep=True)
-            fresh = np.zeros(len(body.members), dtype=bool)
-            fresh[near] = True
-            poses = r, t, posed, fresh
-            self._holds = {k: hold for k, hold in self._holds.items() if k in self._held}
+            est, codes, poses = self._constrain(z, visible, prior, targets, near, True, fit_all)
+            if self._holds:
+                self._holds = {k: hold for k, hold in self._holds.items() if k in self._held}
             memory.kinematic.end_frame()
             done = targets & np.isfinite(est).all(axis=1)
             if self._max_coast is not None:
@@ -305,12 +310,16 @@ class GapFiller:
 
     def _constrain(
         self, filled: np.ndarray, visible: np.ndarray, prior: np.ndarray, targets: np.ndarray, near: np.ndarray,
-        keep: bool,
-    ) -> tuple[np.ndarray, np.ndarray, tuple[np.ndarray, np.ndarray, np.ndarray]]:
+        keep: bool, fit_all: bool,
+    ) -> tuple[np.ndarray, np.ndarray, tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
         """Rigid-body estimates (5.3) of the ``targets`` markers from the ``visible`` ones: (N, 3), case codes, and
-        the poses this frame (R, t, known) of the segments ``near`` the targets (holding one, or a neighbour of
-        one; the others are left unknown): fitted to their visible markers when three or more are, else as placed
-        here. ``keep`` stores the two-anchor holds (off for the single-camera pass)."""
+        the poses this frame (R, t, known, and which segments these were worked out for) of the segments holding a
+        target and, when one of them must be placed through its neighbours or with ``fit_all``, of the other
+        segments ``near`` them (the others are left unknown): fitted to their visible markers when three or more
+        are, else as placed here. A neighbour left out has all its markers visible, so its pose is fitted from the
+        filled frame later, alike, if a gap or a reader needs it; ``fit_all`` (single-camera markers, whose filled
+        positions are not their measurements) poses them all now. ``keep`` stores the two-anchor holds (off for the
+        single-camera pass)."""
         body = self.body
         memory = self._memory
         assert body is not None and memory is not None
@@ -320,16 +329,24 @@ class GapFiller:
         codes = np.zeros(n, dtype=np.uint8)
         layout = body.layout(visible, targets, near)
         seg_vis, segments = layout.seg_vis, layout.segments
-        r_all, t_all = np.zeros((len(body.members), 3, 3)), np.zeros((len(body.members), 3))
-        posed = np.zeros(len(body.members), dtype=bool)
-        r_all[near], t_all[near], posed[near] = layout.fit(filled)  # three visible markers fix a pose
-        seen_posed = posed.copy()  # placed with at least one of their own markers visible
+        s = len(body.members)
+        r_all, t_all = np.zeros((s, 3, 3)), np.zeros((s, 3))
+        posed, fresh = np.zeros(s, dtype=bool), np.zeros(s, dtype=bool)
+        r_all[segments], t_all[segments], posed[segments] = layout.fit_held(filled)  # three visible markers fix a
+        fresh[segments] = True  # pose
         direct = posed[layout.target_seg]  # per target: its segment is fitted
         if direct.any():
             rows, seg = layout.target_rows[direct], layout.target_seg[direct]
             est[rows] = (r_all[seg] @ layout.target_local[direct, :, None])[..., 0] + t_all[seg]
             codes[rows] = CASE_ONE_MISSING
         pending = sorted(segments[~posed[segments]].tolist(), key=lambda k: -seg_vis[k])
+        if (pending or fit_all) and len(layout.rest):
+            rest = layout.rest
+            r_all[rest], t_all[rest], posed[rest] = layout.fit_rest(filled)
+            fresh[rest] = True
+        seen_posed = posed.copy()  # placed with at least one of their own markers visible
+        if pending:  # placed from the last frames' poses, fitted now where skipped
+            self._ensure_poses(near)
         force = False  # set once no pending segment can be anchored: the rest keep their last rotation rate
         while pending:
             progress = False
@@ -384,7 +401,7 @@ class GapFiller:
                     r_all[k], t_all[k], posed[k] = r, t, True
                     seen_posed[k] = seg_vis[k] > 0
             force = not progress
-        return est, codes, (r_all, t_all, posed)
+        return est, codes, (r_all, t_all, posed, fresh)
 
     def _estimate_segment(
         self, k: int, p: np.ndarray, a: np.ndarray, w: np.ndarray, anchors: tuple[tuple[str, int], ...],

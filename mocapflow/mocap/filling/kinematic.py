@@ -71,9 +71,11 @@ class KinematicModel:
 
 
 class LearntPlacement:
-    """The kinematic models of the hidden segments: each learnt when its gap starts (or when its visible neighbours
-    change) from the pose history, kept while the segment stays hidden, and asked for the segment's pose each
-    frame.
+    """The kinematic models of the hidden segments, asked for the segment's pose each frame: a hidden segment has
+    one model per set of visible neighbours it has met since its gap began, each learnt from the pose history the
+    first time the segment meets that set. The models are kept while the segment stays hidden, so neighbours seen
+    and lost again and again (dropouts) cost one fit per set rather than one per change; they are dropped when the
+    segment is seen again (``end_frame``) or nothing is hidden (``forget``).
 
     ``history`` takes the segments' poses at sampled frames; ``least`` samples are needed to learn a model.
     """
@@ -82,7 +84,8 @@ class LearntPlacement:
         self.history = PoseHistory(segments, length)
         self.least = least
         self.novelty = novelty
-        self.models: dict[int, tuple[tuple[int, ...], KinematicModel | None]] = {}
+        self.models: dict[int, dict[tuple[int, ...], KinematicModel | None]] = {}  # per hidden segment, per
+        # neighbour set (the reference first)
         self.asked: set[int] = set()  # segments whose model was asked for this frame
 
     def start_frame(self) -> None:
@@ -107,16 +110,20 @@ class LearntPlacement:
         order = [ref, *sorted(other for other in neighbours if other != ref)]
         key = tuple(order)
         self.asked.add(k)
-        cached = self.models.get(k)
-        if cached is None or cached[0] != key:
-            past_r, past_t = self.history.samples([k, *order])
-            model = None
-            if len(past_r) >= max(self.least, 24 * (len(order) - 1)):  # 2 samples per feature
-                world = offsets @ np.swapaxes(past_r[:, 0], 1, 2) + past_t[:, :1]  # (K, M, 3)
-                local = (world - past_t[:, 1:2]) @ past_r[:, 1]  # in the reference's frame
-                model = KinematicModel(relative(past_r[:, 1:], past_t[:, 1:]), local.reshape(len(past_r), -1),
-                                       novelty=self.novelty)
-            cached = self.models[k] = (key, model)
-        model = cached[1]
+        fits = self.models.setdefault(k, {})
+        if key not in fits:
+            fits[key] = self._learn(k, order, offsets)
+        model = fits[key]
         predicted = None if model is None else model(relative(r[order], t[order]))
         return None if predicted is None else predicted.reshape(-1, 3) @ r[ref].T + t[ref]
+
+    def _learn(self, k: int, order: list[int], offsets: np.ndarray) -> KinematicModel | None:
+        """The model of segment ``k``'s markers (``offsets``) in the frame of ``order[0]`` on the poses of the other
+        neighbours ``order[1:]``, from the samples where all were seen whole; None with too few of them."""
+        past_r, past_t = self.history.samples([k, *order])
+        if len(past_r) < max(self.least, 24 * (len(order) - 1)):  # 2 samples per feature
+            return None
+        world = offsets @ np.swapaxes(past_r[:, 0], 1, 2) + past_t[:, :1]  # (K, M, 3)
+        local = (world - past_t[:, 1:2]) @ past_r[:, 1]  # in the reference's frame
+        return KinematicModel(relative(past_r[:, 1:], past_t[:, 1:]), local.reshape(len(past_r), -1),
+                              novelty=self.novelty)
