@@ -232,3 +232,35 @@ def test_model_reaches_a_node_that_starts_late(tmp_path: Path, free_endpoint: st
     assert posed[-1] and len(posed_runs) == 2 and posed_runs[0] > RATE and posed_runs[1] > RATE, posed_runs
     truth = np.stack([sim.frame(i).joint_centres[0] for i in range(len(joint))])
     assert np.nanmax(np.linalg.norm(joint - truth, axis=1)) < 5.0
+
+
+def test_model_stages_yield_the_cpu_to_the_frame_path(tmp_path: Path, free_endpoint: str) -> None:
+    """The clusterer runs at its plugin's niceness (10), a node the graph sets at its own, the others at 0; a group at
+    its most favoured member's."""
+    path, prefix = graph_file(tmp_path, "nc", free_endpoint, f"""
+  tracker: {{plugin: simulator, config: {{rig: rods, rate: {RATE}, seed: 3}}}}
+  clusterer: {{plugin: clusterer-spectral, inputs: {{markers: tracker/markers}}}}
+  relay: {{plugin: relay, inputs: {{markers: tracker/markers}}, nice: 4}}
+  other: {{plugin: relay, inputs: {{markers: relay/markers}}, nice: 12, group: pair}}
+  recorder: {{plugin: recorder, inputs: {{markers: other/markers}}, config: {{path: {tmp_path / 'o.c3d'}}},
+             group: pair}}
+""")
+    run = start(["run", str(path), "--duration", "60"], tmp_path)
+    pids: dict[str, int] = {}
+    try:
+        def on_stats(sample: zenoh.Sample) -> None:
+            stats = orjson.loads(sample.payload.to_bytes())
+            pids[stats["node"]] = stats["pid"]
+
+        with open_client([free_endpoint], timeout=60) as session, \
+                session.declare_subscriber(f"{prefix}/_stats/*", on_stats):
+            wait_for_frames(free_endpoint, prefix, "recorder", RATE)
+            deadline = time.monotonic() + 60
+            while len(pids) < 5 and time.monotonic() < deadline:  # every node's statistics, with its PID
+                time.sleep(0.2)
+            nice = {node: int(Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[16])
+                    for node, pid in dict(pids).items()}
+    finally:
+        run.send_signal(signal.SIGINT)
+        out, _ = run.communicate(timeout=60)
+    assert nice == {"tracker": 0, "clusterer": 10, "relay": 4, "other": 0, "recorder": 0}, (nice, out)

@@ -109,7 +109,7 @@ class Launcher:
                 inputs={p: f"{self.prefix}/{link}" for p, link in spec.inputs.items()},
                 connect=endpoints, peers=list(graph.nodes), end_inputs=ends[name],
                 security=str(self.security) if self.security else None, limits=graph.limits,
-                run=self.run_id, queue=spec.queue, queue_size=spec.queue_size, wait_for=spec.wait_for,
+                run=self.run_id, queue=spec.queue, queue_size=spec.queue_size, wait_for=spec.wait_for, nice=spec.nice,
                 linked=graph.linked_outputs(name),
             )
             for name, spec in graph.nodes.items()
