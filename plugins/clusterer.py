@@ -33,7 +33,6 @@ class SpectralClusterer(Node[ClustererConfig]):
 
     Config: ClassVar[type[ClustererConfig]] = ClustererConfig
     method: ClassVar[Literal["spectral", "distance-threshold"]] = "spectral"
-    nice = 10  # a model stage: its clustering yields the CPU to the frame path
     inputs = {"markers": Input(MarkerFrame, doc="labelled markers")}
     outputs = {"segments": Output(Segments, state=True, doc="the current segment model")}
 

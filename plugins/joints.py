@@ -31,7 +31,6 @@ class VarianceJoints(Node[JointsConfig]):
 
     Config = JointsConfig
     joint_method: ClassVar[Literal["variance", "closed-form"]] = "variance"
-    nice = 10  # a model stage: its solves yield the CPU to the frame path
     inputs = {
         "markers": Input(MarkerFrame, doc="labelled (or filled) markers"),
         "segments": Input(Segments, required=False, state=True, doc="segment model; without it no estimate is made"),

@@ -234,12 +234,11 @@ def test_model_reaches_a_node_that_starts_late(tmp_path: Path, free_endpoint: st
     assert np.nanmax(np.linalg.norm(joint - truth, axis=1)) < 5.0
 
 
-def test_model_stages_yield_the_cpu_to_the_frame_path(tmp_path: Path, free_endpoint: str) -> None:
-    """The clusterer runs at its plugin's niceness (10), a node the graph sets at its own, the others at 0; a group at
-    its most favoured member's."""
+def test_a_node_runs_at_the_niceness_its_graph_sets(tmp_path: Path, free_endpoint: str) -> None:
+    """A node runs at the niceness its graph sets, the others at 0; a group at its most favoured member's."""
     path, prefix = graph_file(tmp_path, "nc", free_endpoint, f"""
   tracker: {{plugin: simulator, config: {{rig: rods, rate: {RATE}, seed: 3}}}}
-  clusterer: {{plugin: clusterer-spectral, inputs: {{markers: tracker/markers}}}}
+  clusterer: {{plugin: clusterer-spectral, inputs: {{markers: tracker/markers}}, nice: 10}}
   relay: {{plugin: relay, inputs: {{markers: tracker/markers}}, nice: 4}}
   other: {{plugin: relay, inputs: {{markers: relay/markers}}, nice: 12, group: pair}}
   recorder: {{plugin: recorder, inputs: {{markers: other/markers}}, config: {{path: {tmp_path / 'o.c3d'}}},

@@ -53,9 +53,8 @@ class NodeSpec(RestartPolicy):
     machine: str | None = Field(default=None, description="agent that runs this node; none: the launcher's machine")
     group: str | None = Field(default=None, description="node group: the nodes of a group run in one process and "
                               "hand messages to one another as Python objects (see docs/ARCHITECTURE.md)")
-    nice: int | None = Field(default=None, ge=0, le=19, description="CPU niceness of the node's process (0 most "
-                             "favoured, 19 least); default: the plugin's (10 for the model stages, clusterers and "
-                             "joint estimators, so their solves yield the CPU to the frame path), else 0")
+    nice: int = Field(default=0, ge=0, le=19, description="CPU niceness of the node's process (0 most favoured, "
+                      "19 least): a model stage set at 10 yields the CPU to the frame path on a busy machine")
     queue: dict[str, QueuePolicy] = Field(
         default_factory=dict, description="input port -> 'all' (every message) or 'latest' (the newest); "
         "default: the plugin's choice for that input, 'all' unless it says otherwise")

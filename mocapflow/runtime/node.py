@@ -71,9 +71,6 @@ class Node(Generic[ConfigT]):
     outputs: ClassVar[dict[str, Output]] = {}
 
     rate: float = 0.0
-    nice: ClassVar[int] = 0
-    """The CPU niceness the runtime gives this node's process unless the graph sets one (0 most favoured, 19 least):
-    model stages that refresh over seconds of motion yield the CPU to the frame path."""
     paced: ClassVar[bool] = True
     """Sources: False when frames are pushed by a device (a live tracker), so the runtime calls ``emit`` again at
     once instead of on the ``rate`` timetable, and ``emit`` itself waits for the next frame."""

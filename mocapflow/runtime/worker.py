@@ -81,7 +81,7 @@ class WorkerSpec(BaseModel):
     queue: dict[str, QueuePolicy] = Field(default_factory=dict,
                                           description="input port -> policy (default: the plugin's)")
     queue_size: int = Field(default=DEFAULT_CAPACITY, ge=1, description="messages an 'all' inbox holds at most")
-    nice: int | None = Field(default=None, ge=0, le=19, description="CPU niceness (default: the plugin's)")
+    nice: int = Field(default=0, ge=0, le=19, description="CPU niceness of the process")
     wait_for: dict[str, float] = Field(
         default_factory=dict, description="input port -> ms: how long a frame waits for that input's message of the "
         "same frame number (feedback from another process)")
@@ -412,7 +412,7 @@ def run_worker(spec: WorkerSpec) -> int:
         classes = {n.node: load(n.plugin) for n in spec.nodes()}
         configs = {n.node: classes[n.node].Config.model_validate(n.config) for n in spec.nodes()}
         # a group runs at the priority of its most favoured member
-        nice = min(classes[n.node].nice if n.nice is None else n.nice for n in spec.nodes())
+        nice = min(n.nice for n in spec.nodes())
         if nice:
             os.nice(nice)
         session = open_client(spec.connect, spec.security)
