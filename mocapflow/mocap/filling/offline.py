@@ -10,7 +10,7 @@ import numpy as np
 
 from mocapflow.mocap.filling.config import FillCase, FillerConfig
 from mocapflow.mocap.filling.filter import GapFiller
-from mocapflow.mocap.filling.posture import posture_fill
+from mocapflow.mocap.filling.posture import gaps, posture_fill
 from mocapflow.mocap.model import SkeletonModel
 from mocapflow.mocap.report import Progress, steps
 
@@ -127,8 +127,7 @@ def trial_gaps(hidden: np.ndarray) -> np.ndarray:
     trial = np.zeros_like(hidden)
     for m in range(n):
         taken = hidden[:, m].copy()
-        edges = np.flatnonzero(np.diff(np.concatenate([[0], taken.astype(np.int8), [0]])))
-        for start, stop in zip(edges[::2], edges[1::2], strict=True):
+        for start, stop in gaps(taken):
             length = stop - start
             # c is free when frames c - 1 .. c + length are neither hidden nor taken
             busy = np.concatenate([[0], np.cumsum(taken)])
@@ -156,8 +155,7 @@ def backward_weights(missing: np.ndarray) -> np.ndarray:
     frames, n = missing.shape
     weight = np.zeros((frames, n))
     for m in range(n):
-        edges = np.flatnonzero(np.diff(np.concatenate([[0], missing[:, m].astype(np.int8), [0]])))
-        for start, stop in zip(edges[::2], edges[1::2], strict=True):
+        for start, stop in gaps(missing[:, m]):
             if start == 0 and stop == frames:
                 weight[:, m] = 0.5
             elif start == 0:

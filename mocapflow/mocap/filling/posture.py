@@ -20,6 +20,12 @@ import numpy as np
 TRAINING_FRAMES = 20  # fewer complete frames than this: the components are learnt from every frame, imputed
 
 
+def gaps(hidden: np.ndarray) -> list[tuple[int, int]]:
+    """The gaps of one marker, ``(start, stop)`` frame ranges, from its (F,) ``hidden`` flags."""
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], hidden.astype(np.int8), [0]])))
+    return list(zip(edges[::2].tolist(), edges[1::2].tolist(), strict=True))
+
+
 def interpolate_linear(x: np.ndarray) -> np.ndarray:
     """(F, N, 3) every marker's gaps bridged by a straight line; a gap at an end holds the nearest seen position; a
     marker never seen stays NaN."""
@@ -104,8 +110,7 @@ def _meet_ends(x: np.ndarray, out: np.ndarray, model: PostureModel) -> None:
     hidden = ~np.isfinite(x).all(axis=-1)
     frames = len(x)
     for m in range(x.shape[1]):
-        edges = np.flatnonzero(np.diff(np.concatenate([[0], hidden[:, m].astype(np.int8), [0]])))
-        for start, stop in zip(edges[::2], edges[1::2], strict=True):
+        for start, stop in gaps(hidden[:, m]):
             errors = []
             for f in (start - 1, stop):
                 if 0 <= f < frames:
