@@ -111,7 +111,7 @@ def _meet_ends(x: np.ndarray, out: np.ndarray, model: PostureModel) -> None:
     frames = len(x)
     for m in range(x.shape[1]):
         for start, stop in gaps(hidden[:, m]):
-            errors = []
+            errors: list[np.ndarray | None] = []
             for f in (start - 1, stop):
                 if 0 <= f < frames:
                     seen = seen_all[f].copy()
@@ -119,10 +119,10 @@ def _meet_ends(x: np.ndarray, out: np.ndarray, model: PostureModel) -> None:
                     errors.append(x[f, m] - model.reconstruct(flat[f], seen)[3 * m:3 * m + 3] if seen.any() else None)
                 else:
                     errors.append(None)
-            before, after = errors
-            if before is None and after is None:
+            known = [e for e in errors if e is not None]
+            if not known:
                 continue
-            before = after if before is None else before
-            after = before if after is None else after
+            before = known[0] if errors[0] is None else errors[0]
+            after = known[-1] if errors[1] is None else errors[1]
             t = (np.arange(start, stop) - start + 1)[:, None] / (stop - start + 1)
             out[start:stop, m] += (1 - t) * before + t * after
