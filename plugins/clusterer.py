@@ -16,7 +16,10 @@ from mocapflow.runtime.node import Input, Node, Output
 class ClustererConfig(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
-    window_s: float = Field(default=5.0, gt=0, description="sliding window of distance statistics (s)")
+    window_s: float = Field(default=20.0, gt=0, description="recent motion the distance statistics cover (s)")
+    warmup_s: float = Field(default=5.0, gt=0, description="motion seen before the first partition (s)")
+    sample_hz: float = Field(default=60.0, gt=0, description="rate at which frames enter the statistics (Hz); every "
+                             "frame of a slower stream")
     every_s: float = Field(default=0.5, gt=0, description="how often the partition is computed again (s); up to four "
                            "times less often while it holds")
     segments: int | None = Field(default=None, ge=2, description="number of segments; none: chosen from the data")
@@ -29,7 +32,10 @@ class DistanceClustererConfig(ClustererConfig):
 
 class SpectralClusterer(Node[ClustererConfig]):
     """Spectral clustering of the distance-spread graph with local scaling (Schoenauer 2007, 3.4). Publishes a
-    segment model after one window and again only when it changes (at once, when seeded with a saved skeleton)."""
+    segment model after the warm-up and again only when it changes (at once, when seeded with a saved skeleton).
+
+    The statistics sample the stream at ``sample_hz`` and cover a long window, as the filler's learner does: a joint
+    held still for a few seconds keeps the segments it was seen to separate, and each frame costs little."""
 
     Config: ClassVar[type[ClustererConfig]] = ClustererConfig
     method: ClassVar[Literal["spectral", "distance-threshold"]] = "spectral"
@@ -38,6 +44,8 @@ class SpectralClusterer(Node[ClustererConfig]):
 
     def setup(self) -> None:
         self.tracker: SegmentTracker | None = None
+        self.stride = 1  # frames per sample
+        self.frames = 0
         self.seed = read_skeleton(self.config.skeleton).segments if self.config.skeleton else None
 
     def options(self) -> dict[str, Any]:
@@ -52,10 +60,17 @@ class SpectralClusterer(Node[ClustererConfig]):
         if self.tracker is not None and added(self.tracker.labels, message.labels):
             self.tracker.grow(message.labels)  # new markers confirmed upstream: the statistics so far still count
         elif self.tracker is None or self.tracker.labels != message.labels:  # another marker set
-            window = max(2, round(self.config.window_s * message.rate))
-            self.tracker = SegmentTracker(message.labels, window=window,
-                                          every=max(1, round(self.config.every_s * message.rate)),
+            config = self.config
+            self.stride = max(1, round(message.rate / config.sample_hz))
+            samples = message.rate / self.stride  # per second
+            self.tracker = SegmentTracker(message.labels, window=max(2, round(config.window_s * samples)),
+                                          warmup=max(2, round(min(config.warmup_s, config.window_s) * samples)),
+                                          every=max(1, round(config.every_s * samples)),
                                           method=self.method, **self.options())
+            self.frames = 0
+        self.frames += 1
+        if (self.frames - 1) % self.stride:
+            return
         model = self.tracker.update(message.positions)
         if model is not None:
             self.log.info("segments: %s", "; ".join(f"{s.name}: {' '.join(s.markers)}" for s in model.segments))

@@ -38,7 +38,6 @@ class LabellerNode(Node[LabellerConfig]):
         self.reacquire = Reacquirer(self.labeller) if self.labeller is not None else None
         self._resumed_at: float | None = None  # stream time of the first frame after a restart
         self._empty_since: float | None = None  # stream time of the first of consecutive frames with no point
-        self.placed = 0
         if self.labeller is not None:
             self.log.info("resuming %d tracks after a restart", len(self.labeller.labels))
         self.predictions: MarkerFrame | None = None
@@ -66,13 +65,14 @@ class LabellerNode(Node[LabellerConfig]):
             self._empty_since = time if self._empty_since is None else self._empty_since
         elif self._empty_since is not None:
             if time - self._empty_since > labeller.config.max_coast_s and self.reacquire is None:
-                self.reacquire, self._resumed_at, self.placed = Reacquirer(labeller), None, 0  # as after a restart
+                self.reacquire, self._resumed_at = Reacquirer(labeller), None  # as after a restart
             self._empty_since = None
         if self.reacquire is not None:  # every marker was lost while this node restarted: find them by their layouts
             self._resumed_at = time if self._resumed_at is None else self._resumed_at
-            self.placed += self.reacquire(frame.positions.astype(np.float64), time)
-            if time - self._resumed_at >= RESUME_S or self.placed >= len(labeller.labels):
-                self.log.info("found %d of %d tracks again by their rigid layouts", self.placed, len(labeller.labels))
+            self.reacquire(frame.positions.astype(np.float64), time)
+            found = len(self.reacquire.found)
+            if time - self._resumed_at >= RESUME_S or found >= len(labeller.labels):
+                self.log.info("found %d of %d tracks again by their rigid layouts", found, len(labeller.labels))
                 self.reacquire = None
         result = labeller.update(frame.positions.astype(np.float64), frame.frame / frame.rate, self._predicted(frame),
                                  rays)

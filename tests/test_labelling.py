@@ -366,3 +366,42 @@ def test_the_labeller_node_gives_the_labeller_the_predictions_of_its_tracks() ->
         holds.update({int(t): int(m) for t, m in zip(result.point_track, rec.identity[i], strict=True)
                       if t >= 0 and m >= 0})
     assert differ > 0, "the predictions never mattered"
+
+
+@pytest.mark.parametrize("gap", [320, 820])
+def test_a_labeller_resumed_after_a_gap_names_no_other_marker(gap: int) -> None:
+    """A labeller's tracks saved, every marker lost for ``gap`` frames (a restart), then found again by their rigid
+    layouts (``mocap.reacquire``): the mirror-image hands and arms, which fit either side, are never swapped. After
+    these gaps the arms had swung so far that the head and trunk no longer told the two ways apart."""
+    import pickle
+
+    from mocapflow.mocap.reacquire import Reacquirer
+
+    rate, saved_at = 240.0, 840
+    sim = Simulator(SimulatorConfig(rig="human", rate=rate, seed=3, unlabelled=True))
+    labeller = Labeller(LabellerConfig(), rate)
+
+    def identities(frame: int, positions: np.ndarray) -> np.ndarray:
+        """The simulated marker each track's point is (-1: none)."""
+        shot = sim.frame(frame)
+        d = np.linalg.norm(positions[:, None] - shot.points[None], axis=2)
+        d = np.where(np.isnan(d), np.inf, d)
+        near = d.argmin(axis=1)
+        return np.where(d[np.arange(len(positions)), near] < 1e-6, shot.identity[near], -1)
+
+    for i in range(saved_at + 1):
+        result = labeller.update(sim.frame(i).points.astype(float), i / rate)
+    before = identities(saved_at, result.positions)
+    assert (before >= 0).sum() >= 40
+    resumed = pickle.loads(pickle.dumps(labeller))  # as the node keeps and loads its state
+    find = Reacquirer(resumed)
+    start = saved_at + gap
+    for i in range(start, start + int(rate)):
+        points = sim.frame(i).points.astype(float)
+        find(points, i / rate)
+        result = resumed.update(points, i / rate)
+    after = identities(start + int(rate) - 1, result.positions)
+    both = (before[: len(after)] >= 0) & (after[: len(before)] >= 0)
+    moved = both & (before[: len(after)] != after[: len(before)])
+    assert not moved.any(), f"{moved.sum()} labels name another marker after the gap"
+    assert both.sum() >= len(before) // 2  # most markers keep their label

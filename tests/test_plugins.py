@@ -35,13 +35,15 @@ def test_clusterer_seeded_with_a_skeleton_publishes_its_segments_at_once(tmp_pat
     assert sent[0][1].segments == read_skeleton(path).segments
 
 
-def test_clusterer_learns_segments_after_its_window_and_repeats_only_changes() -> None:
+def test_clusterer_learns_segments_after_its_warmup_and_repeats_only_changes() -> None:
     stream, _ = frames(400)
+    assert stream[0].rate == 120
     sent: list[Segments] = []
-    node = SpectralClusterer(ClustererConfig(window_s=1.0, every_s=0.25), lambda port, msg: sent.append(msg))
+    node = SpectralClusterer(ClustererConfig(warmup_s=1.0, every_s=0.25), lambda port, msg: sent.append(msg))
     for message in stream:
         node.process("markers", message)
-    assert len(sent) == 1 and sent[0].frame == 119  # after one window, then no change
+    # 60 samples (one second at the default 60 Hz: every other frame, the first one included), then no change
+    assert len(sent) == 1 and sent[0].frame == 118
     rig = make_rig("rods")
     truth = {frozenset(label for label, s in zip(rig.marker_labels, rig.marker_segment, strict=True) if s == k)
              for k in range(len(rig.segments))}

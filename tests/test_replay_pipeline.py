@@ -109,8 +109,8 @@ def test_simulated_capture_through_the_pipeline_equals_fill(tmp_path: Path, free
             "--set", "long_gaps=2", "--set", "seed=5")
     offline("fill", source, "-o", tmp_path / "filled.c3d")
     graph, _ = deployment(tmp_path, free_endpoint, "ss")
-    # short windows, so that segments and skeleton are learnt and solved within the six seconds
-    out = finish(start_replay(graph, source, tmp_path / "live.c3d", "clusterer.window_s=2", "joints.window_s=3",
+    # a short warm-up and joint window, so that segments and skeleton are learnt and solved within the six seconds
+    out = finish(start_replay(graph, source, tmp_path / "live.c3d", "clusterer.warmup_s=2", "joints.window_s=3",
                               "joints.every_s=1", "tracker.speed=2"))
     assert "all nodes finished" in out, out
     live = read_markers(tmp_path / "live.c3d")
@@ -134,7 +134,7 @@ def test_cmu_capture_replays_every_frame(tmp_path: Path, free_endpoint: str, dat
     run = subprocess.Popen(
         [*CLI, "run", str(graph), "--set", f"tracker.path={source}", "--set", f"recorder.path={tmp_path / 'live.c3d'}",
          # windows short enough for a skeleton within the capture's 6.75 s: a run that never poses a frame fails
-         "--set", "clusterer.window_s=2", "--set", "joints.window_s=3", "--set", "joints.every_s=1",
+         "--set", "clusterer.warmup_s=2", "--set", "joints.window_s=3", "--set", "joints.every_s=1",
          "--summary", str(summary)], cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     out = finish(run)
     assert "all nodes finished" in out, out

@@ -62,7 +62,7 @@ def graph_with_sinks(tmp_path: Path, base: str, endpoint: str, sinks: dict[str, 
     graph["nodes"]["tracker"]["config"].update(tracker)
     graph["nodes"]["recorder"]["config"]["path"] = str(tmp_path / "recorded.c3d")
     if short_windows:  # segments and skeleton learnt within seconds
-        graph["nodes"]["clusterer"]["config"] = {"window_s": 2}
+        graph["nodes"]["clusterer"]["config"] = {"warmup_s": 2}
         graph["nodes"]["joints"]["config"] = {"window_s": 3, "every_s": 1}
     graph["nodes"].update(sinks)
     path = tmp_path / "graph.yaml"
@@ -181,7 +181,7 @@ def test_sink_draws_a_real_capture_replayed_at_its_display_rate(tmp_path: Path, 
     sinks = {"viewer": {"plugin": "rerun", "inputs": SINK, "config": {"save": str(tmp_path / "scene.rrd"), "up": up}}}
     graph = graph_with_sinks(tmp_path, "c3d-replay.yaml", free_endpoint, sinks,
                              {"path": str(source), "speed": 2}, False)
-    out = run("run", graph, "--duration", "150", "--set", "clusterer.window_s=2", "--set", "joints.window_s=2",
+    out = run("run", graph, "--duration", "150", "--set", "clusterer.warmup_s=2", "--set", "joints.window_s=2",
               "--set", "joints.every_s=0.5")
     assert "all nodes finished" in out, out
     recorded = read_markers(tmp_path / "recorded.c3d")

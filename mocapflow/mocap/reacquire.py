@@ -7,7 +7,8 @@ cloud by its pairwise distances, placed by a proper rotation (so a mirror image,
 fit), and the marker takes the point only when its whole layout fits one way far better than any other and no other
 marker claims that point. Markers placed so pin their partners' layouts; a layout that still fits several ways (the
 mirror-image segments of a body, a triangle of nearly equal sides) is decided by the distances to, then by where
-each way puts, the nearby markers placed so far. The markers placed are tracked again from that frame on; the
+each way puts, the nearby markers placed so far (only while the best way puts them within the layout's own size:
+after a long restart they have moved otherwise). The markers placed are tracked again from that frame on; the
 others are looked for again in the next frames. Only this brings a track back: the labeller relearns its other cues
 from scratch, so a marker that cannot be placed surely gets a new label rather than another marker's.
 """
@@ -90,19 +91,20 @@ class Reacquirer:
         # Only these layouts bring a track back: the labeller's own cues (snapshots, partner distances) were learnt
         # before the gap and, with every marker lost at once, could hand a mirror-image marker to the wrong track.
         self.mean = tracks.pair_mean.copy()
+        self.found: set[int] = set()  # tracks placed so far
         tracks.forget_cues()
 
-    def __call__(self, points: np.ndarray, time: float) -> int:
+    def __call__(self, points: np.ndarray, time: float) -> None:
         """Place the lost tracks on ``points`` captured at ``time`` where their layouts say surely; those are followed
-        from this frame on as if seen in the previous one. Returns how many were placed."""
+        from this frame on as if seen in the previous one, and join ``found``."""
         lab = self.labeller.tracks
         lab.streak[time - lab.last > lab.config.max_coast_s] = 0  # tracks not seen since the restart are lost
         cloud = points[np.isfinite(points).all(axis=1)]
         if len(cloud) < 3:
-            return 0
+            return
         dist = cdist(cloud, cloud)
         placed = _followed(self.labeller, cloud, time)  # track -> point
-        before = len(placed)
+        followed = set(placed)
         while True:  # markers placed surely pin their partners' layouts, which then fit fewer ways
             claims: dict[int, list[int]] = {}
             for track, members in self.layouts.items():
@@ -126,7 +128,7 @@ class Reacquirer:
             if lab.streak[t] == 0:
                 lab.pos[t], lab.vel[t] = cloud[point], 0.0
                 lab.last[t], lab.streak[t] = time - 1.0 / lab.rate, 1  # as if seen a frame ago
-        return len(placed) - before
+        self.found.update(set(placed) - followed)
 
     def _steadiest(self, track: int, members: np.ndarray, placed: dict[int, int]) -> np.ndarray:
         others = np.array([t for t in placed if t not in members and np.isfinite(self.sd[track, t])], np.intp)
@@ -149,13 +151,18 @@ class Reacquirer:
     def _by_context(self, track: int, members: np.ndarray, found: dict[int, Placement], cloud: np.ndarray,
                     placed: dict[int, int]) -> list[tuple[float, int]]:
         """Ways a layout fits (a triangle of nearly equal sides), scored by how far each puts the steadiest placed
-        markers outside the layout from where they are (their positions before the restart, moved with the layout)."""
+        markers outside the layout from where they are (their positions before the restart, moved with the layout);
+        none when even the best way puts them further off than the layout is wide."""
         others = self._steadiest(track, members, placed)
         if len(others) == 0:
             return []
         at = cloud[[placed[t] for t in others]]
-        return [(float(np.median(np.linalg.norm(self.saved[others] @ rot.T + shift - at, axis=1))), p)
-                for p, (_, rot, shift) in found.items()]
+        scored = [(float(np.median(np.linalg.norm(self.saved[others] @ rot.T + shift - at, axis=1))), p)
+                  for p, (_, rot, shift) in found.items()]
+        extent = cdist(self.saved[members], self.saved[members]).max()
+        # those markers moved otherwise than the layout since it was saved (a limb swung through the restart): the
+        # best way misplacing them by more than the layout's own size tells nothing of how the layout is turned
+        return scored if min(scored)[0] <= extent else []
 
 
 def _followed(labeller: Labeller, cloud: np.ndarray, time: float) -> dict[int, int]:
