@@ -30,7 +30,7 @@ class VarianceJoints(Node[JointsConfig]):
     minimum spanning tree, rigid parameters by Horn's method; recomputed over a sliding window of recent frames."""
 
     Config = JointsConfig
-    joint_method: ClassVar[Literal["variance", "closed-form"]] = "variance"
+    joint_method: ClassVar[Literal["variance", "closed-form", "auto"]] = "variance"
     inputs = {
         "markers": Input(MarkerFrame, doc="labelled (or filled) markers"),
         "segments": Input(Segments, required=False, state=True, doc="segment model; without it no estimate is made"),
@@ -87,6 +87,8 @@ class VarianceJoints(Node[JointsConfig]):
 
 class ClosedFormJoints(VarianceJoints):
     """Centres of rotation by the closed-form least-squares solution of Aristidou 2008, 4.4 (6 x 6 system, Schur
-    complement), topology by minimum spanning tree; recomputed over a sliding window of recent frames."""
+    complement), topology by minimum spanning tree; recomputed over a sliding window of recent frames. A segment of
+    two markers, whose orientation they cannot fix, is placed down the tree from its neighbours, as ``mocapflow
+    calibrate`` does, rather than holding back the whole skeleton."""
 
-    joint_method = "closed-form"
+    joint_method = "auto"

@@ -290,6 +290,23 @@ def test_closed_form_needs_three_markers_per_segment() -> None:
         frozenset((skeleton.segments[1].name, skeleton.segments[2].name))}
 
 
+def test_a_marker_seen_too_rarely_is_left_out_of_its_segment(caplog: pytest.LogCaptureFixture) -> None:
+    """A live clusterer may put a short-lived track (a ghost confirmed, then gone) in a segment: the skeleton is built
+    without it, from the markers that fix the segment's orientation, rather than refused."""
+    rec = _recording("rods")
+    groups = [[i for i, s in enumerate(rec.marker_segment) if s == seg] for seg in ("rod1", "rod2", "rod3")]
+    rare = np.full((len(rec.positions), 1, 3), np.nan)
+    rare[:50, 0] = rec.positions[:50, groups[2][0]] + 40.0  # seen in 50 of 2000 frames
+    positions = np.concatenate([rec.positions, rare], axis=1)
+    groups[2].append(len(rec.labels))
+    with caplog.at_level("WARNING"):
+        skeleton = build_skeleton(positions, [*rec.labels, "GHOST"], rec.rate, groups, "closed-form")
+    assert "GHOST" in caplog.text
+    assert "GHOST" not in {m for segment in skeleton.segments for m in segment.markers}
+    truth = build_skeleton(rec.positions, rec.labels, rec.rate, groups[:2] + [groups[2][:-1]], "closed-form")
+    assert skeleton.model_dump() == truth.model_dump()
+
+
 def test_a_joint_with_too_little_motion_is_reported_and_placed_between_the_segments(
         caplog: pytest.LogCaptureFixture) -> None:
     rec = _recording("rods")

@@ -77,6 +77,26 @@ def test_joint_estimator_keeps_its_frames_when_new_markers_are_confirmed() -> No
     assert len(sent[-1].skeleton.joints) == len(rig.segments) - 1
 
 
+def test_closed_form_joint_estimator_places_a_two_marker_segment_down_the_tree() -> None:
+    """A segment of two markers cannot fix its orientation for the closed form: the estimator places it from its
+    neighbour, as the calibrate command does, instead of publishing no skeleton at all."""
+    stream, labels = frames(480)
+    rig = make_rig("rods")
+    members = [[m for m, k in zip(rig.marker_labels, rig.marker_segment, strict=True) if k == s]
+               for s in range(len(rig.segments))]
+    members[-1] = members[-1][:2]
+    sent: list[Skeleton] = []
+    node = ClosedFormJoints(JointsConfig(window_s=4.0, every_s=4.0), lambda port, msg: sent.append(msg))
+    node.process("segments", Segments(frame=0, capture_ns=0, segments=[
+        Segment(name=name, markers=markers) for name, markers in zip(rig.segments, members, strict=True)]))
+    for message in stream:
+        node.process("markers", message)
+    assert sent, "no skeleton"
+    skeleton = sent[-1].skeleton
+    assert len(skeleton.joints) == len(rig.segments) - 1
+    assert {m for segment in skeleton.segments for m in segment.markers} == {m for g in members for m in g}
+
+
 def test_an_unknown_plugin_is_one_line(capsys: pytest.CaptureFixture) -> None:
     from mocapflow.cli import main
 

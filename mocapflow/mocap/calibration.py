@@ -148,8 +148,10 @@ def build_skeleton(positions: np.ndarray, labels: Sequence[str], rate: float, gr
     if joint_method not in ("auto", "variance", "closed-form"):
         raise ValueError(f"unknown joint method {joint_method!r}; choose auto, variance or closed-form")
     requested = joint_method
-    positions, _ = _clean(positions, labels)
+    positions, usable = _clean(positions, labels)
     frames = positions.shape[0]
+    kept = set(usable.tolist())  # the rare markers are left out
+    groups = [g for g in ([m for m in group if m in kept] for group in groups) if g]
     for group in groups:
         if len(group) < 2:
             log.warning("left out %s: the only marker of its segment (a segment needs at least 2)",
