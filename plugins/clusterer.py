@@ -30,15 +30,16 @@ class DistanceClustererConfig(ClustererConfig):
     threshold_mm: float = Field(default=5.0, gt=0, description="largest distance spread within a segment (mm)")
 
 
-class SpectralClusterer(Node[ClustererConfig]):
-    """Spectral clustering of the distance-spread graph with local scaling (Schoenauer 2007, 3.4). Publishes a
-    segment model after the warm-up and again only when it changes (at once, when seeded with a saved skeleton).
+class RigidityClusterer(Node[ClustererConfig]):
+    """Segments as the markers that keep their distances within the recording's own noise, as ``mocapflow
+    calibrate`` finds them (``clustering.partition_rigidity``). Publishes a segment model after the warm-up and again
+    only when it changes (at once, when seeded with a saved skeleton).
 
     The statistics sample the stream at ``sample_hz`` and cover a long window, as the filler's learner does: a joint
     held still for a few seconds keeps the segments it was seen to separate, and each frame costs little."""
 
     Config: ClassVar[type[ClustererConfig]] = ClustererConfig
-    method: ClassVar[Literal["spectral", "distance-threshold"]] = "spectral"
+    method: ClassVar[Literal["rigidity", "spectral", "distance-threshold"]] = "rigidity"
     inputs = {"markers": Input(MarkerFrame, doc="labelled markers")}
     outputs = {"segments": Output(Segments, state=True, doc="the current segment model")}
 
@@ -77,7 +78,14 @@ class SpectralClusterer(Node[ClustererConfig]):
             self.publish("segments", Segments.derive(message, segments=model.segments))
 
 
-class DistanceClusterer(SpectralClusterer):
+class SpectralClusterer(RigidityClusterer):
+    """Spectral clustering of the distance-spread graph with local scaling (Schoenauer 2007, 3.4); the number of
+    segments, unless given, from the eigengap."""
+
+    method = "spectral"
+
+
+class DistanceClusterer(RigidityClusterer):
     """Markers whose mutual distances vary less than a threshold form a segment (Aristidou 2008, 3.2)."""
 
     Config = DistanceClustererConfig

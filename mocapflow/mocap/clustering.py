@@ -371,7 +371,7 @@ class SegmentTracker:
     """
 
     def __init__(self, labels: Sequence[str], *, window: int = 600, warmup: int | None = None, every: int = 30,
-                 backoff: int = 4, method: Literal["spectral", "distance-threshold"] = "spectral",
+                 backoff: int = 4, method: Literal["rigidity", "spectral", "distance-threshold"] = "spectral",
                  **options: object) -> None:
         if method not in PARTITIONERS:
             raise ValueError(f"unknown clustering method {method!r}; choose one of {', '.join(PARTITIONERS)}")
