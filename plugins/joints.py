@@ -23,11 +23,14 @@ class JointsConfig(BaseModel):
     refine: bool = Field(default=True, description="estimate the skeleton again from live data")
     window_s: float = Field(default=20.0, gt=0, description="recent motion the estimate uses (s)")
     every_s: float = Field(default=5.0, gt=0, description="time between two estimates (s)")
+    sample_hz: float = Field(default=60.0, gt=0, description="rate at which frames enter the window (Hz); every "
+                             "frame of a slower stream")
 
 
 class VarianceJoints(Node[JointsConfig]):
     """Joint positions minimising the variance of marker-to-joint distances (Schoenauer 2007, 3.5), topology by
-    minimum spanning tree, rigid parameters by Horn's method; recomputed over a sliding window of recent frames."""
+    minimum spanning tree, rigid parameters by Horn's method; recomputed over a sliding window of recent frames,
+    sampled at ``sample_hz`` (the estimate samples its frames more sparsely still)."""
 
     Config = JointsConfig
     joint_method: ClassVar[Literal["variance", "closed-form", "auto"]] = "variance"
@@ -43,7 +46,8 @@ class VarianceJoints(Node[JointsConfig]):
         self.segments: Segments | None = None
         self.frames: deque[np.ndarray] = deque()
         self.labels: list[str] | None = None
-        self.next_estimate = 0
+        self.next_estimate = 0  # samples to the next estimate
+        self.received = 0  # frames of the current marker set
 
     def process(self, port: str, message: MarkerFrame | Segments) -> None:
         if isinstance(message, Segments):
@@ -61,20 +65,25 @@ class VarianceJoints(Node[JointsConfig]):
                 self.frames = deque(np.vstack([f, pad]) for f in self.frames)
             else:
                 self.frames.clear()
-                self.next_estimate = 0
+                self.next_estimate = self.received = 0
             self.labels = message.labels
+        stride = max(1, round(message.rate / self.config.sample_hz))
+        self.received += 1
+        if (self.received - 1) % stride:
+            return
+        samples = message.rate / stride  # per second
         self.frames.append(message.positions)
-        window = round(self.config.window_s * message.rate)
+        window = round(self.config.window_s * samples)
         while len(self.frames) > window:
             self.frames.popleft()
         self.next_estimate -= 1
         if self.segments is None or self.next_estimate > 0 or len(self.frames) < window // 2:
             return
-        self.next_estimate = round(self.config.every_s * message.rate)
+        self.next_estimate = round(self.config.every_s * samples)
         index = {label: i for i, label in enumerate(self.labels)}
         groups = [[index[m] for m in s.markers if m in index] for s in self.segments.segments]
         try:
-            skeleton = build_skeleton(np.stack(self.frames), self.labels, message.rate, [g for g in groups if g],
+            skeleton = build_skeleton(np.stack(self.frames), self.labels, samples, [g for g in groups if g],
                                       self.joint_method)
         except CalibrationError as exc:
             self.log.warning("no skeleton yet: %s", exc)

@@ -70,8 +70,9 @@ def test_joint_estimator_keeps_its_frames_when_new_markers_are_confirmed() -> No
         known = len(labels) - 1 if i < 150 else len(labels)  # the last marker is confirmed at frame 150
         node.process("markers", MarkerFrame(frame=i, capture_ns=i, rate=120, positions=positions[:known],
                                             labels=labels[:known]))
-    # half of the 240-frame window after the first frame, then every 120 frames, the new marker no reason to wait
-    assert [message.frame for message in sent] == [119, 239, 359]
+    # half of the 2 s window (120 samples at 60 Hz: every other frame) after the first frame, then every second, the
+    # new marker no reason to wait
+    assert [message.frame for message in sent] == [118, 238, 358]
     assert rec.labels[late] not in {m for seg in sent[0].skeleton.segments for m in seg.markers}
     assert rec.labels[late] in {m for seg in sent[-1].skeleton.segments for m in seg.markers}
     assert len(sent[-1].skeleton.joints) == len(rig.segments) - 1
