@@ -46,3 +46,27 @@ def test_a_stream_of_sigterm_stops_the_process_once_and_never_hangs_it() -> None
             child.wait()
     assert child.returncode == 0
     assert out.strip() == "stopped by SIGTERM True"
+
+
+ELSEWHERE = textwrap.dedent("""
+    import signal, threading, time
+    from mocapflow.runtime.signals import stop_on_signals
+    stop = threading.Event()
+
+    def elsewhere():
+        time.sleep(0.5)  # the main thread is waiting by now
+        signal.pthread_kill(threading.get_ident(), signal.SIGTERM)
+
+    with stop_on_signals(stop):
+        # the kernel may hand a process's signal to any of its threads (a Zenoh session runs several): here, to one
+        # that is not the main thread, which waits without a timeout and is never woken to run a Python handler
+        threading.Thread(target=elsewhere).start()
+        stop.wait()
+    print("stopped", flush=True)
+""")
+
+
+@pytest.mark.integration
+def test_a_signal_landing_on_another_thread_stops_a_main_thread_waiting_without_timeout() -> None:
+    done = subprocess.run([sys.executable, "-c", ELSEWHERE], capture_output=True, text=True, timeout=30)
+    assert (done.returncode, done.stdout.strip()) == (0, "stopped"), done.stderr
