@@ -7,14 +7,12 @@ and says loudly when it is told to listen on another address with no authenticat
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 import threading
 
 from mocapflow.runtime.signals import stop_on_signals
 
 PORT = 7447
-CLOSE_S = 5.0  # longest wait for the router's links to close once it is told to stop
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -37,7 +35,7 @@ def loopback(endpoint: str) -> bool:
 def run(args: argparse.Namespace) -> int:
     import zenoh
 
-    from mocapflow.runtime.session import close_within, open_router, settings
+    from mocapflow.runtime.session import open_router, settings
 
     chosen = settings(args.config)
     scheme = "tls" if chosen is not None and chosen.tls_listener else "tcp"
@@ -54,21 +52,14 @@ def run(args: argparse.Namespace) -> int:
         what = "joined" if event.kind == zenoh.SampleKind.PUT else "left"
         print(f"mocapflow router: {event.transport.whatami} {event.transport.zid} {what}", flush=True)
 
-    with stop_on_signals(stop):
-        session = open_router(listen, args.config)
-        try:
-            security = "no security settings" if chosen is None else ", ".join([
-                "TLS" if chosen.tls_listener else "no TLS",
-                f"{len(chosen.accepted_users())} user(s)" if chosen.accepted_users() else "no authentication",
-                "access control" if chosen.access is not None else "no access control",
-            ])
-            print(f"mocapflow router: {session.zid()} listening on {', '.join(listen)} ({security})", flush=True)
-            with session.info.declare_transport_events_listener(on_transport):
-                stop.wait()
-        finally:
-            closed = close_within(session, CLOSE_S)
-    if not closed:  # a router holds nothing to deliver: its links are left to the system
-        print(f"mocapflow router: stopped (links still closing after {CLOSE_S:g} s)", flush=True)
-        os._exit(0)
+    with stop_on_signals(stop), open_router(listen, args.config) as session:
+        security = "no security settings" if chosen is None else ", ".join([
+            "TLS" if chosen.tls_listener else "no TLS",
+            f"{len(chosen.accepted_users())} user(s)" if chosen.accepted_users() else "no authentication",
+            "access control" if chosen.access is not None else "no access control",
+        ])
+        print(f"mocapflow router: {session.zid()} listening on {', '.join(listen)} ({security})", flush=True)
+        with session.info.declare_transport_events_listener(on_transport):
+            stop.wait()
     print("mocapflow router: stopped", flush=True)
     return 0

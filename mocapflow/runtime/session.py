@@ -8,7 +8,6 @@ introspection commands) applies the same file without passwords on any command l
 from __future__ import annotations
 
 import json
-import threading
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any, Literal
@@ -77,23 +76,6 @@ def open_client(connect: Sequence[str], security: str | Path | None = None,
         raise MocapflowError(f"no router accepted this session at {', '.join(endpoints)} within {timeout:g} s: is it "
                              "running there, and are the security settings (login, TLS) the router's? "
                              "(--timeout S to wait longer)") from None
-
-
-def close_within(session: zenoh.Session, seconds: float) -> bool:
-    """Close ``session``, waiting at most ``seconds``; whether it closed. Zenoh's close may wait on a link whose peer
-    does not answer (up to its own timeout, then an error): a process with nothing left to deliver need not."""
-    done = threading.Event()
-
-    def close() -> None:
-        try:
-            session.close()
-        except zenoh.ZError:  # the close timed out: nothing is left to deliver either way
-            pass
-        finally:
-            done.set()
-
-    threading.Thread(target=close, name="close", daemon=True).start()
-    return done.wait(seconds)
 
 
 def open_router(listen: Sequence[str], security: str | Path | None = None) -> zenoh.Session:
