@@ -11,6 +11,7 @@ from mocapflow.messages import MarkerFrame, Segments
 from mocapflow.mocap.clustering import SegmentTracker
 from mocapflow.mocap.markerset import added
 from mocapflow.runtime.node import Input, Node, Output
+from mocapflow.runtime.sampling import Sampler
 
 
 class ClustererConfig(BaseModel):
@@ -45,8 +46,7 @@ class RigidityClusterer(Node[ClustererConfig]):
 
     def setup(self) -> None:
         self.tracker: SegmentTracker | None = None
-        self.stride = 1  # frames per sample
-        self.frames = 0
+        self.sampler: Sampler | None = None
         self.seed = read_skeleton(self.config.skeleton).segments if self.config.skeleton else None
 
     def options(self) -> dict[str, Any]:
@@ -62,15 +62,14 @@ class RigidityClusterer(Node[ClustererConfig]):
             self.tracker.grow(message.labels)  # new markers confirmed upstream: the statistics so far still count
         elif self.tracker is None or self.tracker.labels != message.labels:  # another marker set
             config = self.config
-            self.stride = max(1, round(message.rate / config.sample_hz))
-            samples = message.rate / self.stride  # per second
+            self.sampler = Sampler(message.rate, config.sample_hz)
+            samples = self.sampler.rate
             self.tracker = SegmentTracker(message.labels, window=max(2, round(config.window_s * samples)),
                                           warmup=max(2, round(min(config.warmup_s, config.window_s) * samples)),
                                           every=max(1, round(config.every_s * samples)),
                                           method=self.method, **self.options())
-            self.frames = 0
-        self.frames += 1
-        if (self.frames - 1) % self.stride:
+        assert self.sampler is not None
+        if not self.sampler.take():
             return
         model = self.tracker.update(message.positions)
         if model is not None:

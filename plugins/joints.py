@@ -14,6 +14,7 @@ from mocapflow.messages import MarkerFrame, Segments, Skeleton
 from mocapflow.mocap.calibration import build_skeleton
 from mocapflow.mocap.markerset import added
 from mocapflow.runtime.node import Input, Node, Output
+from mocapflow.runtime.sampling import Sampler
 
 
 class JointsConfig(BaseModel):
@@ -47,7 +48,7 @@ class VarianceJoints(Node[JointsConfig]):
         self.frames: deque[np.ndarray] = deque()
         self.labels: list[str] | None = None
         self.next_estimate = 0  # samples to the next estimate
-        self.received = 0  # frames of the current marker set
+        self.sampler: Sampler | None = None  # of the current marker set
 
     def process(self, port: str, message: MarkerFrame | Segments) -> None:
         if isinstance(message, Segments):
@@ -65,13 +66,14 @@ class VarianceJoints(Node[JointsConfig]):
                 self.frames = deque(np.vstack([f, pad]) for f in self.frames)
             else:
                 self.frames.clear()
-                self.next_estimate = self.received = 0
+                self.next_estimate = 0
+                self.sampler = None
             self.labels = message.labels
-        stride = max(1, round(message.rate / self.config.sample_hz))
-        self.received += 1
-        if (self.received - 1) % stride:
+        if self.sampler is None:
+            self.sampler = Sampler(message.rate, self.config.sample_hz)
+        if not self.sampler.take():
             return
-        samples = message.rate / stride  # per second
+        samples = self.sampler.rate
         self.frames.append(message.positions)
         window = round(self.config.window_s * samples)
         while len(self.frames) > window:
