@@ -24,7 +24,7 @@ class Filler(Node[FillerNodeConfig]):
     Config = FillerNodeConfig
     inputs = {
         "markers": Input(MarkerFrame, doc="labelled markers with gaps"),
-        "skeleton": Input(Skeleton, required=False, state=True, doc="body model; without one it is learned online"),
+        "skeleton": Input(Skeleton, required=False, state=True, doc="body model; unlinked, one is learned online"),
     }
     outputs = {
         "markers": Output(MarkerFrame, doc="filled markers with per-sample flags"),
@@ -34,6 +34,13 @@ class Filler(Node[FillerNodeConfig]):
     def setup(self) -> None:
         self.model: SkeletonModel | None = read_skeleton(self.config.skeleton) if self.config.skeleton else None
         self.filler: GapFiller | None = None
+
+    def _filling(self) -> FillerConfig:
+        """The filler's settings: a graph that links a skeleton input has one skeleton learner, the stage that feeds
+        it, so the filler learns none of its own (it fills by its Kalman filters alone until the model comes)."""
+        if self.linked is not None and "skeleton" in self.linked:
+            return FillerConfig.model_validate({**self.config.model_dump(exclude={"skeleton"}), "learn": False})
+        return self.config
 
     def process(self, port: str, message: MarkerFrame | Skeleton) -> None:
         if isinstance(message, Skeleton):
@@ -46,7 +53,7 @@ class Filler(Node[FillerNodeConfig]):
         if self.filler is not None and added(self.filler.labels, message.labels):
             self.filler.grow(message.labels)  # new markers confirmed upstream: everything known is kept
         elif self.filler is None or self.filler.labels != message.labels:  # another marker set
-            self.filler = GapFiller(message.labels, message.rate, self.config, self.model)
+            self.filler = GapFiller(message.labels, message.rate, self._filling(), self.model)
         result = self.filler.update(message.positions.astype(np.float64), message.rays)
         self.publish("markers", MarkerFrame.derive(message, positions=result.positions, labels=message.labels,
                                                    flags=result.flags))

@@ -108,13 +108,14 @@ class SyntheticMotion:
         self.hinge = np.array([k == "hinge" for k in rig.joint_kinds])
         self.axes = rig.hinge_axes
 
-    def __call__(self, t: float) -> tuple[np.ndarray, np.ndarray]:
-        """Root position (3,) and local rotation vectors (S, 3) at time t."""
-        s = (self.amp * np.sin(2 * np.pi * self.freq * t + self.phase)).sum(-1)
+    def __call__(self, t: float | np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Root position (..., 3) and local rotation vectors (..., S, 3) at time(s) t (a number or an array)."""
+        at = np.asarray(t, dtype=np.float64)[..., None, None, None]
+        s = (self.amp * np.sin(2 * np.pi * self.freq * at + self.phase)).sum(-1)
         value = self.low + self.span * 0.5 * (1 + np.tanh(1.2 * s / self.rms))
-        rotvec = value[:-1]
-        rotvec[self.hinge] = self.axes[self.hinge] * rotvec[self.hinge, :1]
-        return value[-1], rotvec
+        rotvec = value[..., :-1, :]
+        rotvec[..., self.hinge, :] = self.axes[self.hinge] * rotvec[..., self.hinge, :1]
+        return value[..., -1, :], rotvec
 
 
 # BVH axes (x left, y up, z forward, as in CMU and most exporters) to rig axes (x forward, y left, z up).
@@ -186,14 +187,16 @@ class BvhMotion:
                 continue
         raise MotionError(f"no BVH joint for the rig's {segment} (looked for {', '.join(candidates)})")
 
-    def __call__(self, t: float) -> tuple[np.ndarray, np.ndarray]:
-        """Root position (3,) and local rotation vectors (S, 3) at time t."""
+    def __call__(self, t: float | np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Root position (..., 3) and local rotation vectors (..., S, 3) at time(s) t (a number or an array)."""
+        at = np.asarray(t, dtype=np.float64)
         last = len(self.quat) - 1
         if last == 0:
-            return self.root[0], Rotation.from_quat(self.quat[0]).as_rotvec()
-        u = (t / self.frame_time) % (2 * last)
-        u = 2 * last - u if u > last else u
-        k = min(int(u), last - 1)
-        a = u - k
-        rot = Rotation.from_quat(self.quat[k]) * Rotation.from_rotvec(a * self.step[k])
+            rotvec = Rotation.from_quat(self.quat[0]).as_rotvec()
+            return np.broadcast_to(self.root[0], (*at.shape, 3)), np.broadcast_to(rotvec, (*at.shape, *rotvec.shape))
+        u = (at / self.frame_time) % (2 * last)
+        u = np.where(u > last, 2 * last - u, u)
+        k = np.minimum(u.astype(np.intp), last - 1)
+        a = (u - k)[..., None]
+        rot = Rotation.from_quat(self.quat[k]) * Rotation.from_rotvec(a[..., None] * self.step[k])
         return (1 - a) * self.root[k] + a * self.root[k + 1], rot.as_rotvec()

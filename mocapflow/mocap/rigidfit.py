@@ -32,29 +32,38 @@ def rotor(reference: np.ndarray, observed: np.ndarray,
     """
     x = np.asarray(reference, dtype=np.float64)
     y = np.asarray(observed, dtype=np.float64)
-    x, y = np.broadcast_arrays(x, y)
+    if x.shape != y.shape:
+        x, y = np.broadcast_arrays(x, y)
     both = np.isfinite(x).all(-1) & np.isfinite(y).all(-1)
     w = np.asarray(both * (1.0 if weights is None else np.asarray(weights, dtype=np.float64)))
     x = np.where(w[..., None] > 0, x, 0.0)
     y = np.where(w[..., None] > 0, y, 0.0)
     s = np.einsum("...n,...na,...nb->...ab", w, x, y)  # S_ab = sum x_a y_b (Schoenauer 3.7.4)
-    sxx, sxy, sxz = s[..., 0, 0], s[..., 0, 1], s[..., 0, 2]
-    syx, syy, syz = s[..., 1, 0], s[..., 1, 1], s[..., 1, 2]
-    szx, szy, szz = s[..., 2, 0], s[..., 2, 1], s[..., 2, 2]
-    n = np.empty((*s.shape[:-2], 4, 4))
-    n[..., 0, 0], n[..., 1, 1] = sxx + syy + szz, sxx - syy - szz
-    n[..., 2, 2], n[..., 3, 3] = -sxx + syy - szz, -sxx - syy + szz
-    n[..., 0, 1] = n[..., 1, 0] = syz - szy
-    n[..., 0, 2] = n[..., 2, 0] = szx - sxz
-    n[..., 0, 3] = n[..., 3, 0] = sxy - syx
-    n[..., 1, 2] = n[..., 2, 1] = sxy + syx
-    n[..., 1, 3] = n[..., 3, 1] = szx + sxz
-    n[..., 2, 3] = n[..., 3, 2] = syz + szy
+    n = (s.reshape(*s.shape[:-2], 9) @ _HORN).reshape(*s.shape[:-2], 4, 4)
     values, vectors = np.linalg.eigh(n)
     q = vectors[..., :, 3]  # Horn's (w, x, y, z) for the largest eigenvalue
     scale = np.abs(values).max(-1)
-    gap = np.divide(values[..., 3] - values[..., 2], scale, out=np.zeros_like(scale), where=scale > 0)
+    gap = (values[..., 3] - values[..., 2]) / np.maximum(scale, 1e-300)  # 0 where N is 0
     return np.concatenate([q[..., 1:], q[..., :1]], -1), gap
+
+
+def _horn_map() -> np.ndarray:
+    """(9, 16): Horn's symmetric 4x4 matrix N as a linear map of S = sum x y^T (row-major), N = S.ravel() @ map.
+
+    Diagonal: sxx + syy + szz, sxx - syy - szz, -sxx + syy - szz, -sxx - syy + szz; off it, symmetric: syz - szy,
+    szx - sxz, sxy - syx (row 0), sxy + syx, szx + sxz (row 1), syz + szy (row 2)."""
+    terms = {(0, 0): "+xx +yy +zz", (1, 1): "+xx -yy -zz", (2, 2): "-xx +yy -zz", (3, 3): "-xx -yy +zz",
+             (0, 1): "+yz -zy", (0, 2): "+zx -xz", (0, 3): "+xy -yx", (1, 2): "+xy +yx", (1, 3): "+zx +xz",
+             (2, 3): "+yz +zy"}
+    out = np.zeros((9, 16))
+    for (i, j), sums in terms.items():
+        for term in sums.split():
+            source = 3 * "xyz".index(term[1]) + "xyz".index(term[2])
+            out[source, [4 * i + j, 4 * j + i]] = 1.0 if term[0] == "+" else -1.0
+    return out
+
+
+_HORN = _horn_map()
 
 
 def kabsch(local: np.ndarray, world: np.ndarray, weight: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -117,15 +126,16 @@ class PoseFit:
     translations: np.ndarray  # (F, 3) mm
     residual: np.ndarray  # (F,) RMS distance between fitted and observed markers, mm
     determined: np.ndarray  # (F,) bool: the data fixed all three rotation angles
+    rotation_matrices: np.ndarray  # (F, 3, 3) the rotations as matrices, NaN where the pose is unknown
 
     def matrices(self) -> np.ndarray:
         """(F, 3, 3) rotation matrices, NaN where the pose is unknown."""
-        return quaternion_matrices(self.rotations)
+        return self.rotation_matrices
 
     def subset(self, frames: np.ndarray) -> PoseFit:
         """The poses of some frames only."""
         return PoseFit(self.rotations[frames], self.translations[frames], self.residual[frames],
-                       self.determined[frames])
+                       self.determined[frames], self.rotation_matrices[frames])
 
 
 def quaternion_matrices(quaternions: np.ndarray) -> np.ndarray:
@@ -177,11 +187,10 @@ def fit_pose(local: np.ndarray, observed: np.ndarray, pivot_local: np.ndarray | 
     obs = np.asarray(observed, dtype=np.float64)
     seen = np.asarray(np.isfinite(obs).all(-1))
     count = seen.sum(-1)
-    seen_f = seen.astype(np.float64)
-    safe = np.where(seen[..., None], obs, 0.0)
-    origin_loc = np.einsum("f...n,...nk->f...k", seen_f, local) / np.maximum(count, 1)[..., None]
-    origin_obs = np.einsum("f...n,f...nk->f...k", seen_f, safe) / np.maximum(count, 1)[..., None]
-    free = np.ones(count.shape, bool)
+    share = (seen / np.maximum(count, 1)[..., None])[..., None, :]  # (F, ..., 1, n): centroids as products
+    origin_loc = (share @ local)[..., 0, :]
+    origin_obs = (share @ np.where(seen[..., None], obs, 0.0))[..., 0, :]
+    free: np.ndarray | bool = True
     if pivot_local is not None and pivot_world is not None:
         pivot_world = np.asarray(pivot_world, dtype=np.float64)
         pinned = np.isfinite(pivot_world).all(-1)
@@ -201,9 +210,9 @@ def fit_pose(local: np.ndarray, observed: np.ndarray, pivot_local: np.ndarray | 
     matrices = quaternion_matrices(quats)
     t = origin_obs - np.einsum("f...ab,f...b->f...a", matrices, origin_loc)
     fitted = np.einsum("f...ab,...nb->f...na", matrices, local) + t[..., None, :]
-    err = np.where(seen, np.linalg.norm(fitted - obs, axis=-1) ** 2, 0.0).sum(-1)
+    err = np.where(seen, ((fitted - obs) ** 2).sum(-1), 0.0).sum(-1)
     residual = np.where(usable, np.sqrt(err / np.maximum(count, 1)), np.nan)
-    return PoseFit(quats, t, residual, determined)
+    return PoseFit(quats, t, residual, determined, matrices)
 
 
 def _hold(quats: np.ndarray, determined: np.ndarray, local: np.ndarray, observed: np.ndarray,

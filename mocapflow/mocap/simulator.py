@@ -38,6 +38,7 @@ from mocapflow.mocap.rigs import RIG_NAMES, Rig, make_rig
 # Random streams: the second entropy word of each generator, so streams never share draws.
 _FRAME, _DROPOUT, _LONG_GAP, _HIDDEN, _MOTION, _SKIN = range(6)
 _BLOCK_S = 10.0  # occlusion schedules are drawn per block of this many seconds
+_POSE_BLOCK = 64  # frames whose poses are worked out together
 _DROPOUT_FRAMES = (2, 10)  # length of a short dropout, frames
 _LONG_GAP_S = (1.0, 4.0)  # length of a long gap, s
 _HIDDEN_S = (2.0, 6.0)  # length of a hidden-segment period, s
@@ -207,13 +208,22 @@ class Simulator:
         aim = np.array([0.0, 0.0, _CAMERA_AIM_MM]) - self.camera_centres
         self._camera_axes = aim / np.linalg.norm(aim, axis=1, keepdims=True)
         self.capsule_ends, self.capsule_radii = _capsules(rig)
+        self._poses: tuple[int, np.ndarray, np.ndarray, np.ndarray] = (-1, *(np.empty(0),) * 3)  # block, R, t, rotvec
 
     def _pose(self, i: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Segment rotations and origins and local rotation vectors of frame i. They are worked out for a block of
+        _POSE_BLOCK frames at once (vectorised), the block i falls in, so frame i is the same whatever was asked
+        before it."""
         if i < 0:
             raise ValueError(f"frame index must be >= 0, got {i}")
-        root, rotvec = self._motion(i / self.config.rate)
-        rot, pos = forward_kinematics(self.rig, Rotation.from_rotvec(rotvec).as_matrix(), root)
-        return rot, pos, rotvec
+        block = i // _POSE_BLOCK
+        if self._poses[0] != block:
+            root, rotvec = self._motion(np.arange(block * _POSE_BLOCK, (block + 1) * _POSE_BLOCK) / self.config.rate)
+            local = Rotation.from_rotvec(rotvec.reshape(-1, 3)).as_matrix().reshape(*rotvec.shape, 3)
+            self._poses = (block, *forward_kinematics(self.rig, local, root), rotvec)
+        _, rot, pos, rotvec = self._poses
+        k = i % _POSE_BLOCK
+        return rot[k], pos[k], rotvec[k]
 
     def segment_poses(self, i: int) -> tuple[np.ndarray, np.ndarray]:
         """World pose of every segment's rig frame (origin at its proximal joint centre): R (S, 3, 3), t (S, 3)."""

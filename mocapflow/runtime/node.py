@@ -63,7 +63,8 @@ class Node(Generic[ConfigT]):
     ``inputs`` and ``outputs``, build their algorithm objects in ``setup`` and implement ``process`` for each input
     message. A node with no inputs is a source: it sets ``rate`` in ``setup`` and implements ``emit``, which the
     runtime calls once per frame index at that rate, in order, starting from ``first_index``. The runtime validates
-    the config once, against ``Config``, before it constructs the node.
+    the config once, against ``Config``, before it constructs the node; before the first message it sets ``linked``,
+    the inputs the graph links, so that a node can leave to another stage what that stage is linked to give it.
     """
 
     Config: ClassVar[type[BaseModel]] = NoConfig
@@ -71,6 +72,7 @@ class Node(Generic[ConfigT]):
     outputs: ClassVar[dict[str, Output]] = {}
 
     rate: float = 0.0
+    linked: frozenset[str] | None = None  # the input ports the graph links; None when driven outside a graph
     paced: ClassVar[bool] = True
     """Sources: False when frames are pushed by a device (a live tracker), so the runtime calls ``emit`` again at
     once instead of on the ``rate`` timetable, and ``emit`` itself waits for the next frame."""

@@ -70,10 +70,10 @@ class Stats:
 
 class Runner:
     """One node and its bookkeeping. ``send(port, message)`` carries what the node publishes; ``end_inputs`` are the
-    data inputs whose end of stream ends the node."""
+    data inputs whose end of stream ends the node; ``linked`` the inputs the graph links (None: no graph)."""
 
     def __init__(self, name: str, node_cls: type[Node], config: BaseModel, send: Callable[[str, Message], None],
-                 end_inputs: set[str]) -> None:
+                 end_inputs: set[str], linked: set[str] | None = None) -> None:
         self.name = name
         self.stats = Stats()
         self.ended = False
@@ -83,6 +83,7 @@ class Runner:
         self._open_inputs = set(end_inputs)
         self.ended_inputs: set[str] = set()
         self.node = node_cls(config, self._publish, name)
+        self.node.linked = None if linked is None else frozenset(linked)
 
     def _publish(self, port: str, message: Message) -> None:
         if port not in self.node.outputs:

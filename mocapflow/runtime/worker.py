@@ -187,7 +187,8 @@ class Worker:
                     member.wanted[port] = status.matching
                 member.listeners.append(publishers[port].declare_matching_listener(on_matching))
                 member.wanted[port] = publishers[port].matching_status.matching
-        member.runner = Runner(spec.node, node_cls, config, lambda port, msg: self._send(member, port, msg), ends)
+        member.runner = Runner(spec.node, node_cls, config, lambda port, msg: self._send(member, port, msg), ends,
+                               set(spec.inputs))
         return member
 
     # -- plumbing -------------------------------------------------------------------------------------------------
