@@ -27,6 +27,7 @@ from pydantic import (
 )
 from pydantic.functional_validators import BeforeValidator
 
+from mocapflow.mocap.flags import FillCase
 from mocapflow.mocap.model import Segment, SkeletonModel
 
 SCHEMA_PREFIX = "mocapflow/"
@@ -133,6 +134,13 @@ class MarkerFrame(Message):
             if value is not None and len(value) != n:
                 raise ValueError(f"{name} has {len(value)} entries for {n} markers")
         return self
+
+    def observed(self) -> np.ndarray:
+        """(N, 3) positions of the observed samples only, NaN where a sample is missing or was estimated (filled
+        markers: flags other than 1): what a stage that learns a model from the data may use."""
+        if self.flags is None:
+            return self.positions
+        return np.where((self.flags == FillCase.OBSERVED)[:, None], self.positions, np.nan)
 
 
 class Segments(Message):

@@ -41,7 +41,7 @@ class RigidityClusterer(Node[ClustererConfig]):
 
     Config: ClassVar[type[ClustererConfig]] = ClustererConfig
     method: ClassVar[Literal["rigidity", "spectral", "distance-threshold"]] = "rigidity"
-    inputs = {"markers": Input(MarkerFrame, doc="labelled markers")}
+    inputs = {"markers": Input(MarkerFrame, doc="labelled markers (filled ones too: only observed samples count)")}
     outputs = {"segments": Output(Segments, state=True, doc="the current segment model")}
 
     def setup(self) -> None:
@@ -71,7 +71,7 @@ class RigidityClusterer(Node[ClustererConfig]):
         assert self.sampler is not None
         if not self.sampler.take():
             return
-        model = self.tracker.update(message.positions)
+        model = self.tracker.update(message.observed())
         if model is not None:
             self.log.info("segments: %s", "; ".join(f"{s.name}: {' '.join(s.markers)}" for s in model.segments))
             self.publish("segments", Segments.derive(message, segments=model.segments))

@@ -36,7 +36,7 @@ class VarianceJoints(Node[JointsConfig]):
     Config = JointsConfig
     joint_method: ClassVar[Literal["variance", "closed-form", "auto"]] = "variance"
     inputs = {
-        "markers": Input(MarkerFrame, doc="labelled (or filled) markers"),
+        "markers": Input(MarkerFrame, doc="labelled markers (filled ones too: only observed samples count)"),
         "segments": Input(Segments, required=False, state=True, doc="segment model; without it no estimate is made"),
     }
     outputs = {"skeleton": Output(Skeleton, state=True, doc="the current skeleton model")}
@@ -74,7 +74,7 @@ class VarianceJoints(Node[JointsConfig]):
         if not self.sampler.take():
             return
         samples = self.sampler.rate
-        self.frames.append(message.positions)
+        self.frames.append(message.observed())
         window = round(self.config.window_s * samples)
         while len(self.frames) > window:
             self.frames.popleft()

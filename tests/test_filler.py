@@ -9,12 +9,14 @@ import numpy as np
 import pytest
 from filterpy.kalman import KalmanFilter
 
+from mocapflow.messages import MarkerFrame
 from mocapflow.mocap.filling import FillCase, FillerConfig, GapFiller, fill_sequence, nearest_on_circle
 from mocapflow.mocap.kalman import ConstantVelocityBank
 from mocapflow.mocap.model import SkeletonModel
 from mocapflow.mocap.rigidfit import kabsch
 from mocapflow.mocap.rigs import make_rig
 from mocapflow.mocap.simulator import SimRecording, SimulatorConfig, simulate, truth_skeleton
+from mocapflow.runtime.plugins import load
 
 RATE = 120.0
 GAP = slice(300, 300 + 360)  # 3 s
@@ -194,6 +196,27 @@ def test_learns_segments_and_joints_without_skeleton(rec: SimRecording) -> None:
     assert filler.skeleton is not None
     hinges = {j.name for j in filler.skeleton.joints if j.kind == "hinge"}
     assert hinges == {"LUA-LFA", "LTH-LSH", "RUA-RFA", "RTH-RSH"}
+
+
+@pytest.mark.parametrize("linked", [{"markers"}, {"markers", "skeleton"}])
+def test_the_filler_node_learns_no_skeleton_when_the_graph_links_one(rec: SimRecording, linked: set[str]) -> None:
+    """One skeleton learner per graph: a filler whose skeleton input is linked fills by its Kalman filters alone
+    until a model comes, where an unlinked one learns the segments and fills a gap by them (the test fails if the
+    filler learns although linked)."""
+    sent: list[MarkerFrame] = []
+    cls = load("occlusion-filler")
+    node = cls(cls.Config(), lambda port, m: sent.append(m) if port == "markers" else None, "filler")
+    node.linked = frozenset(linked)
+    positions = rec.positions.copy()
+    idx = rec.labels.index("LTH2")
+    positions[GAP, idx] = np.nan
+    for f, frame in enumerate(positions):
+        node.process("markers", MarkerFrame(frame=f, capture_ns=f, rate=RATE, positions=frame, labels=rec.labels))
+    flags = np.array([m.flags[idx] for m in sent[GAP]])
+    if "skeleton" in linked:  # its filter alone, then nothing once the filter has coasted too long
+        assert (flags == FillCase.KALMAN).any() and np.isin(flags, [FillCase.MISSING, FillCase.KALMAN]).all()
+    else:
+        assert (flags == FillCase.ONE_MISSING).mean() > 0.95
 
 
 def test_set_skeleton_mid_stream(rec: SimRecording, skeleton: SkeletonModel) -> None:

@@ -79,6 +79,16 @@ def test_malformed_payloads_get_a_clear_error(payload: bytes, reason: str) -> No
         decode(payload, MarkerFrame)
 
 
+def test_observed_positions_leave_out_estimated_samples() -> None:
+    positions = np.arange(12.0).reshape(4, 3)
+    frame = MarkerFrame(frame=0, capture_ns=0, rate=100.0, positions=positions, flags=np.array([1, 2, 0, 8], np.uint8))
+    observed = frame.observed()
+    np.testing.assert_array_equal(observed[0], positions[0])
+    assert np.isnan(observed[1:]).all()
+    np.testing.assert_array_equal(MarkerFrame(frame=0, capture_ns=0, rate=100.0, positions=positions).observed(),
+                                  positions)
+
+
 def test_empty_frame_is_valid() -> None:
     empty = MarkerFrame(frame=0, capture_ns=0, rate=100, positions=np.zeros((0, 3)))
     assert decode(encode(empty), MarkerFrame).positions.shape == (0, 3)
