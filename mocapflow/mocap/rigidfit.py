@@ -15,6 +15,7 @@ One module for every way the project fits a rigid body, all the same least-squar
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 from scipy.linalg.lapack import dgesdd
@@ -124,18 +125,29 @@ class PoseFit:
 
     rotations: np.ndarray  # (F, 4) scalar-last quaternions
     translations: np.ndarray  # (F, 3) mm
-    residual: np.ndarray  # (F,) RMS distance between fitted and observed markers, mm
     determined: np.ndarray  # (F,) bool: the data fixed all three rotation angles
     rotation_matrices: np.ndarray  # (F, 3, 3) the rotations as matrices, NaN where the pose is unknown
+    local: np.ndarray  # (n, 3) the markers in the segment frame
+    observed: np.ndarray  # (F, n, 3) the markers fitted, NaN where unseen
 
     def matrices(self) -> np.ndarray:
         """(F, 3, 3) rotation matrices, NaN where the pose is unknown."""
         return self.rotation_matrices
 
+    @cached_property
+    def residual(self) -> np.ndarray:
+        """(F,) RMS distance between fitted and observed markers, mm; NaN where the pose is unknown. Worked out on
+        first use: a caller that only poses (the skeleton, frame after frame) does not pay for it."""
+        fitted = np.einsum("f...ab,...nb->f...na", self.rotation_matrices, self.local) + self.translations[..., None, :]
+        seen = np.isfinite(self.observed).all(-1)
+        err = np.where(seen, ((fitted - self.observed) ** 2).sum(-1), 0.0).sum(-1)
+        known = np.isfinite(self.rotations).all(-1)
+        return np.where(known, np.sqrt(err / np.maximum(seen.sum(-1), 1)), np.nan)
+
     def subset(self, frames: np.ndarray) -> PoseFit:
         """The poses of some frames only."""
-        return PoseFit(self.rotations[frames], self.translations[frames], self.residual[frames],
-                       self.determined[frames], self.rotation_matrices[frames])
+        return PoseFit(self.rotations[frames], self.translations[frames], self.determined[frames],
+                       self.rotation_matrices[frames], self.local, self.observed[frames])
 
 
 def quaternion_matrices(quaternions: np.ndarray) -> np.ndarray:
@@ -209,10 +221,7 @@ def fit_pose(local: np.ndarray, observed: np.ndarray, pivot_local: np.ndarray | 
             _hold(quats[:, s], determined[:, s], local[s], obs[:, s], origin_loc[:, s], origin_obs[:, s])
     matrices = quaternion_matrices(quats)
     t = origin_obs - np.einsum("f...ab,f...b->f...a", matrices, origin_loc)
-    fitted = np.einsum("f...ab,...nb->f...na", matrices, local) + t[..., None, :]
-    err = np.where(seen, ((fitted - obs) ** 2).sum(-1), 0.0).sum(-1)
-    residual = np.where(usable, np.sqrt(err / np.maximum(count, 1)), np.nan)
-    return PoseFit(quats, t, residual, determined, matrices)
+    return PoseFit(quats, t, determined, matrices, local, obs)
 
 
 def _hold(quats: np.ndarray, determined: np.ndarray, local: np.ndarray, observed: np.ndarray,
