@@ -39,7 +39,7 @@ class Filler(Node[FillerNodeConfig]):
         """The filler's settings: a graph that links a skeleton input has one skeleton learner, the stage that feeds
         it, so the filler learns none of its own (it fills by its Kalman filters alone until the model comes)."""
         if self.linked is not None and "skeleton" in self.linked:
-            return FillerConfig.model_validate({**self.config.model_dump(exclude={"skeleton"}), "learn": False})
+            return self.config.model_copy(update={"learn": False})
         return self.config
 
     def process(self, port: str, message: MarkerFrame | Skeleton) -> None:
