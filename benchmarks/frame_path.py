@@ -49,6 +49,7 @@ def main() -> None:
                 sent.append((name, port, msg))
 
             nodes[name] = cls(cls.Config.model_validate(spec.get("config", {})), publish, name)
+            nodes[name].linked = frozenset(spec.get("inputs", {}))  # as the runtime tells it
         links: dict[tuple[str, str], list[tuple[str, str]]] = defaultdict(list)  # (node, output) -> inputs
         for name, spec in graph.items():
             for port, link in spec.get("inputs", {}).items():

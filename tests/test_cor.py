@@ -70,7 +70,7 @@ def test_fit_pose_recovers_poses_with_gaps_and_keeps_a_pivot_fixed() -> None:
     two = s["cm"][:, :2]  # one marker and the joint: rotation about the joint fixed by two vectors
     pivot = fit_pose(s["child_local"][:2], two, s["child_joint"], s["centre"])
     assert pivot.determined.all()
-    placed = np.einsum("fab,b->fa", pivot.matrices(), s["child_joint"]) + pivot.translations
+    placed = np.einsum("fab,b->fa", pivot.rotation_matrices, s["child_joint"]) + pivot.translations
     assert np.abs(placed - s["centre"]).max() < 1e-6
     assert (Rotation.from_quat(pivot.rotations) * s["rc"].inv()).magnitude().max() < 1e-9
 

@@ -250,7 +250,7 @@ def build_skeleton(positions: np.ndarray, labels: Sequence[str], rate: float, gr
             p_off, c_off = place_on_axis(p_off, c_off, est.axis, est.child_axis, [offsets[parent, e] for e in p_near],
                                          [offsets[child, e] for e in c_near])
         pp, pc = shapes[parent].pose, shapes[child].pose
-        track = joint_track(pp.matrices(), pp.translations, pc.matrices(), pc.translations, p_off, c_off)
+        track = joint_track(pp.rotation_matrices, pp.translations, pc.rotation_matrices, pc.translations, p_off, c_off)
         _, mean, sd = distance_stats(track, positions[chosen][:, list(groups[parent]) + list(groups[child])], ALPHA)
         uncertainty = UNBOUNDED_MM if est is None or (parent, child) in fixed else min(
             float(est.axial_uncertainty), UNBOUNDED_MM)
@@ -329,7 +329,7 @@ def _start_track(positions: np.ndarray, groups: Sequence[Sequence[int]], poses: 
     if pa is None or pb is None:
         return marker_centroid(positions[frames][:, list(groups[a]) + list(groups[b])])
     est = closed_form(pa, pb)
-    return joint_track(pa.matrices()[frames], pa.translations[frames], pb.matrices()[frames],
+    return joint_track(pa.rotation_matrices[frames], pa.translations[frames], pb.rotation_matrices[frames],
                        pb.translations[frames], est.parent_offset, est.child_offset)
 
 
@@ -385,7 +385,7 @@ def _relative_motion(parent: PoseFit, child: PoseFit) -> tuple[float, np.ndarray
     """RMS angle (deg) of the child's rotation relative to the parent about its mean, its SDs (deg) about its three
     principal axes (largest first), and the closed-form centre of rotation with its hinge test (none without two
     frames where both poses are known)."""
-    rp, rc = parent.matrices(), child.matrices()
+    rp, rc = parent.rotation_matrices, child.rotation_matrices
     known = np.isfinite(rp).all((1, 2)) & np.isfinite(rc).all((1, 2))
     if known.sum() < 2:
         return 0.0, np.zeros(3), None

@@ -113,7 +113,7 @@ class SequentialCoR:
         parent = fit_pose(self.parent_reference, pm)
         child = fit_pose(self.child_reference, cm)
         keep = parent.determined & child.determined
-        self.update(parent.matrices()[keep], parent.translations[keep], child.matrices()[keep],
+        self.update(parent.rotation_matrices[keep], parent.translations[keep], child.rotation_matrices[keep],
                     child.translations[keep])
 
     def estimate(self) -> CoREstimate:

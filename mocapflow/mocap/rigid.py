@@ -90,7 +90,7 @@ def fit_shape(markers: np.ndarray, extras: np.ndarray | None = None, reference: 
         used = posed & inlier_frames(pose.residual)
         if not used.any():
             raise ValueError("no frame shows enough of the segment's points to place it")
-        local = np.einsum("fba,fnb->fna", pose.matrices()[used], points[used] - pose.translations[used, None])
+        local = np.einsum("fba,fnb->fna", pose.rotation_matrices[used], points[used] - pose.translations[used, None])
         shape = np.stack([robust_mean(local[:, j]) for j in range(points.shape[1])])
         if not np.isfinite(shape).all():
             raise ValueError("a point of the segment is never seen in a frame that fixes its orientation")
@@ -123,7 +123,7 @@ def _shape_from_distances(points: np.ndarray, seen: np.ndarray, ref: int, fit_co
     pose = fits[best]
     if not pose.determined[ref]:
         raise ValueError("no frame fixes the segment's orientation (its points are in a line)")
-    return np.einsum("ab,nb->na", pose.matrices()[ref], shape * ([1.0, 1.0, -1.0] if best else 1.0))
+    return np.einsum("ab,nb->na", pose.rotation_matrices[ref], shape * ([1.0, 1.0, -1.0] if best else 1.0))
 
 
 def _turning(pose: PoseFit) -> float:

@@ -130,10 +130,6 @@ class PoseFit:
     local: np.ndarray  # (n, 3) the markers in the segment frame
     observed: np.ndarray  # (F, n, 3) the markers fitted, NaN where unseen
 
-    def matrices(self) -> np.ndarray:
-        """(F, 3, 3) rotation matrices, NaN where the pose is unknown."""
-        return self.rotation_matrices
-
     @cached_property
     def residual(self) -> np.ndarray:
         """(F,) RMS distance between fitted and observed markers, mm; NaN where the pose is unknown. Worked out on

@@ -21,7 +21,7 @@ MIN_TOGETHER = 10
 def closed_form(parent: PoseFit, child: PoseFit) -> CoREstimate:
     """The closed-form centre of rotation between two segments from their poses in every frame (Aristidou 4.4)."""
     cor = SequentialCoR()
-    cor.update(parent.matrices(), parent.translations, child.matrices(), child.translations)
+    cor.update(parent.rotation_matrices, parent.translations, child.rotation_matrices, child.translations)
     return cor.estimate()
 
 
@@ -48,7 +48,7 @@ def sphere_centre(points: np.ndarray, prior: np.ndarray, damping: float = 1e-3) 
 
 def _in_frame(pose: PoseFit, points: np.ndarray) -> np.ndarray:
     """(F, K, 3) world points in a segment's frame, NaN where its pose is unknown."""
-    return np.einsum("fba,fkb->fka", pose.matrices(), points - pose.translations[:, None])
+    return np.einsum("fba,fkb->fka", pose.rotation_matrices, points - pose.translations[:, None])
 
 
 def _sphere_track(pose: PoseFit, own: np.ndarray, other: np.ndarray) -> np.ndarray | None:
@@ -68,7 +68,7 @@ def _sphere_track(pose: PoseFit, own: np.ndarray, other: np.ndarray) -> np.ndarr
     gap[:, ~seen_own.any(0)] = np.inf
     i, j = np.unravel_index(np.argmin(gap), gap.shape)
     centre = sphere_centre(other_local, (mean_other[i] + mean_own[j]) / 2)
-    return np.einsum("fab,b->fa", pose.matrices(), centre) + pose.translations
+    return np.einsum("fab,b->fa", pose.rotation_matrices, centre) + pose.translations
 
 
 def sequential_tracks(positions: np.ndarray, groups: Sequence[Sequence[int]], poses: Sequence[PoseFit | None],
@@ -88,8 +88,8 @@ def sequential_tracks(positions: np.ndarray, groups: Sequence[Sequence[int]], po
         track: np.ndarray | None = None
         if together and pp is not None and pc is not None:
             est = closed_form(pp, pc)
-            track = joint_track(pp.matrices(), pp.translations, pc.matrices(), pc.translations, est.parent_offset,
-                                est.child_offset)
+            track = joint_track(pp.rotation_matrices, pp.translations, pc.rotation_matrices, pc.translations,
+                                est.parent_offset, est.child_offset)
         elif pp is not None or pc is not None:  # the better posed of the two carries the other's spheres
             if pp is not None and (pc is None or np.isfinite(pp.rotations).all(1).sum() >=
                                    np.isfinite(pc.rotations).all(1).sum()):

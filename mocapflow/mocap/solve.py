@@ -140,7 +140,7 @@ class PoseSolver:
         observed = padded[:, self.columns]  # (F, S, n, 3)
         children = self.joint_child
         alone = fit_pose(self.local[children], observed[:, children])
-        placed = np.where(alone.determined[..., None], _place(alone.matrices(), alone.translations,
+        placed = np.where(alone.determined[..., None], _place(alone.rotation_matrices, alone.translations,
                                                               self.child_offsets), np.nan)
         matrices, translations, rotations, residual, fit = self._top_down(padded, observed, placed, progress)
         centres = self._centres(matrices, translations)
@@ -188,7 +188,7 @@ class PoseSolver:
                 pivot_world[~determined[:, p] & own] = np.nan
             fit = fit_pose(points_local, points, pivot_local, pivot_world, hold=True)
             rotations[:, segments], translations[:, segments] = fit.rotations, fit.translations
-            determined[:, segments], matrices[:, segments] = fit.determined, fit.matrices()
+            determined[:, segments], matrices[:, segments] = fit.determined, fit.rotation_matrices
         fitted = np.einsum("fsab,snb->fsna", matrices, self.local) + translations[:, :, None]
         seen = np.isfinite(observed).all(-1)
         err = np.where(seen, ((fitted - observed) ** 2).sum(-1), 0.0)
