@@ -263,6 +263,7 @@ def build_skeleton(positions: np.ndarray, labels: Sequence[str], rate: float, gr
     spread = distance_spread(positions, pair_frames(rate))
     segments_out = [Segment(name=names[s], markers=[labels[m] for m in g],
                             marker_offsets=[_vec(o) for o in shapes[s].marker_offsets],
+                            marker_spread_mm=[round(float(x), 2) for x in shapes[s].marker_spread],
                             rigidity_mm=float(np.nanmean(spread[np.ix_(g, g)][np.triu_indices(len(g), 1)])))
                     for s, g in enumerate(groups)]
     return SkeletonModel(name=name, segments=segments_out, joints=joints, root=names[root])

@@ -25,6 +25,10 @@ class Segment(BaseModel):
     marker_offsets: list[Vec3] | None = Field(
         default=None, description="marker positions in the segment's local frame (mm), same order as markers"
     )
+    marker_spread_mm: list[float] | None = Field(
+        default=None, description="how far each marker strays from its offset: RMS distance from where the "
+                                  "segment's fitted pose puts it over the calibration data (mm), same order as "
+                                  "markers; skin and soft tissue make it larger than the noise")
     rigidity_mm: float | None = Field(
         default=None, description="how rigid the markers were: standard deviation of their mutual distances over "
                                   "the calibration data, mean over pairs (mm)")

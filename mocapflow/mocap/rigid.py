@@ -32,6 +32,19 @@ class SegmentShape:
     frames_used: int
     in_line: bool = False  # the points lie on a line: the turn about it is held from frame to frame, not measured
 
+    @property
+    def marker_spread(self) -> np.ndarray:
+        """(n,) RMS distance of each marker from where the segment's pose puts it, over the frames posed (mm): how
+        far skin, soft tissue or a joint inside the segment moves it off the rigid layout. A marker never seen in a
+        posed frame is given the largest spread of the others (0 when none was seen)."""
+        n = len(self.marker_offsets)
+        fitted = np.einsum("fab,nb->fna", self.pose.rotation_matrices, self.marker_offsets)
+        err = np.linalg.norm(fitted + self.pose.translations[:, None] - self.pose.observed[:, :n], axis=-1)
+        seen = np.isfinite(err)
+        count = seen.sum(0)
+        spread = np.sqrt(np.where(seen, err * err, 0.0).sum(0) / np.maximum(count, 1))
+        return np.where(count > 0, spread, spread[count > 0].max(initial=0.0))
+
 
 def robust_mean(cloud: np.ndarray) -> np.ndarray:
     """Mean of a (F, 3) cloud after dropping samples farther from the first mean than its standard deviation

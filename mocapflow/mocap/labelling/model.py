@@ -51,6 +51,8 @@ class ModelLabellerConfig:
 
     gate_mm: float = 20.0  # largest distance from a marker's prediction to the point it takes
     fit_mm: float = 10.0  # largest distance between a fitted layout and a point it keeps
+    spread_sigmas: float = 3.0  # a marker known to stray (its calibration spread) has fit_mm widened to this many
+    # times its spread, and gate_mm by as much; its weight in the fits falls as the square of that widening
     weak_gate_mm: float = 150.0  # the same for a segment posed through joints or its previous pose
     joint_mm: float = 40.0  # largest distance between a joint centre placed by each of its two segments
     max_coast_s: float = 0.1  # a marker whose segment has no pose is coasted at constant velocity this long
@@ -63,6 +65,7 @@ class ModelLabellerConfig:
 class _Segment:
     markers: np.ndarray  # indices into the model's marker list
     local: np.ndarray  # (n, 3) layout in the segment's frame
+    tol: np.ndarray  # (n,) largest distance between the fitted layout and a point each marker keeps (mm)
     joints: list[tuple[int, np.ndarray, np.ndarray]]  # (other segment, centre in this frame, centre in the other's)
 
 
@@ -84,7 +87,10 @@ class ModelLabeller:
             first = len(self.labels)
             self.labels += seg.markers
             index[seg.name] = len(self.segments)
-            self.segments.append(_Segment(np.arange(first, len(self.labels)), np.array(seg.marker_offsets, float), []))
+            spread = np.zeros(len(seg.markers)) if seg.marker_spread_mm is None else np.array(seg.marker_spread_mm)
+            tol = np.maximum(self.config.fit_mm, self.config.spread_sigmas * spread)
+            self.segments.append(_Segment(np.arange(first, len(self.labels)), np.array(seg.marker_offsets, float),
+                                          tol, []))
         if not self.segments:
             raise ValueError(f"skeleton {skeleton.name!r} has no segment with a marker layout")
         if len(set(self.labels)) != len(self.labels):
@@ -98,10 +104,14 @@ class ModelLabeller:
         width = max(len(one.markers) for one in self.segments)
         self._slots = np.full((len(self.segments), width), -1, np.intp)  # markers of each segment, -1 padding
         self._layouts = np.zeros((len(self.segments), width, 3))
+        n = len(self.labels)
+        self._tol = np.full(n, self.config.fit_mm)  # per marker: see _Segment.tol
         for s, one in enumerate(self.segments):
             self._slots[s, : len(one.markers)] = one.markers
             self._layouts[s, : len(one.markers)] = one.local
-        n = len(self.labels)
+            self._tol[one.markers] = one.tol
+        # a marker's weight in a fit: 1 for one no looser than fit_mm, less for one known to stray
+        self._weight = (self.config.fit_mm / self._tol) ** 2
         self.pos = np.full((n, 3), np.nan)
         self.vel = np.zeros((n, 3))
         self.last = np.full(n, -np.inf)
@@ -156,7 +166,6 @@ class ModelLabeller:
         """Fit every segment not posed yet whose markers, joint centres and previous pose fix a pose, surest first:
         three markers or more, then three points with joint centres, then two with the previous pose. A marker far
         from its fitted place gives its point back. True when a segment was posed."""
-        cfg = self.config
         any_posed = self._pose_rigid(poses, cur)
         for level in (0, 1, 2):
             progress = True
@@ -171,13 +180,13 @@ class ModelLabeller:
                     rot, shift, joint_error = fitted
                     seen = np.isfinite(cur[seg.markers, 0])
                     error = np.where(seen, np.linalg.norm(seg.local @ rot.T + shift - cur[seg.markers], axis=1), 0.0)
-                    if joint_error > cfg.joint_mm:  # markers swapped, or taken by ghosts: the search decides
+                    if joint_error > self.config.joint_mm:  # markers swapped, or taken by ghosts: the search decides
                         taken[np.isin(taken, seg.markers)] = -1
                         cur[seg.markers] = np.nan
                         self.streak[seg.markers] = 0
                         continue
-                    if (error > cfg.fit_mm).any():  # the worst one goes; the others decide again
-                        worst = seg.markers[np.argmax(error)]
+                    if (error > seg.tol).any():  # the worst one goes; the others decide again
+                        worst = seg.markers[np.argmax(error / seg.tol)]
                         taken[taken == worst] = -1
                         cur[worst] = np.nan
                         self.streak[worst] = 0
@@ -189,19 +198,20 @@ class ModelLabeller:
         return any_posed
 
     def _pose_rigid(self, poses: list, cur: np.ndarray) -> bool:
-        """Pose at once (one batched fit) the segments not posed yet that three or more matched markers fit within
-        ``fit_mm``: most segments in most frames. True when one was posed."""
+        """Pose at once (one batched fit) the segments not posed yet that three or more matched markers fit, each
+        within its tolerance: most segments in most frames. True when one was posed."""
         x = np.where((self._slots >= 0)[..., None], cur[np.maximum(self._slots, 0)], np.nan)
         seen = np.isfinite(x[..., 0])
         todo = np.flatnonzero(np.array([p is None for p in poses]) & (seen.sum(axis=1) >= 3))
         if not len(todo):
             return False
-        w = seen[todo].astype(float)
+        slots = np.maximum(self._slots[todo], 0)
+        w = np.where(seen[todo], self._weight[slots], 0.0)
         local = np.where(seen[todo, :, None], self._layouts[todo], 0.0)
         rot, shift, ok = kabsch(local, np.where(seen[todo, :, None], x[todo], 0.0), w)
         moved = np.einsum("bij,bnj->bni", rot, self._layouts[todo]) + shift[:, None]
         error = np.where(seen[todo], norm(moved - np.where(seen[todo, :, None], x[todo], 0.0)), 0.0)
-        good = ok & (error <= self.config.fit_mm).all(axis=1)
+        good = ok & (error <= self._tol[slots]).all(axis=1)
         for b in np.flatnonzero(good):
             poses[todo[b]] = (rot[b], shift[b])
             self._level[todo[b]] = 0
@@ -216,7 +226,7 @@ class ModelLabeller:
         n_seen = int(seen.sum())
         local = [seg.local[seen]]
         world = [cur[seg.markers[seen]]]
-        weight = [np.ones(n_seen)]
+        weight = [self._weight[seg.markers[seen]]]
         if n_seen < 3:
             if level == 0 or n_seen == 0:
                 return None
@@ -268,6 +278,7 @@ class ModelLabeller:
             slot = np.flatnonzero(np.isin(missing, seg.markers))
             rows = np.searchsorted(seg.markers, missing[slot])
             pred[slot] = seg.local[rows] @ rot.T + shift
+            gate[slot] += seg.tol[rows] - cfg.fit_mm
             if self._level[s] > 0:
                 gate[slot] = cfg.weak_gate_mm
                 seen = np.flatnonzero(np.isfinite(cur[seg.markers, 0]))
@@ -275,10 +286,10 @@ class ModelLabeller:
                         if poses[o] is not None and self._level[o] < 2]
                 here = [seg.local[seen]] + [h[None] for h, _ in sure]
                 there = [cur[seg.markers[seen]]] + [t[None] for _, t in sure]
-                tol = np.array([cfg.fit_mm] * len(seen) + [cfg.joint_mm] * (len(here) - 1))
+                tol = np.maximum(seg.tol[rows, None], np.concatenate([seg.tol[seen], [cfg.joint_mm] * len(sure)]))
                 want = cdist(seg.local[rows], np.concatenate(here))  # (slots, references)
                 have = cdist(z[free], np.concatenate(there))  # (free, references)
-                fits = (np.abs(have[None] - want[:, None]) < tol).all(axis=2)
+                fits = (np.abs(have[None] - want[:, None]) < tol[:, None]).all(axis=2)
                 # a point that could be two of its markers, or a marker that could take two points, is left alone
                 allowed[slot] = fits & (fits.sum(axis=0, keepdims=True) == 1) & (fits.sum(axis=1, keepdims=True) == 1)
         dt = time - self.last[missing]
@@ -312,7 +323,7 @@ class ModelLabeller:
                 continue
             dt = self._time - self._last_time[s]
             around = (self._last_seen[s], 100.0 + cfg.max_speed_mm_s * dt) if dt <= cfg.recent_s else None
-            best = _place_layout(seg.local, z[free], cfg.fit_mm, anchors, cfg.joint_mm, around)
+            best = _place_layout(seg.local, z[free], seg.tol, self._weight[seg.markers], anchors, cfg.joint_mm, around)
             if best is None:
                 continue
             hits, rot, shift = best
@@ -339,12 +350,14 @@ class ModelLabeller:
         self.streak = np.where(seen, self.streak + 1, 0)
 
 
-def _place_layout(layout: np.ndarray, cloud: np.ndarray, tol: float, anchors: list[tuple[np.ndarray, np.ndarray]],
-                  joint_tol: float, around: tuple[np.ndarray, float] | None = None,
+def _place_layout(layout: np.ndarray, cloud: np.ndarray, tol: np.ndarray, weight: np.ndarray,
+                  anchors: list[tuple[np.ndarray, np.ndarray]], joint_tol: float,
+                  around: tuple[np.ndarray, float] | None = None,
                   ) -> tuple[dict[int, int], np.ndarray, np.ndarray] | None:
     """The placement of a segment's layout ``(n, 3)`` on ``cloud`` that fits clearly better than any other (more
     points, or a third of the misfit): the points it lands on by layout row, its rotation and translation; None when
-    no placement is that sure.
+    no placement is that sure. ``tol`` and ``weight`` (n,) are each layout point's tolerance (mm) and weight in the
+    fit; two layout points keep their distance within the larger of their tolerances.
 
     With ``anchors`` (joint centres to posed segments: local, world), a placement lands two or more layout points on
     cloud points (within ``tol``) and every anchor within ``joint_tol`` of its world position. Without, it must land
@@ -362,9 +375,9 @@ def _place_layout(layout: np.ndarray, cloud: np.ndarray, tol: float, anchors: li
     d_anchor = cdist(cloud, world_a)
     d_local = cdist(layout, local_a)
     for target_rows, target in _triples(layout, cloud, d_cloud, d_anchor, d_local, len(anchors), tol, joint_tol):
-        weight = np.array([1.0] * len(target_rows) + [JOINT_WEIGHT] * len(anchors))
         fitted = fit_one(np.concatenate([layout[list(target_rows)], local_a]),
-                         np.concatenate([cloud[list(target)], world_a]), weight)
+                         np.concatenate([cloud[list(target)], world_a]),
+                         np.concatenate([weight[list(target_rows)], np.full(len(anchors), JOINT_WEIGHT)]))
         if fitted is None:
             continue
         rot, shift = fitted
@@ -392,11 +405,13 @@ def _place_layout(layout: np.ndarray, cloud: np.ndarray, tol: float, anchors: li
 
 
 def _triples(layout: np.ndarray, cloud: np.ndarray, d_cloud: np.ndarray, d_anchor: np.ndarray, d_local: np.ndarray,
-             anchors: int, tol: float, joint_tol: float) -> Iterable[tuple[tuple[int, ...], tuple[int, ...]]]:
-    """Layout rows and cloud points that, with the anchors, make three points at the layout's distances: a marker
-    with two anchors or more, two markers with one, three markers without."""
+             anchors: int, tol: np.ndarray, joint_tol: float) -> Iterable[tuple[tuple[int, ...], tuple[int, ...]]]:
+    """Layout rows and cloud points that, with the anchors, make three points at the layout's distances (within the
+    larger of the two rows' tolerances): a marker with two anchors or more, two markers with one, three markers
+    without."""
     width = 3 - min(anchors, 2)
     d_layout = cdist(layout, layout)
+    pair_tol = np.maximum(tol[:, None], tol[None, :])
 
     def fits_anchors(rows: tuple[int, ...], points: tuple[int, ...]) -> bool:
         return all((np.abs(d_anchor[p] - d_local[r]) <= joint_tol).all() for r, p in zip(rows, points, strict=True))
@@ -408,14 +423,14 @@ def _triples(layout: np.ndarray, cloud: np.ndarray, d_cloud: np.ndarray, d_ancho
         return
     for rows in combinations(range(len(layout)), width):
         a, b = rows[0], rows[1]
-        for i, j in np.argwhere(np.abs(d_cloud - d_layout[a, b]) < tol):
+        for i, j in np.argwhere(np.abs(d_cloud - d_layout[a, b]) < pair_tol[a, b]):
             if width == 2:
                 if fits_anchors((a, b), (i, j)):
                     yield (a, b), (int(i), int(j))
                 continue
             c = rows[2]
-            ks = np.flatnonzero((np.abs(d_cloud[i] - d_layout[a, c]) < tol)
-                                & (np.abs(d_cloud[j] - d_layout[b, c]) < tol))
+            ks = np.flatnonzero((np.abs(d_cloud[i] - d_layout[a, c]) < pair_tol[a, c])
+                                & (np.abs(d_cloud[j] - d_layout[b, c]) < pair_tol[b, c]))
             for k in ks[(ks != i) & (ks != j)]:
                 yield (a, b, c), (int(i), int(j), int(k))
 
