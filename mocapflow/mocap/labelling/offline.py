@@ -7,6 +7,7 @@ from collections.abc import Iterable
 
 import numpy as np
 
+from mocapflow.mocap.clustering import noise_floor
 from mocapflow.mocap.labelling.assignment import norm, rigid_signature
 from mocapflow.mocap.labelling.config import SD_FLOOR_MM, LabellerConfig
 from mocapflow.mocap.labelling.labeller import Labeller
@@ -102,12 +103,22 @@ def _set_score(tracks: np.ndarray, seen: np.ndarray, i: int, j: int, spread: tup
     return float(np.median(best)) if len(best) else np.inf
 
 
-def _explained(tracks: np.ndarray, seen: np.ndarray, k: int, cfg: LabellerConfig) -> bool:
+def _explained(tracks: np.ndarray, seen: np.ndarray, k: int, rigid_sd: float) -> bool:
     """Whether track ``k`` keeps its distances to two or more other tracks, seen in every one of its frames, within
-    ``rigid_sd_mm``: a real marker on a rigid body, however briefly seen, not a ghost."""
+    ``rigid_sd`` (mm, SD): a real marker on a rigid body, however briefly seen, not a ghost."""
     _, sd = _distance_spread(tracks, seen, k, int(seen[:, k].sum()))
     sd[k] = np.nan
-    return int((sd <= cfg.rigid_sd_mm).sum()) >= 2
+    return int((sd <= rigid_sd).sum()) >= 2
+
+
+def _rigid_sd(tracks: np.ndarray, seen: np.ndarray, markers: np.ndarray, cfg: LabellerConfig) -> float:
+    """How much the distance between two markers of one rigid body varies in this recording (SD, mm): three times
+    its noise floor (``clustering.noise_floor``, read on the tracks ``markers`` long enough to be markers), at least
+    ``rigid_sd_mm``. Skin on a sprinter's legs moves markers several millimetres where a rigid cluster holds one."""
+    spread = np.full((len(markers), len(markers)), np.nan)
+    for row, k in enumerate(markers):
+        spread[row] = _distance_spread(tracks, seen, k, cfg.confirm_frames)[1][markers]
+    return max(cfg.rigid_sd_mm, 3.0 * noise_floor(spread)) if len(markers) > 1 else cfg.rigid_sd_mm
 
 
 def _evenly(frames: np.ndarray, count: int) -> np.ndarray:
@@ -123,7 +134,8 @@ def label_sequence(frames: Iterable[np.ndarray], rate: float,
 
     Knowing the whole recording allows more than streaming: points a track collected while still tentative are
     filled in, tracks of one marker are merged (:func:`merge_tracks`), and tracks seen for less than ``min_track_s``
-    in all are dropped unless rigid partners explain them (``_explained``). Markers are labelled ``M001``... in
+    in all are dropped unless rigid partners explain them (``_explained``, at this recording's rigidity:
+    ``_rigid_sd``). Markers are labelled ``M001``... in
     order of first appearance.
     """
     cfg = config or LabellerConfig()
@@ -142,8 +154,9 @@ def label_sequence(frames: Iterable[np.ndarray], rate: float,
     merged = [np.fmax.reduce(tracks[:, group], axis=1) for group in merge_tracks(tracks, cfg)]  # never share a frame
     joined = np.stack(merged, axis=1) if merged else np.full((len(rows), 0, 3), np.nan)
     seen = np.isfinite(joined[..., 0])
-    markers = [m for k, m in enumerate(merged)
-               if seen[:, k].sum() >= cfg.min_track_s * rate or _explained(joined, seen, k, cfg)]
+    long = seen.sum(axis=0) >= cfg.min_track_s * rate
+    rigid_sd = _rigid_sd(joined, seen, np.flatnonzero(long), cfg)
+    markers = [m for k, m in enumerate(merged) if long[k] or _explained(joined, seen, k, rigid_sd)]
     markers.sort(key=lambda m: np.flatnonzero(np.isfinite(m[:, 0]))[0])
     out = np.stack(markers, axis=1) if markers else np.full((len(rows), 0, 3), np.nan)
     return out, [f"M{k + 1:03d}" for k in range(out.shape[1])]
