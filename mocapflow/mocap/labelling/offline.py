@@ -135,8 +135,7 @@ def label_sequence(frames: Iterable[np.ndarray], rate: float,
     Knowing the whole recording allows more than streaming: points a track collected while still tentative are
     filled in, tracks of one marker are merged (:func:`merge_tracks`), and tracks seen for less than ``min_track_s``
     in all are dropped unless rigid partners explain them (``_explained``, at this recording's rigidity:
-    ``_rigid_sd``). Markers are labelled ``M001``... in
-    order of first appearance.
+    ``_rigid_sd``). Markers are labelled ``M001``... in order of first appearance.
     """
     cfg = config or LabellerConfig()
     labeller = Labeller(cfg, rate)
