@@ -154,7 +154,7 @@ def label_sequence(frames: Iterable[np.ndarray], rate: float,
     joined = np.stack(merged, axis=1) if merged else np.full((len(rows), 0, 3), np.nan)
     seen = np.isfinite(joined[..., 0])
     long = seen.sum(axis=0) >= cfg.min_track_s * rate
-    rigid_sd = _rigid_sd(joined, seen, np.flatnonzero(long), cfg)
+    rigid_sd = _rigid_sd(joined, seen, np.flatnonzero(long), cfg) if not long.all() else cfg.rigid_sd_mm
     markers = [m for k, m in enumerate(merged) if long[k] or _explained(joined, seen, k, rigid_sd)]
     markers.sort(key=lambda m: np.flatnonzero(np.isfinite(m[:, 0]))[0])
     out = np.stack(markers, axis=1) if markers else np.full((len(rows), 0, 3), np.nan)
