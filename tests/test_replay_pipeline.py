@@ -111,7 +111,7 @@ def test_simulated_capture_through_the_pipeline_equals_fill(tmp_path: Path, free
     graph, _ = deployment(tmp_path, free_endpoint, "ss")
     # a short warm-up and joint window, so that segments and skeleton are learnt and solved within the six seconds
     out = finish(start_replay(graph, source, tmp_path / "live.c3d", "clusterer.warmup_s=2", "joints.window_s=3",
-                              "joints.every_s=1", "tracker.speed=2"))
+                              "joints.every_s=1"))
     assert "all nodes finished" in out, out
     live = read_markers(tmp_path / "live.c3d")
     assert_same_markers(live, read_markers(tmp_path / "filled.c3d"))

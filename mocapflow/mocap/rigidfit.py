@@ -18,8 +18,8 @@ from dataclasses import dataclass
 from functools import cached_property
 
 import numpy as np
+from numba import njit
 from scipy.linalg.lapack import dgesdd
-from scipy.spatial.transform import Rotation, Slerp
 
 
 def rotor(reference: np.ndarray, observed: np.ndarray,
@@ -33,38 +33,101 @@ def rotor(reference: np.ndarray, observed: np.ndarray,
     """
     x = np.asarray(reference, dtype=np.float64)
     y = np.asarray(observed, dtype=np.float64)
-    if x.shape != y.shape:
-        x, y = np.broadcast_arrays(x, y)
-    both = np.isfinite(x).all(-1) & np.isfinite(y).all(-1)
-    w = np.asarray(both * (1.0 if weights is None else np.asarray(weights, dtype=np.float64)))
-    x = np.where(w[..., None] > 0, x, 0.0)
-    y = np.where(w[..., None] > 0, y, 0.0)
-    s = np.einsum("...n,...na,...nb->...ab", w, x, y)  # S_ab = sum x_a y_b (Schoenauer 3.7.4)
-    n = (s.reshape(*s.shape[:-2], 9) @ _HORN).reshape(*s.shape[:-2], 4, 4)
-    values, vectors = np.linalg.eigh(n)
-    q = vectors[..., :, 3]  # Horn's (w, x, y, z) for the largest eigenvalue
-    scale = np.abs(values).max(-1)
-    gap = (values[..., 3] - values[..., 2]) / np.maximum(scale, 1e-300)  # 0 where N is 0
-    return np.concatenate([q[..., 1:], q[..., :1]], -1), gap
+    w = np.ones(x.shape[:-1]) if weights is None else np.asarray(weights, dtype=np.float64)
+    x, y, w = np.broadcast_arrays(x, y, w[..., None])
+    lead, n = x.shape[:-2], x.shape[-2]
+    quats, gap = _rotors(*(np.ascontiguousarray(a).reshape(-1, n, 3) for a in (x, y, w)))
+    return quats.reshape(*lead, 4), gap.reshape(lead)
 
 
-def _horn_map() -> np.ndarray:
-    """(9, 16): Horn's symmetric 4x4 matrix N as a linear map of S = sum x y^T (row-major), N = S.ravel() @ map.
-
-    Diagonal: sxx + syy + szz, sxx - syy - szz, -sxx + syy - szz, -sxx - syy + szz; off it, symmetric: syz - szy,
-    szx - sxz, sxy - syx (row 0), sxy + syx, szx + sxz (row 1), syz + szy (row 2)."""
-    terms = {(0, 0): "+xx +yy +zz", (1, 1): "+xx -yy -zz", (2, 2): "-xx +yy -zz", (3, 3): "-xx -yy +zz",
-             (0, 1): "+yz -zy", (0, 2): "+zx -xz", (0, 3): "+xy -yx", (1, 2): "+xy +yx", (1, 3): "+zx +xz",
-             (2, 3): "+yz +zy"}
-    out = np.zeros((9, 16))
-    for (i, j), sums in terms.items():
-        for term in sums.split():
-            source = 3 * "xyz".index(term[1]) + "xyz".index(term[2])
-            out[source, [4 * i + j, 4 * j + i]] = 1.0 if term[0] == "+" else -1.0
-    return out
+@njit(cache=True)
+def _rotors(x: np.ndarray, y: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover
+    """``rotor`` over a flat batch: (B, n, 3) points, (B, n, 3) weights (the same in the three columns)."""
+    quats, gap = np.empty((len(x), 4)), np.empty(len(x))
+    use = np.empty(x.shape[1])
+    for b in range(len(x)):
+        for i in range(x.shape[1]):
+            use[i] = w[b, i, 0] if finite(x[b, i]) and finite(y[b, i]) else 0.0
+        gap[b] = _horn(x[b], y[b], use, quats[b])
+    return quats, gap
 
 
-_HORN = _horn_map()
+@njit(cache=True)
+def finite(v: np.ndarray) -> bool:  # pragma: no cover
+    """Whether every coordinate of the short vector ``v`` is finite, without a temporary array."""
+    for c in v:
+        if not np.isfinite(c):
+            return False
+    return True
+
+
+@njit(cache=True)
+def _horn(x: np.ndarray, y: np.ndarray, w: np.ndarray, q: np.ndarray) -> float:  # pragma: no cover
+    """Horn's rotation of one point set into ``q`` (scalar-last): the eigenvector of the largest eigenvalue of his
+    symmetric 4x4 matrix N, built from S = sum w x y^T (Schoenauer 3.7.4). Rows of zero weight are not read. Returns
+    the relative gap between the two largest eigenvalues (0 where N is 0)."""
+    xx = xy = xz = yx = yy = yz = zx = zy = zz = 0.0
+    for i in range(len(x)):
+        if w[i] > 0:
+            a0, a1, a2 = w[i] * x[i, 0], w[i] * x[i, 1], w[i] * x[i, 2]
+            xx, xy, xz = xx + a0 * y[i, 0], xy + a0 * y[i, 1], xz + a0 * y[i, 2]
+            yx, yy, yz = yx + a1 * y[i, 0], yy + a1 * y[i, 1], yz + a1 * y[i, 2]
+            zx, zy, zz = zx + a2 * y[i, 0], zy + a2 * y[i, 1], zz + a2 * y[i, 2]
+    n = np.array([[xx + yy + zz, yz - zy, zx - xz, xy - yx],
+                  [yz - zy, xx - yy - zz, xy + yx, zx + xz],
+                  [zx - xz, xy + yx, -xx + yy - zz, yz + zy],
+                  [xy - yx, zx + xz, yz + zy, -xx - yy + zz]])
+    vectors = np.empty((4, 4))
+    _jacobi(n, vectors)
+    first, second = 0, 1
+    if n[1, 1] > n[0, 0]:
+        first, second = 1, 0
+    for i in range(2, 4):
+        if n[i, i] > n[first, first]:
+            first, second = i, first
+        elif n[i, i] > n[second, second]:
+            second = i
+    q[0], q[1], q[2], q[3] = vectors[1, first], vectors[2, first], vectors[3, first], vectors[0, first]
+    scale = 0.0
+    for i in range(4):
+        scale = max(scale, abs(n[i, i]))
+    return (n[first, first] - n[second, second]) / max(scale, 1e-300)  # Horn's is (w, x, y, z)
+
+
+@njit(cache=True)
+def _jacobi(a: np.ndarray, v: np.ndarray) -> None:  # pragma: no cover
+    """In place, the cyclic Jacobi method on a symmetric 4x4 ``a``: its diagonal becomes the eigenvalues and ``v``'s
+    columns their unit eigenvectors (accurate to rounding, and a few hundred operations: no LAPACK call)."""
+    v[:] = 0.0
+    scale = 0.0
+    for i in range(4):
+        v[i, i] = 1.0
+        for j in range(4):
+            scale = max(scale, abs(a[i, j]))
+    for _ in range(32):
+        off = 0.0
+        for p in range(3):
+            for q in range(p + 1, 4):
+                off += a[p, q] * a[p, q]
+        if off <= (1e-17 * scale) ** 2:
+            return
+        for p in range(3):
+            for q in range(p + 1, 4):
+                if a[p, q] == 0.0:
+                    continue
+                theta = (a[q, q] - a[p, p]) / (2.0 * a[p, q])
+                t = (1.0 if theta >= 0 else -1.0) / (abs(theta) + np.sqrt(theta * theta + 1.0))
+                c = 1.0 / np.sqrt(t * t + 1.0)
+                s = t * c
+                for k in range(4):
+                    kp, kq = a[k, p], a[k, q]
+                    a[k, p], a[k, q] = c * kp - s * kq, s * kp + c * kq
+                for k in range(4):
+                    pk, qk = a[p, k], a[q, k]
+                    a[p, k], a[q, k] = c * pk - s * qk, s * pk + c * qk
+                for k in range(4):
+                    kp, kq = v[k, p], v[k, q]
+                    v[k, p], v[k, q] = c * kp - s * kq, s * kp + c * kq
 
 
 def kabsch(local: np.ndarray, world: np.ndarray, weight: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -149,32 +212,46 @@ class PoseFit:
 def quaternion_matrices(quaternions: np.ndarray) -> np.ndarray:
     """(..., 3, 3) matrices of scalar-last quaternions, NaN rows giving NaN matrices (scipy rejects NaN).
 
-    The arithmetic of scipy's ``Rotation.from_quat(q).as_matrix()`` (normalise, then the products below), operation
-    for operation, so the matrices are bit for bit scipy's, without building a ``Rotation`` on every call."""
-    q = np.asarray(quaternions, dtype=np.float64)
-    norm = np.sqrt(((q[..., 0] * q[..., 0] + q[..., 1] * q[..., 1]) + q[..., 2] * q[..., 2]) + q[..., 3] * q[..., 3])
-    if (norm == 0).any():
+    The arithmetic of scipy's ``Rotation.from_quat(q).as_matrix()`` (normalise, then the products of ``_matrix``),
+    operation for operation, so the matrices are bit for bit scipy's, without building a ``Rotation`` on every
+    call."""
+    q = np.ascontiguousarray(quaternions, dtype=np.float64)
+    out = np.empty((*q.shape[:-1], 3, 3))
+    if not _matrices(q.reshape(-1, 4), out.reshape(-1, 3, 3)):
         raise ValueError("Found zero norm quaternions in `quat`.")
-    u = q / norm[..., None]
-    p = (u[..., :, None] * u[..., None, :]).reshape(*q.shape[:-1], 16)  # p[4 i + j] = u_i u_j, (x, y, z, w)
-    out = np.empty((*q.shape[:-1], 9))
-    # diagonal: x2 - y2 - z2 + w2, -x2 + y2 - z2 + w2, -x2 - y2 + z2 + w2; the signs only flip exactly
-    out[..., _DIAGONAL] = ((p[..., _SQUARES[0]] * _FIRST + p[..., _SQUARES[1]] * _SECOND)
-                           + p[..., _SQUARES[2]] * _THIRD) + p[..., _SQUARES[3]]
-    # off the diagonal: 2 (xy - zw), 2 (xz + yw), 2 (xy + zw), 2 (yz - xw), 2 (xz - yw), 2 (yz + xw)
-    out[..., _OFF] = 2 * (p[..., _PRODUCTS[0]] + p[..., _PRODUCTS[1]] * _SIGNS)
-    return out.reshape(*q.shape[:-1], 3, 3)
+    return out
 
 
-_DIAGONAL, _OFF = np.array([0, 4, 8]), np.array([1, 2, 3, 5, 6, 7])
-_SQUARES = np.array([[0, 0, 0], [5, 5, 5], [10, 10, 10], [15, 15, 15]])
-_PRODUCTS = np.array([[1, 2, 1, 6, 2, 6], [11, 7, 11, 3, 7, 3]])
-_FIRST, _SECOND, _THIRD = np.array([1.0, -1.0, -1.0]), np.array([-1.0, 1.0, -1.0]), np.array([-1.0, -1.0, 1.0])
-_SIGNS = np.array([-1.0, 1.0, 1.0, -1.0, -1.0, 1.0])
+@njit(cache=True)
+def _matrices(q: np.ndarray, out: np.ndarray) -> bool:  # pragma: no cover
+    """``quaternion_matrices`` of (B, 4) into (B, 3, 3); False if a quaternion is zero."""
+    for b in range(len(q)):
+        if not _matrix(q[b], out[b]):
+            return False
+    return True
+
+
+@njit(cache=True)
+def _matrix(q: np.ndarray, out: np.ndarray) -> bool:  # pragma: no cover
+    """The rotation matrix of one scalar-last quaternion into ``out``, scipy's arithmetic; False if it is zero."""
+    norm = np.sqrt(((q[0] * q[0] + q[1] * q[1]) + q[2] * q[2]) + q[3] * q[3])
+    if norm == 0:
+        return False
+    x, y, z, w = q[0] / norm, q[1] / norm, q[2] / norm, q[3] / norm
+    xx, yy, zz, ww = x * x, y * y, z * z, w * w
+    out[0, 0], out[1, 1], out[2, 2] = ((xx - yy) - zz) + ww, ((-xx + yy) - zz) + ww, ((-xx - yy) + zz) + ww
+    out[0, 1], out[0, 2] = 2 * (x * y - z * w), 2 * (x * z + y * w)
+    out[1, 0], out[1, 2] = 2 * (x * y + z * w), 2 * (y * z - x * w)
+    out[2, 0], out[2, 1] = 2 * (x * z - y * w), 2 * (y * z + x * w)
+    return True
+
+
+MIN_GAP = 1e-3
+"""Below this eigenvalue gap (``rotor``) a fit's points fix one direction only: its rotation is not determined."""
 
 
 def fit_pose(local: np.ndarray, observed: np.ndarray, pivot_local: np.ndarray | None = None,
-             pivot_world: np.ndarray | None = None, *, hold: bool = False, min_gap: float = 1e-3) -> PoseFit:
+             pivot_world: np.ndarray | None = None, *, hold: bool = False, min_gap: float = MIN_GAP) -> PoseFit:
     """Pose of a rigid marker set in every frame, from the visible markers only.
 
     ``local`` (n, 3) are the markers in the segment frame, ``observed`` (F, n, 3) their positions with NaN gaps.
@@ -190,56 +267,175 @@ def fit_pose(local: np.ndarray, observed: np.ndarray, pivot_local: np.ndarray | 
     ``observed`` (F, S, n, 3), pivots (S, 3) and (F, S, 3), each segment's markers padded to a common n with rows
     that are never seen (any finite ``local``, NaN ``observed``); every result then has that axis too, and each
     segment's numbers are exactly those of fitting it alone.
+
+    The arithmetic is compiled (numba), frame by frame and segment by segment: one call costs microseconds, where the
+    same steps as numpy operations on a frame or two (the live skeleton) cost far more in per-call overhead than in
+    arithmetic.
     """
     local = np.asarray(local, dtype=np.float64)
     obs = np.asarray(observed, dtype=np.float64)
-    seen = np.asarray(np.isfinite(obs).all(-1))
-    count = seen.sum(-1)
-    share = (seen / np.maximum(count, 1)[..., None])[..., None, :]  # (F, ..., 1, n): centroids as products
-    origin_loc = (share @ local)[..., 0, :]
-    origin_obs = (share @ np.where(seen[..., None], obs, 0.0))[..., 0, :]
-    free: np.ndarray | bool = True
+    single = local.ndim == 2
+    segments = local.reshape(-1, *local.shape[-2:])
+    frames = np.ascontiguousarray(obs.reshape(obs.shape[0], len(segments), *local.shape[-2:]))
+    pin_local = np.zeros((len(segments), 3))
+    pin_world = np.full((len(frames), len(segments), 3), np.nan)
     if pivot_local is not None and pivot_world is not None:
-        pivot_world = np.asarray(pivot_world, dtype=np.float64)
-        pinned = np.isfinite(pivot_world).all(-1)
-        free = ~pinned
-        origin_loc = np.where(pinned[..., None], np.asarray(pivot_local, dtype=np.float64), origin_loc)
-        origin_obs = np.where(pinned[..., None], pivot_world, origin_obs)
-    quats, gap = rotor(local[None] - origin_loc[..., None, :], obs - origin_obs[..., None, :])
-    usable = np.where(free, count >= 2, count >= 1)
-    quats[~usable] = np.nan
-    determined = usable & (gap >= min_gap)
-    if hold and local.ndim == 2:
-        _hold(quats, determined, local, obs, origin_loc, origin_obs)
-    elif hold:  # only segments with a frame to hold and one to hold it from
+        pin_local[:] = np.asarray(pivot_local, dtype=np.float64).reshape(-1, 3)
+        pin_world[:] = np.asarray(pivot_world, dtype=np.float64).reshape(len(frames), -1, 3)
+    quats, determined, origin_loc, origin_obs = fit_frames(np.ascontiguousarray(segments), frames, pin_local,
+                                                            pin_world, min_gap)
+    if hold:  # only segments with a frame to hold and one to hold it from
         todo = (np.isfinite(quats).all(-1) & ~determined).any(0) & determined.any(0)
         for s in np.flatnonzero(todo):
-            _hold(quats[:, s], determined[:, s], local[s], obs[:, s], origin_loc[:, s], origin_obs[:, s])
-    matrices = quaternion_matrices(quats)
-    t = origin_obs - np.einsum("f...ab,f...b->f...a", matrices, origin_loc)
-    return PoseFit(quats, t, determined, matrices, local, obs)
+            hold_turns(quats[:, s], determined[:, s], segments[s], frames[:, s], origin_loc[:, s], origin_obs[:, s])
+    matrices, translations = pose_matrices(quats, origin_loc, origin_obs)
+    if single:
+        quats, determined, matrices, translations = quats[:, 0], determined[:, 0], matrices[:, 0], translations[:, 0]
+    return PoseFit(quats, translations, determined, matrices, local, obs)
 
 
-def _hold(quats: np.ndarray, determined: np.ndarray, local: np.ndarray, observed: np.ndarray,
-          origin_loc: np.ndarray, origin_obs: np.ndarray) -> None:
-    """In place: undetermined frames take the smallest turn that points their longest visible vector (from the
-    origin) at the data, from the rotation interpolated (slerp) between the nearest determined frames before and
-    after (or the nearest one, at an end)."""
-    todo = np.flatnonzero(np.isfinite(quats).all(1) & ~determined)
+@njit(cache=True)
+def fit_frames(local: np.ndarray, observed: np.ndarray, pivot_local: np.ndarray, pivot_world: np.ndarray,
+               min_gap: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:  # pragma: no cover
+    """``fit_pose`` before holding: per frame and segment ((F, S) of ``observed`` (F, S, n, 3)), the quaternion
+    (NaN where too few points), whether the points fix it, and the two origins it turns about (centroids of the
+    visible markers, or the pivot where ``pivot_world`` is finite)."""
+    count_f, count_s, n = observed.shape[0], observed.shape[1], observed.shape[2]
+    quats = np.full((count_f, count_s, 4), np.nan)
+    determined = np.zeros((count_f, count_s), np.bool_)
+    origin_loc, origin_obs = np.zeros((count_f, count_s, 3)), np.zeros((count_f, count_s, 3))
+    seen, x, y = np.empty(n), np.empty((n, 3)), np.empty((n, 3))
+    for f in range(count_f):
+        for s in range(count_s):
+            count = 0
+            for i in range(n):
+                seen[i] = 1.0 if finite(observed[f, s, i]) else 0.0
+                count += int(seen[i])
+            pinned = finite(pivot_world[f, s])
+            for c in range(3):
+                if pinned:
+                    origin_loc[f, s, c], origin_obs[f, s, c] = pivot_local[s, c], pivot_world[f, s, c]
+                elif count:
+                    for i in range(n):
+                        if seen[i]:
+                            origin_loc[f, s, c] += local[s, i, c] / count
+                            origin_obs[f, s, c] += observed[f, s, i, c] / count
+            if count < (1 if pinned else 2):
+                continue
+            for i in range(n):
+                for c in range(3):
+                    x[i, c] = local[s, i, c] - origin_loc[f, s, c]
+                    y[i, c] = observed[f, s, i, c] - origin_obs[f, s, c]
+            determined[f, s] = _horn(x, y, seen, quats[f, s]) >= min_gap
+    return quats, determined, origin_loc, origin_obs
+
+
+@njit(cache=True)
+def pose_matrices(quats: np.ndarray, origin_loc: np.ndarray, origin_obs: np.ndarray
+                  ) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover
+    """Rotation matrices and translations (``world = R @ local + t`` maps ``origin_loc`` onto ``origin_obs``) of
+    (F, S) poses; NaN where the quaternion is."""
+    count_f, count_s = quats.shape[0], quats.shape[1]
+    matrices = np.full((count_f, count_s, 3, 3), np.nan)
+    translations = np.full((count_f, count_s, 3), np.nan)
+    for f in range(count_f):
+        for s in range(count_s):
+            if finite(quats[f, s]) and _matrix(quats[f, s], matrices[f, s]):
+                place(-matrices[f, s], origin_loc[f, s], origin_obs[f, s], translations[f, s])
+    return matrices, translations
+
+
+@njit(cache=True)
+def place(matrix: np.ndarray, point: np.ndarray, shift: np.ndarray, out: np.ndarray) -> None:  # pragma: no cover
+    """``out = matrix @ point + shift`` for a 3x3 matrix, in scalar arithmetic (a matrix product on arrays this small
+    costs a library call)."""
+    for a in range(3):
+        out[a] = matrix[a, 0] * point[0] + matrix[a, 1] * point[1] + matrix[a, 2] * point[2] + shift[a]
+
+
+@njit(cache=True)
+def hold_turns(quats: np.ndarray, determined: np.ndarray, local: np.ndarray, observed: np.ndarray,
+          origin_loc: np.ndarray, origin_obs: np.ndarray) -> None:  # pragma: no cover
+    """In place, for one segment's (F,) frames: undetermined frames take the smallest turn that points their longest
+    visible vector (from the origin) at the data, from the rotation interpolated (slerp) between the nearest
+    determined frames before and after (or the nearest one, at an end)."""
     known = np.flatnonzero(determined)
     if not len(known):
         return
-    after = np.searchsorted(known, todo)
-    for f, k in zip(todo, after, strict=True):
+    prior, turned, matrix = np.empty(4), np.empty(4), np.empty((3, 3))
+    pointing = np.empty(3)
+    for f in range(len(quats)):
+        if determined[f] or not finite(quats[f]):
+            continue
+        k = int(np.searchsorted(known, f))
         if 0 < k < len(known):
             a, b = known[k - 1], known[k]
-            pair = Rotation.from_quat(quats[[a, b]])
-            prior = Slerp([a, b], pair)([f])[0]
+            _slerp(quats[a], quats[b], (f - a) / (b - a), prior)
         else:
-            prior = Rotation.from_quat(quats[known[min(k, len(known) - 1)]])
-        seen = np.isfinite(observed[f]).all(1)
-        u, w = local[seen] - origin_loc[f], observed[f, seen] - origin_obs[f]
-        longest = int(np.argmax(np.linalg.norm(u, axis=1)))
-        turn, _ = Rotation.align_vectors(w[longest][None], prior.apply(u[longest])[None])
-        quats[f] = (turn * prior).as_quat()
+            prior[:] = quats[known[min(k, len(known) - 1)]]
+        longest, u = -1.0, np.zeros(3)
+        w = np.zeros(3)
+        for i in range(len(local)):
+            if finite(observed[f, i]):
+                v = local[i] - origin_loc[f]
+                if np.sqrt((v * v).sum()) > longest:
+                    longest, u, w = np.sqrt((v * v).sum()), v, observed[f, i] - origin_obs[f]
+        _matrix(prior, matrix)
+        place(matrix, u, np.zeros(3), pointing)
+        _shortest_turn(pointing, w, turned)
+        _multiply(turned, prior, quats[f])
 
+
+@njit(cache=True)
+def _multiply(p: np.ndarray, q: np.ndarray, out: np.ndarray) -> None:  # pragma: no cover
+    """The product ``p * q`` of scalar-last quaternions (``q`` applied first) into ``out``."""
+    px, py, pz, pw = p[0], p[1], p[2], p[3]
+    qx, qy, qz, qw = q[0], q[1], q[2], q[3]
+    out[0] = pw * qx + px * qw + py * qz - pz * qy
+    out[1] = pw * qy - px * qz + py * qw + pz * qx
+    out[2] = pw * qz + px * qy - py * qx + pz * qw
+    out[3] = pw * qw - px * qx - py * qy - pz * qz
+
+
+@njit(cache=True)
+def _turn(axis: np.ndarray, angle: float, out: np.ndarray) -> None:  # pragma: no cover
+    """The quaternion of a turn by ``angle`` about the unit ``axis``, into ``out``."""
+    out[:3] = axis * np.sin(angle / 2)
+    out[3] = np.cos(angle / 2)
+
+
+@njit(cache=True)
+def _slerp(a: np.ndarray, b: np.ndarray, t: float, out: np.ndarray) -> None:  # pragma: no cover
+    """The rotation a fraction ``t`` of the shortest way from ``a`` to ``b``, into ``out``."""
+    relative = np.empty(4)
+    _multiply(np.array([-a[0], -a[1], -a[2], a[3]]), b, relative)
+    if relative[3] < 0:
+        relative = -relative
+    sine = np.sqrt((relative[:3] ** 2).sum())
+    part = np.array([0.0, 0.0, 0.0, 1.0])
+    if sine > 0:
+        _turn(relative[:3] / sine, t * 2 * np.arctan2(sine, relative[3]), part)
+    _multiply(a, part, out)
+
+
+@njit(cache=True)
+def _shortest_turn(u: np.ndarray, w: np.ndarray, out: np.ndarray) -> None:  # pragma: no cover
+    """The smallest rotation pointing direction ``u`` along ``w``, into ``out`` (a half turn about an axis square
+    to ``u`` where they are opposite)."""
+    axis = _cross(u, w)
+    sine, cosine = np.sqrt((axis * axis).sum()), (u * w).sum()
+    if sine == 0 and cosine >= 0:
+        out[:3], out[3] = 0.0, 1.0
+        return
+    if sine == 0:  # opposite: about the axis square to u and to the coordinate axis it is least along
+        least = np.zeros(3)
+        least[0 if abs(u[0]) <= min(abs(u[1]), abs(u[2])) else 1 if abs(u[1]) <= abs(u[2]) else 2] = 1.0
+        axis = _cross(u, least)
+        sine = np.sqrt((axis * axis).sum())
+    _turn(axis / sine, np.arctan2(sine, cosine), out)
+
+
+@njit(cache=True)
+def _cross(u: np.ndarray, w: np.ndarray) -> np.ndarray:  # pragma: no cover
+    """The cross product of two 3-vectors."""
+    return np.array([u[1] * w[2] - u[2] * w[1], u[2] * w[0] - u[0] * w[2], u[0] * w[1] - u[1] * w[0]])

@@ -17,11 +17,12 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 from scipy.spatial.transform import Rotation
 
 from mocapflow.mocap.model import SkeletonModel
-from mocapflow.mocap.report import Progress, steps
-from mocapflow.mocap.rigidfit import fit_pose, quaternion_matrices
+from mocapflow.mocap.report import Progress
+from mocapflow.mocap.rigidfit import MIN_GAP, finite, fit_frames, hold_turns, place, pose_matrices, quaternion_matrices
 
 
 @dataclass
@@ -50,39 +51,16 @@ class SkeletonPose:
         return out
 
 
-def _place(matrices: np.ndarray, translations: np.ndarray, offsets: np.ndarray) -> np.ndarray:
-    """(F, S, 3) world positions of points at ``offsets`` (S, 3) in segments posed by (F, S, 3, 3) and (F, S, 3)."""
-    return np.einsum("fsab,sb->fsa", matrices, offsets) + translations
-
-
-def trilaterate(points: np.ndarray, radii: np.ndarray, start: np.ndarray, iterations: int = 10,
-                least: int = 4) -> np.ndarray:
-    """Per frame, the point whose distances to the visible (F, K, 3) ``points`` are the (K,) ``radii`` (least
-    squares, damped Gauss-Newton from ``start``); NaN where fewer than ``least`` points are visible or no start."""
-    seen = np.isfinite(points).all(-1)
-    ok = (seen.sum(1) >= least) & np.isfinite(start).all(1)
-    x = np.where(ok[:, None], start, 0.0)
-    safe = np.where(seen[..., None], points, 0.0)
-    for _ in range(iterations):
-        diff = x[:, None] - safe
-        dist = np.maximum(np.linalg.norm(diff, axis=-1), 1e-9)
-        unit = np.where(seen[..., None], diff / dist[..., None], 0.0)
-        res = np.where(seen, dist - radii, 0.0)
-        normal = np.einsum("fki,fkj->fij", unit, unit) + 1e-6 * np.eye(3)
-        x = x - np.linalg.solve(normal, np.einsum("fki,fk->fi", unit, res)[..., None])[..., 0]
-    return np.where(ok[:, None], x, np.nan)
-
-
 class PoseSolver:
     """``solve`` for one skeleton and one label order, compiled once and reused frame after frame.
 
-    Everything that depends on the model and the labels alone is worked out when the solver is built: the segments
-    grouped by depth in the tree (all segments of one depth are fitted in one batched ``fit_pose`` call, as their
-    parents are already posed), where in the positions and in the joints placed by children each segment's points
-    are (index arrays, segments padded to a common size with a never-seen NaN column), the marker and joint offsets
-    as arrays, and the distances trilateration needs. A call then only does the per-frame arithmetic. The cache is
-    the solver itself: build a new one when the model or the labels change (the skeleton node keeps one while they
-    do not)."""
+    Everything that depends on the model and the labels alone is worked out when the solver is built, as arrays: the
+    segments in tree order (each after its parent), where in the positions and in the joints placed by children each
+    segment's points are (index arrays, segments padded to a common size with a never-seen NaN column), the marker
+    and joint offsets, and the distances trilateration needs. A call then runs the per-frame arithmetic, compiled
+    (numba): one live frame costs tens of microseconds, where the same steps as numpy operations cost milliseconds in
+    per-call overhead. The cache is the solver itself: build a new one when the model or the labels change (the
+    skeleton node keeps one while they do not)."""
 
     def __init__(self, skeleton: SkeletonModel, labels: Sequence[str]) -> None:
         for j in skeleton.joints:
@@ -99,112 +77,266 @@ class PoseSolver:
         joints = skeleton.joints
         inner = {j.child: k for k, j in enumerate(joints)}  # segment -> index of the joint with its parent
         self.parents = [index[joints[inner[n]].parent] if n in inner else -1 for n in self.names]
-        self.joint_parent = np.array([index[j.parent] for j in joints], dtype=np.intp)
-        self.joint_child = np.array([index[j.child] for j in joints], dtype=np.intp)
-        self.parent_offsets = np.array([j.parent_offset for j in joints], dtype=np.float64).reshape(-1, 3)
-        self.child_offsets = np.array([j.child_offset for j in joints], dtype=np.float64).reshape(-1, 3)
         nan = len(self.labels)  # the NaN column appended to the positions: a marker not among the labels
         local = [np.asarray(s.marker_offsets, dtype=np.float64).reshape(-1, 3) for s in skeleton.segments]
-        self.sizes = [len(m) for m in local]
-        self.columns, self.local = _padded([[column.get(m, nan) for m in s.markers] for s in skeleton.segments],
-                                           local, nan)
-        # the tree by depth; a segment's points are its markers, then the joints its children place (columns after
-        # the NaN one), in the segment's frame its marker offsets, then those joints' parent offsets
-        self.levels: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []
-        level = [index[skeleton.root]]
-        while level:
-            outer = [[k for k, j in enumerate(joints) if j.parent == self.names[s]] for s in level]
-            columns, points_local = _padded(
-                [[column.get(m, nan) for m in skeleton.segments[s].markers] + [nan + 1 + k for k in out]
-                 for s, out in zip(level, outer, strict=True)],
-                [np.concatenate([local[s], self.parent_offsets[out]]) for s, out in zip(level, outer, strict=True)],
-                nan)
-            self.levels.append((np.array(level, dtype=np.intp), np.array([inner.get(self.names[s], -1)
-                                                                          for s in level], dtype=np.intp),
-                                columns, points_local))
-            level = [int(self.joint_child[k]) for out in outer for k in out]
+        parent_offsets = np.array([j.parent_offset for j in joints], dtype=np.float64).reshape(-1, 3)
+        child_offsets = np.array([j.child_offset for j in joints], dtype=np.float64).reshape(-1, 3)
+        columns, marker_local = _padded([[column.get(m, nan) for m in s.markers] for s in skeleton.segments], local,
+                                        nan)
+        # a segment's points are its markers, then the joints its children place (columns after the NaN one), in
+        # the segment's frame its marker offsets, then those joints' parent offsets
+        outer = [[k for k, j in enumerate(joints) if j.parent == name] for name in self.names]
+        point_columns, point_local = _padded(
+            [[column.get(m, nan) for m in s.markers] + [nan + 1 + k for k in out]
+             for s, out in zip(skeleton.segments, outer, strict=True)],
+            [np.concatenate([local[s], parent_offsets[out]]) for s, out in enumerate(outer)], nan)
+        order = [index[skeleton.root]]  # the tree, each segment after its parent
+        for s in order:
+            order += [index[joints[k].child] for k in outer[s]]
         # trilateration of joint k: its distances to the markers of both segments and to the parent's own joint
-        self.up = [inner.get(j.parent, -1) for j in joints]
-        self.radii = [np.concatenate([
-            np.linalg.norm(local[self.joint_parent[k]] - self.parent_offsets[k], axis=1),
-            np.linalg.norm(local[self.joint_child[k]] - self.child_offsets[k], axis=1),
-            [np.linalg.norm(self.child_offsets[self.up[k]] - self.parent_offsets[k])] if self.up[k] >= 0 else []])
+        parent = [index[j.parent] for j in joints]
+        child = [index[j.child] for j in joints]
+        up = [inner.get(j.parent, -1) for j in joints]
+        radii = [np.concatenate([
+            np.linalg.norm(local[parent[k]] - parent_offsets[k], axis=1),
+            np.linalg.norm(local[child[k]] - child_offsets[k], axis=1),
+            [np.linalg.norm(child_offsets[up[k]] - parent_offsets[k])] if up[k] >= 0 else []])
             for k in range(len(joints))]
-        self.least_own = [2 if up >= 0 else 3 for up in self.up]
+        padded_radii = np.full((len(joints), max((len(r) for r in radii), default=0)), np.nan)
+        for k, r in enumerate(radii):
+            padded_radii[k, :len(r)] = r
+        self._model = (columns, marker_local, np.array(order, dtype=np.intp),
+                       np.array([inner.get(n, -1) for n in self.names], dtype=np.intp), point_columns, point_local,
+                       np.array(parent, dtype=np.intp), np.array(child, dtype=np.intp), parent_offsets,
+                       child_offsets, np.array(up, dtype=np.intp), padded_radii,
+                       np.array([len(m) for m in local], dtype=np.intp))
 
     def __call__(self, positions: np.ndarray, progress: Progress | None = None) -> SkeletonPose:
-        """The pose in every frame of (F, N, 3) trajectories in the solver's label order (NaN gaps)."""
-        positions = np.asarray(positions, dtype=np.float64)
-        frames = positions.shape[0]
-        padded = np.concatenate([positions, np.full((frames, 1, 3), np.nan)], axis=1)
-        observed = padded[:, self.columns]  # (F, S, n, 3)
-        children = self.joint_child
-        alone = fit_pose(self.local[children], observed[:, children])
-        placed = np.where(alone.determined[..., None], _place(alone.rotation_matrices, alone.translations,
-                                                              self.child_offsets), np.nan)
-        matrices, translations, rotations, residual, fit = self._top_down(padded, observed, placed, progress)
-        centres = self._centres(matrices, translations)
+        """The pose in every frame of (F, N, 3) trajectories in the solver's label order (NaN gaps). ``progress``
+        hears of each segment posed, in both passes, for a long recording."""
+        positions = np.ascontiguousarray(positions, dtype=np.float64)
+        (columns, marker_local, order, inner, point_columns, point_local, parent, child, parent_offsets,
+         child_offsets, up, radii, sizes) = self._model
+        sources = _sources(positions, columns, marker_local, child, child_offsets)
+        observed = sources[:, columns]  # (F, S, n, 3)
+        total = 2 * len(order) if progress is not None else 0
+        passes = _top_down(sources, order, inner, point_columns, point_local, parent, parent_offsets, child_offsets,
+                           progress, 0, total)
         # a parent showing too few points of its own, whose child's markers cannot place their joint either (fewer
         # than three visible), gets that joint where its distances to every visible marker of both segments and to
         # the parent's own joint are right, and is fitted again with it
-        again = False
-        visible = np.isfinite(observed).all(-1).sum(-1)
-        for k, (p, c) in enumerate(zip(self.joint_parent, children, strict=True)):
-            short = visible[:, p] < self.least_own[k]
-            if not short.any():
-                continue
-            points = [observed[short, p, :self.sizes[p]], observed[short, c, :self.sizes[c]]]
-            if self.up[k] >= 0:
-                points.append(centres[short][:, [self.up[k]]])
-            found = trilaterate(np.concatenate(points, axis=1), self.radii[k], centres[short, k])
-            fill = np.isnan(placed[short, k]) & np.isfinite(found)
-            if fill.any():
-                again = True
-                placed[short, k] = np.where(fill, found, placed[short, k])
-        if again:
-            matrices, translations, rotations, residual, fit = self._top_down(padded, observed, placed, progress)
-            centres = self._centres(matrices, translations)
+        if _trilaterate_joints(sources, observed, _centres(*passes[:2], parent, child, parent_offsets, child_offsets),
+                               parent, child, up, radii, sizes, positions.shape[1] + 1):
+            passes = _top_down(sources, order, inner, point_columns, point_local, parent, parent_offsets,
+                               child_offsets, progress, len(order), total)
+        matrices, translations, rotations = passes
+        residual, fit = _residuals(matrices, translations, marker_local, observed)
+        centres = _centres(matrices, translations, parent, child, parent_offsets, child_offsets)
         return SkeletonPose(self.names, self.joint_names, self.parents, rotations, translations, centres, residual,
                             fit)
 
-    def _top_down(self, padded: np.ndarray, observed: np.ndarray, placed: np.ndarray, progress: Progress | None
-                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float]:
-        """Every segment fitted from the root down, a depth at a time: matrices, translations, quaternions,
-        residuals (F, S) and the mean marker fit."""
-        frames, count = padded.shape[0], len(self.names)
-        matrices = np.full((frames, count, 3, 3), np.nan)
-        rotations = np.full((frames, count, 4), np.nan)
-        translations = np.full((frames, count, 3), np.nan)
-        determined = np.zeros((frames, count), bool)
-        sources = np.concatenate([padded, placed], axis=1)
-        for segments, joints, columns, points_local in steps(self.levels, len(self.levels), "solve", progress):
-            points = sources[:, columns]
-            pivot_local = pivot_world = None
-            if joints[0] >= 0:  # below the root: each turns about the joint its parent places
-                p = self.joint_parent[joints]
-                pivot_local = self.child_offsets[joints]
-                pivot_world = _place(matrices[:, p], translations[:, p], self.parent_offsets[joints])
-                own = np.isfinite(points).all(-1).sum(-1) >= 3
-                pivot_world[~determined[:, p] & own] = np.nan
-            fit = fit_pose(points_local, points, pivot_local, pivot_world, hold=True)
-            rotations[:, segments], translations[:, segments] = fit.rotations, fit.translations
-            determined[:, segments], matrices[:, segments] = fit.determined, fit.rotation_matrices
-        fitted = np.einsum("fsab,snb->fsna", matrices, self.local) + translations[:, :, None]
-        seen = np.isfinite(observed).all(-1)
-        err = np.where(seen, ((fitted - observed) ** 2).sum(-1), 0.0)
-        residual = np.where(seen.any(-1), np.sqrt(err.sum(-1) / np.maximum(seen.sum(-1), 1)), np.nan)
-        every = np.sqrt(err[seen & np.isfinite(err)])
-        return matrices, translations, rotations, residual, float(every.mean()) if len(every) else np.nan
 
-    def _centres(self, matrices: np.ndarray, translations: np.ndarray) -> np.ndarray:
-        """(F, J, 3) joint centres: ``joint_track`` of every joint at once."""
-        p, c = self.joint_parent, self.joint_child
-        a = _place(matrices[:, p], translations[:, p], self.parent_offsets)
-        b = _place(matrices[:, c], translations[:, c], self.child_offsets)
-        known_a, known_b = np.isfinite(a).all(-1, keepdims=True), np.isfinite(b).all(-1, keepdims=True)
-        total = np.where(known_a, a, 0.0) + np.where(known_b, b, 0.0)
-        count = known_a.astype(np.float64) + known_b
-        return np.where(count > 0, total / np.maximum(count, 1), np.nan)
+def _top_down(sources: np.ndarray, order: np.ndarray, inner: np.ndarray, point_columns: np.ndarray,
+              point_local: np.ndarray, parent: np.ndarray, parent_offsets: np.ndarray, child_offsets: np.ndarray,
+              progress: Progress | None, done: int, total: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Every segment fitted from the root down (``_fit_segment``): matrices, translations and quaternions. One
+    compiled call, or one per segment when ``progress`` is to hear of each."""
+    frames, count = sources.shape[0], len(order)
+    matrices = np.full((frames, count, 3, 3), np.nan)
+    translations = np.full((frames, count, 3), np.nan)
+    rotations = np.full((frames, count, 4), np.nan)
+    determined = np.zeros((frames, count), bool)
+    state = (sources, inner, point_columns, point_local, parent, parent_offsets, child_offsets, matrices,
+             translations, rotations, determined)
+    if progress is None:
+        _fit_segments(order, *state)
+    else:
+        for k in range(count):
+            _fit_segments(order[k:k + 1], *state)
+            progress("solve", done + k + 1, total)
+    return matrices, translations, rotations
+
+
+@njit(cache=True)
+def _fit_segments(order: np.ndarray, sources: np.ndarray, inner: np.ndarray, point_columns: np.ndarray,
+                  point_local: np.ndarray, parent: np.ndarray, parent_offsets: np.ndarray,
+                  child_offsets: np.ndarray, matrices: np.ndarray, translations: np.ndarray, rotations: np.ndarray,
+                  determined: np.ndarray) -> None:  # pragma: no cover
+    """In place, the segments ``order`` (each after its parent) in every frame. The root, and a segment whose
+    parent was not fixed by data in a frame while it has three points of its own, is fitted freely; every other
+    segment turns about the joint its parent places (Schoenauer 3.8.2); frames whose points fix one direction only
+    hold the rotation of their neighbours (``rigidfit.fit_pose(hold=True)``)."""
+    frames = sources.shape[0]
+    for s in order:
+        points = np.empty((frames, 1, point_columns.shape[1], 3))
+        for i, c in enumerate(point_columns[s]):
+            points[:, 0, i] = sources[:, c]
+        pivot_world = np.full((frames, 1, 3), np.nan)
+        pivot_local = np.zeros((1, 3))
+        k = inner[s]
+        if k >= 0:
+            p = parent[k]
+            pivot_local[0] = child_offsets[k]
+            for f in range(frames):
+                own = 0
+                for i in range(points.shape[2]):
+                    if finite(points[f, 0, i]):
+                        own += 1
+                if determined[f, p] or own < 3:
+                    place(matrices[f, p], parent_offsets[k], translations[f, p], pivot_world[f, 0])
+        quats, fixed, origin_loc, origin_obs = fit_frames(point_local[s:s + 1], points, pivot_local, pivot_world,
+                                                           MIN_GAP)
+        if not fixed.all():
+            hold_turns(quats[:, 0], fixed[:, 0], point_local[s], points[:, 0], origin_loc[:, 0], origin_obs[:, 0])
+        posed, moved = pose_matrices(quats, origin_loc, origin_obs)
+        matrices[:, s], translations[:, s] = posed[:, 0], moved[:, 0]
+        rotations[:, s], determined[:, s] = quats[:, 0], fixed[:, 0]
+
+
+@njit(cache=True)
+def _sources(positions: np.ndarray, columns: np.ndarray, marker_local: np.ndarray, child: np.ndarray,
+             child_offsets: np.ndarray) -> np.ndarray:  # pragma: no cover
+    """(F, N + 1 + J, 3): the positions, the NaN column, then each joint where its child's own markers alone place
+    it (a free fit that fixes all three angles), NaN elsewhere."""
+    frames, count = positions.shape[0], positions.shape[1]
+    sources = np.full((frames, count + 1 + len(child), 3), np.nan)
+    sources[:, :count] = positions
+    for k, c in enumerate(child):
+        markers = np.empty((frames, 1, columns.shape[1], 3))
+        for i, column in enumerate(columns[c]):
+            markers[:, 0, i] = sources[:, column]
+        quats, fixed, origin_loc, origin_obs = fit_frames(marker_local[c:c + 1], markers, np.zeros((1, 3)),
+                                                           np.full((frames, 1, 3), np.nan), MIN_GAP)
+        posed, moved = pose_matrices(quats, origin_loc, origin_obs)
+        for f in range(frames):
+            if fixed[f, 0]:
+                place(posed[f, 0], child_offsets[k], moved[f, 0], sources[f, count + 1 + k])
+    return sources
+
+
+@njit(cache=True)
+def _trilaterate_joints(sources: np.ndarray, observed: np.ndarray, centres: np.ndarray, parent: np.ndarray,
+                        child: np.ndarray, up: np.ndarray, radii: np.ndarray, sizes: np.ndarray,
+                        first: int) -> bool:  # pragma: no cover
+    """In place in ``sources`` (joints from column ``first``): in frames where a joint's parent shows fewer points
+    of its own than it needs (three for the root, two below it) and its child did not place it, the joint where
+    its distances to the visible markers of both segments (and to the parent's own joint, from ``centres``) are
+    ``radii``. Whether any joint was placed so."""
+    placed = False
+    for k in range(len(parent)):
+        p, c = parent[k], child[k]
+        least = 2 if up[k] >= 0 else 3
+        points = np.empty((sizes[p] + sizes[c] + (1 if up[k] >= 0 else 0), 3))
+        for f in range(len(sources)):
+            visible = 0
+            for i in range(sizes[p]):
+                if finite(observed[f, p, i]):
+                    visible += 1
+            if visible >= least or finite(sources[f, first + k]):
+                continue
+            points[:sizes[p]] = observed[f, p, :sizes[p]]
+            points[sizes[p]:sizes[p] + sizes[c]] = observed[f, c, :sizes[c]]
+            if up[k] >= 0:
+                points[-1] = centres[f, up[k]]
+            found = _trilaterate(points, radii[k, :len(points)], centres[f, k])
+            if finite(found):
+                sources[f, first + k] = found
+                placed = True
+    return placed
+
+
+@njit(cache=True)
+def _trilaterate(points: np.ndarray, radii: np.ndarray, start: np.ndarray, iterations: int = 10,
+                 least: int = 4) -> np.ndarray:  # pragma: no cover
+    """The point whose distances to the visible (K, 3) ``points`` are the (K,) ``radii`` (least squares, damped
+    Gauss-Newton from ``start``); NaN where fewer than ``least`` points are visible or no start."""
+    seen = 0
+    for i in range(len(points)):
+        seen += finite(points[i])
+    x = start.copy()
+    if seen < least or not finite(start):
+        x[:] = np.nan
+        return x
+    normal, gradient, unit = np.empty((3, 3)), np.empty(3), np.empty(3)
+    for _ in range(iterations):
+        normal[:] = 1e-6 * np.eye(3)
+        gradient[:] = 0.0
+        for i in range(len(points)):
+            if finite(points[i]):
+                unit[:] = x - points[i]
+                dist = max(np.sqrt(unit[0] ** 2 + unit[1] ** 2 + unit[2] ** 2), 1e-9)
+                unit /= dist
+                for a in range(3):
+                    gradient[a] += unit[a] * (dist - radii[i])
+                    for b in range(3):
+                        normal[a, b] += unit[a] * unit[b]
+        x -= _solve3(normal, gradient)
+    return x
+
+
+@njit(cache=True)
+def _solve3(a: np.ndarray, b: np.ndarray) -> np.ndarray:  # pragma: no cover
+    """The solution of the 3x3 system ``a x = b`` by Cramer's rule (``a`` is well conditioned here: a sum of unit
+    outer products plus a small multiple of the identity)."""
+    x, m = np.empty(3), np.empty((3, 3))
+    for k in range(3):
+        m[:] = a
+        m[:, k] = b
+        x[k] = _det3(m)
+    return x / _det3(a)
+
+
+@njit(cache=True)
+def _det3(m: np.ndarray) -> float:  # pragma: no cover
+    """The determinant of a 3x3 matrix."""
+    return (m[0, 0] * (m[1, 1] * m[2, 2] - m[1, 2] * m[2, 1]) - m[0, 1] * (m[1, 0] * m[2, 2] - m[1, 2] * m[2, 0])
+            + m[0, 2] * (m[1, 0] * m[2, 1] - m[1, 1] * m[2, 0]))
+
+
+@njit(cache=True)
+def _centres(matrices: np.ndarray, translations: np.ndarray, parent: np.ndarray, child: np.ndarray,
+             parent_offsets: np.ndarray, child_offsets: np.ndarray) -> np.ndarray:  # pragma: no cover
+    """(F, J, 3) joint centres: ``joint_track`` of every joint at once (the mean of where its two segments put it,
+    or the one that knows)."""
+    centres = np.full((len(matrices), len(parent), 3), np.nan)
+    at = np.empty(3)
+    for f in range(len(matrices)):
+        for k in range(len(parent)):
+            total, count = np.zeros(3), 0
+            for side in range(2):
+                s = parent[k] if side == 0 else child[k]
+                place(matrices[f, s], parent_offsets[k] if side == 0 else child_offsets[k], translations[f, s], at)
+                if finite(at):
+                    total += at
+                    count += 1
+            if count:
+                centres[f, k] = total / count
+    return centres
+
+
+@njit(cache=True)
+def _residuals(matrices: np.ndarray, translations: np.ndarray, marker_local: np.ndarray,
+               observed: np.ndarray) -> tuple[np.ndarray, float]:  # pragma: no cover
+    """(F, S) RMS distance between fitted and observed markers (NaN where a segment shows none), and the mean
+    distance over every seen marker of a posed segment."""
+    residual = np.full(observed.shape[:2], np.nan)
+    diff = np.empty(3)
+    total, count = 0.0, 0
+    for f in range(observed.shape[0]):
+        for s in range(observed.shape[1]):
+            err, seen = 0.0, 0
+            for i in range(observed.shape[2]):
+                if finite(observed[f, s, i]):
+                    place(matrices[f, s], marker_local[s, i], translations[f, s] - observed[f, s, i], diff)
+                    square = diff[0] * diff[0] + diff[1] * diff[1] + diff[2] * diff[2]
+                    err += square
+                    seen += 1
+                    if np.isfinite(square):
+                        total += np.sqrt(square)
+                        count += 1
+            if seen:
+                residual[f, s] = np.sqrt(err / seen)
+    return residual, total / count if count else np.nan
 
 
 def _padded(columns: list[list[int]], local: list[np.ndarray], nan: int) -> tuple[np.ndarray, np.ndarray]:

@@ -34,6 +34,7 @@ from typing import IO, Any
 import zenoh
 from pydantic import ValidationError
 
+from mocapflow.runtime.kernels import compile_kernels
 from mocapflow.runtime.keys import (
     agent_key,
     deploy_key,
@@ -246,6 +247,7 @@ def run_agent(name: str, connect: list[str], security: Path | None = None, timeo
     """Serve as agent ``name`` until SIGINT or SIGTERM."""
     print(f"agent {name}: joining {', '.join(connect)}", flush=True)
     signal.signal(signal.SIGINT, signal.SIG_DFL)  # until the router answers, Ctrl-C simply ends the agent
+    compile_kernels(sys.stdout)
     agent = Agent(name, connect, security, timeout=timeout)
     stop = threading.Event()
     with stop_on_signals(stop):

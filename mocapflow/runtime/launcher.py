@@ -29,6 +29,7 @@ from mocapflow.errors import GraphError, MocapflowError
 from mocapflow.messages import MESSAGE_TYPES, NodeStats, json_schema
 from mocapflow.runtime import keys
 from mocapflow.runtime.graph import NAME, Graph, end_inputs
+from mocapflow.runtime.kernels import compile_kernels
 from mocapflow.runtime.node import Node
 from mocapflow.runtime.protocol import (
     Placement,
@@ -230,6 +231,7 @@ class Launcher:
 
     # -- main loop ------------------------------------------------------------------------------------------------
     def run(self) -> int:
+        compile_kernels(self.out)
         session = (open_router(self.listen, self.security) if not self.connect
                    else open_client(self.connect, self.security, self.timeout))
         stop = threading.Event()
@@ -302,3 +304,4 @@ class Launcher:
             if elapsed - last_draw >= period:
                 last_draw = elapsed
                 self._draw(elapsed)
+

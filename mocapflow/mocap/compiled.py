@@ -1,0 +1,38 @@
+"""The compiled arithmetic, made ready before it is needed.
+
+The rigid fits (``rigidfit``) and the skeleton's pose solve (``solve``) are compiled by numba the first time they run,
+and numba keeps what it compiled in a cache beside the code (or in the user's cache folder where that is not
+writable). Loading it costs a fraction of a second; compiling it, on a machine that has never run it, about half a
+minute of CPU. A live graph must not pay that on its first frames, nor in four processes at once: ``compile_all``
+runs every kernel once, in every form the project calls it, on a tiny two-segment skeleton, and the launcher calls it
+before it starts a graph's nodes.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from mocapflow.mocap.model import Joint, Segment, SkeletonModel
+from mocapflow.mocap.rigidfit import fit_pose, quaternion_matrices, rotor
+from mocapflow.mocap.solve import PoseSolver
+
+
+def compile_all() -> None:
+    """Run every compiled kernel once (each is then loaded from numba's cache, or compiled and cached)."""
+    square = [[0.0, 0.0, 0.0], [100.0, 0.0, 0.0], [0.0, 100.0, 0.0]]
+    skeleton = SkeletonModel(
+        segments=[Segment(name="a", markers=["a1", "a2", "a3"], marker_offsets=square),
+                  Segment(name="b", markers=["b1", "b2"], marker_offsets=square[:2])],
+        joints=[Joint(name="a-b", parent="a", child="b", parent_offset=[0.0, 0.0, 50.0],
+                      child_offset=[0.0, 0.0, -50.0])],
+        root="a")
+    frames = np.array([[*square, [0.0, 0.0, 100.0], [100.0, 0.0, 100.0]]] * 3)
+    frames[1, 2:] = np.nan  # the root short of markers: trilateration; the child on its line: a held rotation
+    solver = PoseSolver(skeleton, ["a1", "a2", "a3", "b1", "b2"])
+    solver(frames[:1])
+    solver(frames, progress=lambda *_: None)
+    local = np.array(square)
+    fit_pose(local, frames[:, :3], hold=True)
+    fit_pose(local[None], frames[:, None, :3], local[:1], frames[:, None, 0], hold=True)
+    rotor(local, local, np.ones(3))
+    quaternion_matrices(np.array([0.0, 0.0, 0.0, 1.0]))
