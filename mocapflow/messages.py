@@ -11,6 +11,7 @@ orjson encodes numpy arrays natively (NaN becomes null), which keeps a 60-marker
 
 from __future__ import annotations
 
+from functools import cache
 from typing import TYPE_CHECKING, Annotated, Any, ClassVar, Literal, Self, TypeAlias
 
 import numpy as np
@@ -110,9 +111,16 @@ class Message(BaseModel):
     def derive(cls, source: Message, **fields: Any) -> Self:
         """A message of this type about the same tracker frame as ``source``: its frame number, capture time and
         (where both types have one) rate carried over, ``fields`` giving the rest (or overriding them)."""
-        carried: dict[str, Any] = {name: getattr(source, name) for name in ("frame", "capture_ns", "rate")
-                   if name in cls.model_fields and name in type(source).model_fields}
+        carried = {name: getattr(source, name) for name in _carried(cls, type(source))}
         return cls(**{**carried, **fields})
+
+
+@cache
+def _carried(target: type[Message], source: type[Message]) -> tuple[str, ...]:
+    """The fields ``derive`` carries from a ``source`` message to a ``target`` one (looked up once per pair of types:
+    derive runs several times a frame)."""
+    return tuple(name for name in ("frame", "capture_ns", "rate")
+                 if name in target.model_fields and name in source.model_fields)
 
 
 class MarkerFrame(Message):
