@@ -7,6 +7,7 @@ from pydantic import Field
 
 from mocapflow.io.skeleton import read_skeleton
 from mocapflow.messages import MarkerFrame, Skeleton
+from mocapflow.mocap.compiled import compile_all
 from mocapflow.mocap.filling import FillerConfig, GapFiller
 from mocapflow.mocap.markerset import added
 from mocapflow.mocap.model import SkeletonModel
@@ -32,6 +33,7 @@ class Filler(Node[FillerNodeConfig]):
     }
 
     def setup(self) -> None:
+        compile_all()  # the Kalman filters' and rigid fits' kernels loaded now, not while the first frames wait
         self.model: SkeletonModel | None = read_skeleton(self.config.skeleton) if self.config.skeleton else None
         self.filler: GapFiller | None = None
 

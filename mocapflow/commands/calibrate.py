@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import sys
 import time
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -85,10 +86,12 @@ def run(args: argparse.Namespace) -> int:
     from mocapflow.mocap.calibration import calibrate
     from mocapflow.mocap.outliers import wild_samples
     from mocapflow.progress import Reporter
+    from mocapflow.runtime.kernels import compile_kernels
 
     if args.segments is not None and args.segments < 2:
         raise MocapflowError("--segments must be at least 2")
     out = distinct_output(args.output, *args.inputs)
+    compile_kernels(sys.stderr)
     data = join_trials([read_chosen(path, args) for path in args.inputs])
     if data.n_markers > MAX_MARKERS:
         raise MocapflowError(f"{data.n_markers} markers: calibrate takes at most {MAX_MARKERS} (its memory grows with "

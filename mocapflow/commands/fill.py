@@ -5,6 +5,7 @@ each gap used too), and record in the output's flags how each sample was obtaine
 from __future__ import annotations
 
 import argparse
+import sys
 import zipfile
 from pathlib import Path
 
@@ -54,13 +55,14 @@ def read_rays(path: str, shape: tuple[int, int]) -> np.ndarray:
 
 
 def run(args: argparse.Namespace) -> int:
-
     from mocapflow.io.markers import MarkerData, write_markers
     from mocapflow.io.skeleton import read_skeleton
     from mocapflow.mocap.filling import FillCase, FillerConfig, fill_both_ways, fill_recording
     from mocapflow.progress import Reporter
+    from mocapflow.runtime.kernels import compile_kernels
 
     out = distinct_output(args.output, args.input)
+    compile_kernels(sys.stderr)
     if out.suffix.lower() not in (".c3d", ".trc"):
         raise MocapflowError(f"{out}: output must be .c3d or .trc")
     config = settings(FillerConfig, args.overrides)

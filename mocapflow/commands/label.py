@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import sys
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -45,8 +46,10 @@ def run(args: argparse.Namespace) -> int:
     from mocapflow.io.markers import MarkerData, write_markers
     from mocapflow.mocap.labelling import label_sequence
     from mocapflow.progress import progress
+    from mocapflow.runtime.kernels import compile_kernels
 
     config = _config(args)
+    compile_kernels(sys.stderr)
     out = distinct_output(args.output, args.input)
     data = read_chosen(args.input, args)
     points = data.positions

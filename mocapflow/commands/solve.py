@@ -4,6 +4,7 @@ as marker points (.c3d/.trc), per-frame JSON, or a BVH animation (.bvh) for anim
 from __future__ import annotations
 
 import argparse
+import sys
 
 import numpy as np
 
@@ -40,8 +41,10 @@ def run(args: argparse.Namespace) -> int:
     from mocapflow.io.skeleton import read_skeleton
     from mocapflow.mocap.solve import solve
     from mocapflow.progress import Reporter
+    from mocapflow.runtime.kernels import compile_kernels
 
     out = distinct_output(args.output, args.input, args.skeleton)
+    compile_kernels(sys.stderr)
     if out.suffix.lower() not in (".c3d", ".trc", ".json", ".bvh"):
         raise MocapflowError(f"{out}: output must be .c3d, .trc, .json or .bvh")
     skeleton = read_skeleton(args.skeleton)

@@ -1,19 +1,22 @@
 """The compiled arithmetic, made ready before it is needed.
 
-The rigid fits (``rigidfit``) and the skeleton's pose solve (``solve``) are compiled by numba the first time they run,
-and numba keeps what it compiled in a cache beside the code (or in the user's cache folder where that is not
-writable). Loading it costs a fraction of a second; compiling it, on a machine that has never run it, about half a
-minute of CPU. A live graph must not pay that on its first frames, nor in four processes at once: ``compile_all``
-runs every kernel once, in every form the project calls it, on a tiny two-segment skeleton, and the launcher calls it
-before it starts a graph's nodes.
+The per-frame arithmetic of the live stages, the labeller's assignments and track statistics (``labelling``), the
+occlusion filler's Kalman filters (``kalman``), the rigid fits (``rigidfit``) and the skeleton's pose solve
+(``solve``), is compiled by numba the first time it runs, and numba keeps what it compiled in a cache beside the code
+(or in the user's cache folder where that is not writable). Loading it costs a fraction of a second; compiling it, on
+a machine that has never run it, about a minute of CPU. A live graph must not pay that on its first frames, nor in
+four processes at once: ``compile_all`` runs every kernel once, in every form the project calls it, on a tiny
+two-segment body, and the launcher calls it before it starts a graph's nodes.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
+from mocapflow.mocap.filling import FillerConfig, GapFiller
+from mocapflow.mocap.labelling import Labeller, LabellerConfig
 from mocapflow.mocap.model import Joint, Segment, SkeletonModel
-from mocapflow.mocap.rigidfit import fit_pose, quaternion_matrices, rotor
+from mocapflow.mocap.rigidfit import fit_one, fit_pose, kabsch, quaternion_matrices, rotor
 from mocapflow.mocap.solve import PoseSolver
 
 
@@ -35,4 +38,22 @@ def compile_all() -> None:
     fit_pose(local, frames[:, :3], hold=True)
     fit_pose(local[None], frames[:, None, :3], local[:1], frames[:, None, 0], hold=True)
     rotor(local, local, np.ones(3))
+    fit_one(local, local, np.ones(3))
+    kabsch(local[None], local[None], np.ones((1, 3)))
     quaternion_matrices(np.array([0.0, 0.0, 0.0, 1.0]))
+    _label_and_fill(skeleton, np.array([*square, [0.0, 0.0, 100.0], [100.0, 0.0, 100.0]]))
+
+
+def _label_and_fill(skeleton: SkeletonModel, layout: np.ndarray) -> None:
+    """The labeller and the filler over 3 s of the two segments turning at 100 Hz, a marker hidden for a while: long
+    enough for the labeller to learn neighbours and take the marker back, and for the filler to fill it."""
+    labeller = Labeller(LabellerConfig(), 100.0)
+    filler = GapFiller([m for seg in skeleton.segments for m in seg.markers], 100.0, FillerConfig(), skeleton)
+    for i in range(300):
+        c, s = np.cos(i / 50), np.sin(i / 50)
+        points = layout @ np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]).T + [i, 0.0, 0.0]
+        if 200 <= i < 220:
+            points[4] = np.nan
+        labeller.update(points[::-1], i / 100)
+        filler.update(points)
+        filler.predict_next()

@@ -7,9 +7,9 @@ One module for every way the project fits a rigid body, all the same least-squar
   frames in one batched ``eigh`` call; ``fit_pose`` builds on it: a segment's pose ``world = R @ local + t`` in every
   frame from whichever of its markers are visible, either free (centroid alignment) or pivoting about a known point
   such as the joint with its parent.
-- ``kabsch`` / ``RigidFit``: a batched SVD for many point sets at once, ``RigidFit`` keeping what depends on the
-  local points alone for a caller fitting the same sets to many frames.
-- ``fit_one``: the same for a single point set, with less overhead (one frame's segment in the occlusion filler).
+- ``kabsch`` / ``RigidFit``: an SVD of each point set's cross-covariance, compiled, for a batch of point sets,
+  ``RigidFit`` keeping the local points and weights for a caller fitting the same sets to many frames.
+- ``fit_one``: the same for a single point set (one frame's segment in the occlusion filler).
 """
 
 from __future__ import annotations
@@ -19,7 +19,6 @@ from functools import cached_property
 
 import numpy as np
 from numba import njit
-from scipy.linalg.lapack import dgesdd
 
 
 def rotor(reference: np.ndarray, observed: np.ndarray,
@@ -133,10 +132,10 @@ def _jacobi(a: np.ndarray, v: np.ndarray) -> None:  # pragma: no cover
 def kabsch(local: np.ndarray, world: np.ndarray, weight: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Weighted least-squares rigid transforms ``world ~ R @ local + t`` for a batch of point sets.
 
-    ``local``/``world`` (B, M, 3) finite, ``weight`` (B, M) with zero for absent points. A batched SVD: this runs
-    every frame, where scipy's ``Rotation.align_vectors`` would take one set per call and ``rotor`` (Horn's
-    eigenvector, plus the quaternion-to-matrix step) costs about twice as much. Returns R (B, 3, 3), t (B, 3) and
-    ``ok`` (B,): False where the points do not fix a rotation (fewer than three, or collinear).
+    ``local``/``world`` (B, M, 3), ``weight`` (B, M) with zero for absent points (whose coordinates are not read).
+    Each set's 3x3 cross-covariance is decomposed (SVD) in compiled code: this runs every frame of the occlusion
+    filler. Returns R (B, 3, 3), t (B, 3) and ``ok`` (B,): False where the points do not fix a rotation (fewer than
+    three, or collinear).
     """
     return RigidFit(local, weight)(world)
 
@@ -146,40 +145,71 @@ class RigidFit:
     caller fitting the same point sets to many frames."""
 
     def __init__(self, local: np.ndarray, weight: np.ndarray) -> None:
-        w = weight / np.maximum(weight.sum(axis=1), 1e-300)[:, None]
-        self.rows = w[:, None]  # (B, 1, M): weighted means as products
-        self.columns = w[..., None]  # (B, M, 1)
-        self.centre = (self.rows @ local)[:, 0]
-        self.centred = (local - self.centre[:, None]).transpose(0, 2, 1)  # (B, 3, M)
+        self.weight = np.ascontiguousarray(weight / np.maximum(weight.sum(axis=1), 1e-300)[:, None], dtype=np.float64)
+        self.local = np.ascontiguousarray(local, dtype=np.float64)
         self.enough = (weight > 0).sum(axis=1) >= 3
 
     def __call__(self, world: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """R, t and ``ok`` of ``kabsch`` for the world points (B, M, 3)."""
-        cw = (self.rows @ world)[:, 0]
-        h = self.centred @ ((world - cw[:, None]) * self.columns)
-        u, s, vt = np.linalg.svd(h)
-        r = vt.transpose(0, 2, 1) @ u.transpose(0, 2, 1)  # V U^T, a reflection where its determinant is negative
-        flip = 2.0 * (np.linalg.det(r) < 0)  # there V diag(1, 1, -1) U^T, without indexing the batch
-        r -= flip[:, None, None] * (vt[:, 2, :, None] * u[:, None, :, 2])
-        t = cw - (r @ self.centre[..., None])[..., 0]
-        return r, t, self.enough & (s[:, 1] > 1e-6 * s[:, 0])
+        r, t, ok = _kabsch_batch(self.local, np.ascontiguousarray(world, dtype=np.float64), self.weight)
+        return r, t, self.enough & ok
 
 
 def fit_one(local: np.ndarray, world: np.ndarray, weight: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
-    """``kabsch`` for a single point set (M, 3) with less overhead (LAPACK's SVD called directly, without numpy's
-    wrapper); None where the points do not fix a rotation."""
-    w = weight / weight.sum()
-    cl, cw = w @ local, w @ world
-    u, s, vt, info = dgesdd((local - cl).T @ ((world - cw) * w[:, None]))
-    if info or s[1] <= 1e-6 * s[0]:
+    """``kabsch`` for a single point set (M, 3), compiled; None where the points do not fix a rotation."""
+    w = np.asarray(weight, dtype=np.float64)
+    r, t = np.empty((3, 3)), np.empty(3)
+    if not _kabsch_one(np.asarray(local, dtype=np.float64), np.asarray(world, dtype=np.float64), w / w.sum(), r, t):
         return None
-    r = vt.T @ u.T
-    a, b, c, d, e, f, g, h, i = r.ravel().tolist()
-    if a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g) < 0:  # a reflection: flip the last axis
-        r -= 2 * np.outer(vt[2], u[:, 2])
-    return r, cw - r @ cl
+    return r, t
 
 
+@njit(cache=True)
+def _kabsch_batch(local: np.ndarray, world: np.ndarray, weight: np.ndarray
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # pragma: no cover
+    """``kabsch`` of each point set of a batch, normalised ``weight`` (B, M)."""
+    r, t, ok = np.empty((len(local), 3, 3)), np.empty((len(local), 3)), np.empty(len(local), np.bool_)
+    for b in range(len(local)):
+        ok[b] = _kabsch_one(local[b], world[b], weight[b], r[b], t[b])
+    return r, t, ok
+
+
+@njit(cache=True)
+def _kabsch_one(local: np.ndarray, world: np.ndarray, w: np.ndarray, r: np.ndarray,
+                t: np.ndarray) -> bool:  # pragma: no cover
+    """The least-squares ``world ~ r @ local + t`` for points (M, 3) with normalised weights ``w`` (zero for points
+    to leave out, whose coordinates may be anything, NaN too), into ``r`` and ``t``; False where the points do not fix
+    a rotation (the cross-covariance's second singular value below 1e-6 of its first)."""
+    cl, cw = np.zeros(3), np.zeros(3)
+    for m in range(len(w)):
+        if w[m] == 0.0:
+            continue
+        for c in range(3):
+            cl[c] += w[m] * local[m, c]
+            cw[c] += w[m] * world[m, c]
+    h = np.zeros((3, 3))
+    for m in range(len(w)):
+        if w[m] == 0.0:
+            continue
+        for a in range(3):
+            for b in range(3):
+                h[a, b] += (local[m, a] - cl[a]) * ((world[m, b] - cw[b]) * w[m])
+    if not np.isfinite(h).all():
+        r[:], t[:] = np.nan, np.nan
+        return False
+    u, s, vt = np.linalg.svd(h)
+    for a in range(3):
+        for b in range(3):
+            r[a, b] = vt[0, a] * u[b, 0] + vt[1, a] * u[b, 1] + vt[2, a] * u[b, 2]  # V U^T
+    det = (r[0, 0] * (r[1, 1] * r[2, 2] - r[1, 2] * r[2, 1]) - r[0, 1] * (r[1, 0] * r[2, 2] - r[1, 2] * r[2, 0])
+           + r[0, 2] * (r[1, 0] * r[2, 1] - r[1, 1] * r[2, 0]))
+    if det < 0:  # a reflection: V diag(1, 1, -1) U^T
+        for a in range(3):
+            for b in range(3):
+                r[a, b] -= 2.0 * vt[2, a] * u[b, 2]
+    for a in range(3):
+        t[a] = cw[a] - (r[a, 0] * cl[0] + r[a, 1] * cl[1] + r[a, 2] * cl[2])
+    return s[1] > 1e-6 * s[0]
 
 
 @dataclass

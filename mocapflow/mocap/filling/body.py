@@ -135,14 +135,13 @@ class SegmentFit:
         idx = body.idx[segments]
         used = np.append(use, False)[idx]
         self.rows = np.minimum(idx, len(use) - 1)  # (B, M) marker rows, padding on any real row (unused)
-        self.used = used[..., None]
         self.rigid = RigidFit(body.local[segments], used.astype(float))
         self.complete = (used | ~body.slot[segments]).all(axis=1)
 
     def __call__(self, positions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """R (B, 3, 3), t (B, 3) and ``ok`` (B,) of the segments fitted to ``positions`` (N, 3); ``ok`` is False where
         the pattern's markers do not fix the pose."""
-        return self.rigid(np.where(self.used, positions[self.rows], 0.0))
+        return self.rigid(positions[self.rows])  # the markers not used weigh nothing, NaN or not
 
 
 class SegmentPart(NamedTuple):

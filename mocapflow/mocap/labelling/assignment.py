@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+from numba import njit
 from scipy.optimize import linear_sum_assignment
 from scipy.spatial.distance import cdist
 
@@ -29,18 +30,37 @@ def gated_cost(pred: np.ndarray, gate: np.ndarray | float, points: np.ndarray) -
     ``pred`` is ``(A, 3)``, or ``(A, H, 3)`` for tracks with several hypotheses (NaN where absent) of which the best
     counts; ``gate`` is ``(A,)`` or ``(A, H)``, or one for all. With 0 for "unmatched" this is the classic assignment
     with a dummy option costing half a gate on each side, so a match is made only when it lowers the total distance.
+    A track with no hypothesis (NaN) fits no point. Compiled: the labeller asks for it several times a frame.
     """
-    gate = np.asarray(gate)[..., None]
-    if pred.ndim == 2:
-        cost = cdist(pred, points)
-        cost /= gate
-    else:
-        d = cdist(pred.reshape(-1, 3), points).reshape(*pred.shape[:2], -1)
-        d /= gate
-        cost = np.fmin.reduce(d, axis=1)
-        cost[np.isnan(cost)] = np.inf
-    cost -= 1.0
-    return np.minimum(cost, 0.0, out=cost)
+    hypotheses = np.asarray(pred, dtype=np.float64)
+    if hypotheses.ndim == 2:
+        hypotheses = hypotheses[:, None]
+    gates = np.asarray(gate, dtype=np.float64)
+    if gates.ndim < 2:  # one gate per track, or one for all
+        per_hypothesis = np.empty(hypotheses.shape[:2])
+        per_hypothesis[:] = gates[:, None] if gates.ndim else gates
+        gates = per_hypothesis
+    return _gated_cost(hypotheses, gates, np.asarray(points, dtype=np.float64))
+
+
+@njit(cache=True)
+def _gated_cost(pred: np.ndarray, gate: np.ndarray, points: np.ndarray) -> np.ndarray:  # pragma: no cover
+    """``gated_cost`` on ``(A, H, 3)`` hypotheses and ``(A, H)`` gates."""
+    cost = np.zeros((pred.shape[0], len(points)))
+    for a in range(pred.shape[0]):
+        for b in range(len(points)):
+            best = np.inf
+            for h in range(pred.shape[1]):
+                s = 0.0
+                for c in range(3):
+                    d = pred[a, h, c] - points[b, c]
+                    s += d * d
+                ratio = np.sqrt(s) / gate[a, h]
+                if ratio < best:  # NaN (no hypothesis) never is
+                    best = ratio
+            if best < 1.0:
+                cost[a, b] = best - 1.0
+    return cost
 
 
 def match(cost: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -59,16 +79,33 @@ def match(cost: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
             return np.empty(0, np.intp), np.empty(0, np.intp)
         pair = np.zeros(1, np.intp), np.array([best], np.intp)
         return pair if cost.shape[0] == 1 else pair[::-1]
-    nearest = cost.argmin(axis=1)
-    rows = (cost[np.arange(len(cost)), nearest] < 0.0).nonzero()[0]
-    cols = nearest[rows]
-    taken = np.zeros(cost.shape[1], bool)
-    taken[cols] = True
-    if np.count_nonzero(cost < 0.0) == len(rows) == np.count_nonzero(taken):
+    rows, cols, unique = _unambiguous(cost)
+    if unique:
         return rows, cols
     rows, cols = linear_sum_assignment(cost)
     keep = cost[rows, cols] < 0.0
     return rows[keep], cols[keep]
+
+
+@njit(cache=True)
+def _unambiguous(cost: np.ndarray) -> tuple[np.ndarray, np.ndarray, bool]:  # pragma: no cover
+    """The admissible pairs of ``cost`` and whether no row and no column holds two of them (then they are the optimal
+    assignment)."""
+    rows, cols = np.empty(cost.shape[0], np.intp), np.empty(cost.shape[0], np.intp)
+    taken = np.zeros(cost.shape[1], np.bool_)
+    n = 0
+    for a in range(cost.shape[0]):
+        col = -1
+        for b in range(cost.shape[1]):
+            if cost[a, b] < 0.0:
+                if col >= 0 or taken[b]:
+                    return rows[:0], cols[:0], False
+                col = b
+        if col >= 0:
+            taken[col] = True
+            rows[n], cols[n] = a, col
+            n += 1
+    return rows[:n], cols[:n], True
 
 
 def assign(pred: np.ndarray, gate: np.ndarray | float, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -4,6 +4,7 @@ describes the method)."""
 from __future__ import annotations
 
 import numpy as np
+from numba import njit
 from scipy.spatial.distance import cdist
 
 from mocapflow.mocap.labelling.assignment import assign, gated_cost, match, norm, rigid_signature, screened
@@ -216,10 +217,7 @@ class Labeller:
         gate[:, 1] = cfg.gate_mm + 0.5 * cfg.max_accel_mm_s2 * dt**2
         # a prediction on top of a marker already matched points at that marker, seen under another track: what lies
         # near it is a ghost or that marker, never this one
-        matched = cur[np.isfinite(cur[:, 0])]
-        if len(matched):
-            near = cdist(pred.reshape(-1, 3), matched).min(axis=1).reshape(pred.shape[:2])
-            pred[near < cfg.gate_mm / 2] = np.nan
+        _drop_near(pred, cur, cfg.gate_mm / 2)
         return pred, gate, instant
 
     def _signature(self, tracks: np.ndarray, cur: np.ndarray,
@@ -353,3 +351,19 @@ class Labeller:
         self.labels.append(f"M{t + 1:03d}")
         self._tracks.add()
         return t
+
+
+@njit(cache=True)
+def _drop_near(hypotheses: np.ndarray, points: np.ndarray, radius: float) -> None:  # pragma: no cover
+    """In place, NaN for each of the ``hypotheses`` (L, H, 3) closer than ``radius`` to one of ``points`` (T, 3) (NaN
+    rows: none)."""
+    for i in range(hypotheses.shape[0]):
+        for h in range(hypotheses.shape[1]):
+            for t in range(len(points)):
+                s = 0.0
+                for c in range(3):
+                    d = hypotheses[i, h, c] - points[t, c]
+                    s += d * d
+                if np.sqrt(s) < radius:
+                    hypotheses[i, h] = np.nan
+                    break

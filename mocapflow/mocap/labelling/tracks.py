@@ -7,9 +7,9 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+from numba import njit
 from scipy.spatial.distance import cdist
 
-from mocapflow.mocap.labelling.assignment import norm
 from mocapflow.mocap.labelling.config import SD_FLOOR_MM, STATS_HZ, LabellerConfig
 
 
@@ -101,21 +101,8 @@ class Tracks:
 
     def observe(self, cur: np.ndarray, time: float) -> None:
         """Update the kinematic state of confirmed tracks from this frame's matches."""
-        seen = np.isfinite(cur[:, 0])
-        dt = time - self.last
-        measured = (cur - self.pos) / dt[:, None]  # NaN where unseen
-        vel = self.vel + self.config.velocity_smoothing * (measured - self.vel)
-        # a track seen for the first or second time in a row has no velocity to smooth yet: it takes the measured
-        # one, and none measured across a long gap, which says little about the motion now
-        first = (seen & (self.streak < 2)).nonzero()[0]
-        if len(first):
-            across = np.where((dt[first] <= self.config.max_coast_s)[:, None], measured[first], 0.0)
-            vel[first] = np.where((self.streak[first] == 1)[:, None], measured[first], across)
-        where = seen[:, None]
-        np.copyto(self.vel, vel, where=where)
-        np.copyto(self.pos, cur, where=where)
-        np.copyto(self.last, time, where=seen)
-        self.streak = np.where(seen, self.streak + 1, 0)
+        _observe(cur, time, self.pos, self.vel, self.last, self.streak, self.config.velocity_smoothing,
+                 self.config.max_coast_s)
 
     def learn(self, cur: np.ndarray, time: float, frame: int) -> None:
         """Learn from this frame's labelled points: distance statistics and neighbour sets (at up to ``STATS_HZ``),
@@ -186,22 +173,68 @@ class Tracks:
     def _remember(self, seen: np.ndarray, cur: np.ndarray, time: float) -> None:
         """Snapshot, every ``pose_interval_s``, each seen track together with its neighbours (3 or more seen), and
         the range of its distances to each neighbour."""
-        seen = seen[time - self.pose_time[seen] >= self.config.pose_interval_s]
-        if len(seen) == 0:
-            return
-        anchors = self.anchors[seen]
-        x = np.concatenate([cur[seen, None], np.where((anchors >= 0)[..., None], cur[anchors], np.nan)], axis=1)
-        due = np.isfinite(x[:, 1:, 0]).sum(axis=1) >= 3
-        tracks = seen[due]
-        x = x[due]
-        self.poses[tracks, self.pose_count[tracks] % self.config.poses] = x
-        self.pose_count[tracks] += 1
-        self.pose_time[tracks] = time
-        d = norm(x[:, 1:] - x[:, :1])
-        span = self.span[tracks]
-        np.fmin(span[..., 0], d, out=span[..., 0])
-        np.fmax(span[..., 1], d, out=span[..., 1])
-        self.span[tracks] = span
+        _remember(seen, cur, time, self.config.pose_interval_s, self.anchors, self.poses, self.pose_count,
+                  self.pose_time, self.span)
+
+
+@njit(cache=True)
+def _observe(cur: np.ndarray, time: float, pos: np.ndarray, vel: np.ndarray, last: np.ndarray, streak: np.ndarray,
+             smoothing: float, max_coast_s: float) -> None:  # pragma: no cover
+    """``Tracks.observe`` in place, track by track."""
+    for i in range(len(cur)):
+        if not np.isfinite(cur[i, 0]):
+            streak[i] = 0
+            continue
+        dt = time - last[i]
+        for c in range(3):
+            measured = (cur[i, c] - pos[i, c]) / dt
+            # a track seen for the first or second time in a row has no velocity to smooth yet: it takes the measured
+            # one, and none measured across a long gap, which says little about the motion now
+            if streak[i] == 1:
+                vel[i, c] = measured
+            elif streak[i] == 0:
+                vel[i, c] = measured if dt <= max_coast_s else 0.0
+            else:
+                vel[i, c] = vel[i, c] + smoothing * (measured - vel[i, c])
+            pos[i, c] = cur[i, c]
+        last[i] = time
+        streak[i] += 1
+
+
+@njit(cache=True)
+def _remember(seen: np.ndarray, cur: np.ndarray, time: float, interval: float, anchors: np.ndarray,
+              poses: np.ndarray, pose_count: np.ndarray, pose_time: np.ndarray,
+              span: np.ndarray) -> None:  # pragma: no cover
+    """``Tracks._remember`` in place, track by track."""
+    width = anchors.shape[1]
+    x = np.empty((width + 1, 3))
+    for t in seen:
+        if not time - pose_time[t] >= interval:
+            continue
+        x[0] = cur[t]
+        visible = 0
+        for j in range(width):
+            a = anchors[t, j]
+            if a >= 0 and np.isfinite(cur[a, 0]):
+                x[j + 1] = cur[a]
+                visible += 1
+            else:
+                x[j + 1] = np.nan
+        if visible < 3:
+            continue
+        poses[t, pose_count[t] % poses.shape[1]] = x
+        pose_count[t] += 1
+        pose_time[t] = time
+        for j in range(width):
+            s = 0.0
+            for c in range(3):
+                d = x[j + 1, c] - x[0, c]
+                s += d * d
+            d = np.sqrt(s)
+            if d < span[t, j, 0]:  # NaN (a neighbour not seen) leaves the range as it is
+                span[t, j, 0] = d
+            if d > span[t, j, 1]:
+                span[t, j, 1] = d
 
 
 @dataclass

@@ -1,0 +1,100 @@
+"""The compiled kernels are made ready before a live stage's first frame: after ``compile_all``, labelling, filling and
+posing a capture compiles nothing and loads nothing more from numba's cache. The kalman bank and the rigid fits give
+what their written-out arithmetic gives."""
+
+from __future__ import annotations
+
+import importlib
+import pkgutil
+
+import numpy as np
+import pytest
+from numba.core.registry import CPUDispatcher
+
+import mocapflow.mocap
+from mocapflow.mocap.compiled import compile_all
+from mocapflow.mocap.filling import FillerConfig, GapFiller
+from mocapflow.mocap.kalman import ConstantVelocityBank
+from mocapflow.mocap.labelling import Labeller, LabellerConfig
+from mocapflow.mocap.rigidfit import fit_one, kabsch
+from mocapflow.mocap.rigs import make_rig
+from mocapflow.mocap.simulator import SimulatorConfig, simulate, truth_skeleton
+from mocapflow.mocap.solve import PoseSolver
+
+
+def _kernels() -> list[CPUDispatcher]:
+    found = []
+    for info in pkgutil.walk_packages(mocapflow.mocap.__path__, "mocapflow.mocap."):
+        module = importlib.import_module(info.name)
+        found += [obj for obj in vars(module).values()
+                  if isinstance(obj, CPUDispatcher) and obj.__module__ == module.__name__]
+    return found
+
+
+@pytest.mark.integration
+def test_after_compile_all_a_live_stage_compiles_nothing_on_its_frames() -> None:
+    compile_all()
+    kernels = _kernels()
+    assert len(kernels) >= 20
+    ready = {kernel: set(kernel.overloads) for kernel in kernels}
+    config = SimulatorConfig(rig="human", rate=240, noise_mm=0.5, dropout_rate=0.5, long_gaps=4.0, seed=4)
+    labelled = simulate(config, 720)
+    cloud = simulate(config.model_copy(update={"unlabelled": True, "ghosts": 1.0}), 720)
+    assert cloud.points is not None
+    skeleton = truth_skeleton(make_rig("human"), labelled.true_positions[0])
+    labeller = Labeller(LabellerConfig(), cloud.rate)
+    given = GapFiller(labelled.labels, labelled.rate, FillerConfig(), skeleton)
+    learning = GapFiller(labelled.labels, labelled.rate, FillerConfig(), None)
+    solver = PoseSolver(skeleton, labelled.labels)
+    for f in range(720):
+        labeller.update(cloud.points[f], f / cloud.rate)
+        filled = given.update(labelled.positions[f]).positions
+        learning.update(labelled.positions[f])
+        given.predict_next()
+        solver(filled[None])
+    assert learning.skeleton is not None and len(labeller.labels) >= len(labelled.labels)
+    late = [kernel.__name__ for kernel in kernels if set(kernel.overloads) != ready[kernel]]
+    assert not late, f"compiled or loaded on a frame, not by compile_all: {late}"
+
+
+def test_the_kalman_bank_follows_its_equations() -> None:
+    bank = ConstantVelocityBank(3, 0.01, 1000.0, 500.0)
+    z = np.array([[0.0, 0.0, 0.0], [1.0, 2.0, 3.0], [np.nan, np.nan, np.nan]])
+    bank.update(z, np.full(3, 4.0))
+    assert bank.started.tolist() == [True, True, False]
+    bank.predict(np.array([1.0, 0.5, 1.0]))
+    f, q = bank.F, bank.Q
+    p = np.array([[4.0, 0.0], [0.0, 500.0**2]])
+    p = f @ p @ f.T + q
+    np.testing.assert_allclose([bank.p00[0], bank.p01[0], bank.p11[0]], [p[0, 0], p[0, 1], p[1, 1]], rtol=1e-12)
+    z2 = np.array([[1.0, 0.0, 0.0], [1.0, 2.0, 3.0], [np.nan, np.nan, np.nan]])
+    bank.update(z2, np.full(3, 4.0), np.array([True, False, False]))
+    gain = p[:, 0] / (p[0, 0] + 4.0)  # K = P H^T / (H P H^T + R)
+    np.testing.assert_allclose(bank.pos[0], [gain[0] * 1.0, 0.0, 0.0], rtol=1e-12)
+    np.testing.assert_allclose(bank.vel[0], [gain[1] * 1.0, 0.0, 0.0], rtol=1e-12)
+    after = (np.eye(2) - np.outer(gain, [1.0, 0.0])) @ p
+    np.testing.assert_allclose([bank.p00[0], bank.p01[0], bank.p11[0]], [after[0, 0], after[0, 1], after[1, 1]],
+                               rtol=1e-12)
+    np.testing.assert_array_equal(bank.pos[1], [1.0, 2.0, 3.0])  # not selected: left as it was
+    assert np.isnan(bank.pos[2]).all()
+
+
+def test_a_rigid_fit_recovers_a_known_pose_and_ignores_what_weighs_nothing() -> None:
+    rng = np.random.default_rng(5)
+    local = rng.normal(scale=100.0, size=(4, 3))
+    angle = 0.7
+    rotation = np.array([[np.cos(angle), -np.sin(angle), 0.0], [np.sin(angle), np.cos(angle), 0.0], [0, 0, 1.0]])
+    world = local @ rotation.T + [10.0, -20.0, 30.0]
+    fit = fit_one(local, world, np.ones(4))
+    assert fit is not None
+    np.testing.assert_allclose(fit[0], rotation, atol=1e-12)
+    np.testing.assert_allclose(fit[1], [10.0, -20.0, 30.0], atol=1e-9)
+    mirrored = world * [1.0, 1.0, -1.0]  # the best rotation, not the reflection
+    assert np.linalg.det(fit_one(local, mirrored, np.ones(4))[0]) == pytest.approx(1.0)  # type: ignore[index]
+    assert fit_one(local[:2], world[:2], np.ones(2)) is None  # two points fix no rotation
+    hidden = world.copy()
+    hidden[3] = np.nan  # weighs nothing: its coordinates are not read
+    r, t, ok = kabsch(local[None], hidden[None], np.array([[1.0, 1.0, 1.0, 0.0]]))
+    assert ok[0]
+    np.testing.assert_allclose(r[0], rotation, atol=1e-12)
+    np.testing.assert_allclose(t[0], [10.0, -20.0, 30.0], atol=1e-9)
