@@ -4,12 +4,12 @@ Run as ``python benchmarks/frame_path.py [--rate HZ] [--seconds S]`` (about 3 x 
 nodes of deployments/quickstart.yaml are built from that file (the tracker at ``--rate``) and driven in the order the
 runtime drives them: the tracker's frame is encoded (in the tracker's process) and decoded (in the group's), then the
 ``frame`` group hands it from node to node as Python objects, each frame followed by all it causes (the filler's
-prediction back to the labeller); the labelled markers are encoded once for the clusterer and the joint estimator,
-which run in processes of their own and whose costs are shown apart (they do not hold the frame back; their models
-reach the group as they would live). Frames are produced as fast as they are handled, so each step's time is its
-cost alone, with no wait in a queue; Zenoh's own transport is what ``mocapflow bench`` measures next to it. Printed:
-per step, the wall-clock time per frame (p50 / p99 over the frames after the skeleton model arrived) and the sum along
-the frame's path.
+prediction back to the labeller); the filled markers are encoded once for the clusterer and the joint estimator,
+which run in processes of their own, decode only the frames they sample at their model rate (``Node.wanted``) and
+whose costs are shown apart (they do not hold the frame back; their models reach the group as they would live).
+Frames are produced as fast as they are handled, so each step's time is its cost alone, with no wait in a queue;
+Zenoh's own transport is what ``mocapflow bench`` measures next to it. Printed: per step, the wall-clock time per
+frame (p50 / p99 over the frames after the skeleton model arrived) and the sum along the frame's path.
 """
 
 from __future__ import annotations
@@ -73,14 +73,18 @@ def main() -> None:
             sent.clear()
             while queue:
                 src, out, message = queue.pop(0)
+                # a node takes the frames it wants (a model stage samples): the others it is not handed, undecoded
+                targets = [(n, p) for n, p in links[(src, out)]
+                           if not isinstance(message, MarkerFrame) or nodes[n].wanted(p)]
                 crosses = [n for n, _ in links[(src, out)] if n not in group or src not in group]
                 if crosses and isinstance(message, MarkerFrame):  # frames that leave a process (models: rarely)
                     payload = step(f"{src}: encode {out}", encode, message)
                     for target in crosses:
-                        step(f"{target}: decode", decode, payload, MarkerFrame)
+                        if any(n == target for n, _ in targets):
+                            step(f"{target}: decode", decode, payload, MarkerFrame)
                 if src == "joints" and skeleton_at is None:
                     skeleton_at = index
-                for target, port in links[(src, out)]:
+                for target, port in targets:
                     label = f"{target}: {port}" if port != "markers" else target
                     step(label, nodes[target].process, port, message)
                     queue.extend(sent)

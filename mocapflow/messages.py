@@ -198,7 +198,8 @@ class NodeStats(BaseModel):
     latency_p50_ms: float | None = None
     latency_p99_ms: float | None = None
     drops: int = Field(default=0, description="frames lost: missing frame numbers, or refused by a full inbox")
-    skipped: int = Field(default=0, description="messages passed over for a newer one ('queue: latest' inputs)")
+    skipped: int = Field(default=0, description="messages passed over: for a newer one ('queue: latest' inputs), or "
+                         "not wanted (a model stage sampling its input)")
     backlog: int = Field(default=0, description="messages waiting in the inbox now")
     backlog_ms: float = Field(default=0.0, description="how long the oldest waiting message has waited (ms)")
     backlog_max: int = Field(default=0, description="most messages waiting at once during the run")

@@ -52,6 +52,10 @@ class RigidityClusterer(Node[ClustererConfig]):
     def options(self) -> dict[str, Any]:
         return {"k": self.config.segments}
 
+    def wanted(self, port: str) -> bool:
+        """A frame of each ``sample_hz``-th of a second: the others are passed over undecoded."""
+        return self.sampler is None or self.sampler.take()
+
     def process(self, port: str, message: MarkerFrame) -> None:
         if message.labels is None:
             raise ValueError("the clusterer needs labelled markers: link it after a labeller")
@@ -63,14 +67,12 @@ class RigidityClusterer(Node[ClustererConfig]):
         elif self.tracker is None or self.tracker.labels != message.labels:  # another marker set
             config = self.config
             self.sampler = Sampler(message.rate, config.sample_hz)
+            self.sampler.take()  # this frame is its first sample
             samples = self.sampler.rate
             self.tracker = SegmentTracker(message.labels, window=max(2, round(config.window_s * samples)),
                                           warmup=max(2, round(min(config.warmup_s, config.window_s) * samples)),
                                           every=max(1, round(config.every_s * samples)),
                                           method=self.method, **self.options())
-        assert self.sampler is not None
-        if not self.sampler.take():
-            return
         model = self.tracker.update(message.observed())
         if model is not None:
             self.log.info("segments: %s", "; ".join(f"{s.name}: {' '.join(s.markers)}" for s in model.segments))

@@ -52,6 +52,13 @@ class VarianceJoints(Node[JointsConfig]):
         self.next_estimate = 0  # samples to the next estimate
         self.sampler: Sampler | None = None  # of the current marker set
 
+    def wanted(self, port: str) -> bool:
+        """A frame of each ``sample_hz``-th of a second while refining (the others are passed over undecoded); with
+        ``refine`` off, only the first, which publishes the given skeleton."""
+        if not self.config.refine:
+            return not self.published
+        return self.sampler is None or self.sampler.take()
+
     def process(self, port: str, message: MarkerFrame | Segments) -> None:
         if isinstance(message, Segments):
             self.segments = message
@@ -73,8 +80,7 @@ class VarianceJoints(Node[JointsConfig]):
             self.labels = message.labels
         if self.sampler is None:
             self.sampler = Sampler(message.rate, self.config.sample_hz)
-        if not self.sampler.take():
-            return
+            self.sampler.take()  # this frame is its first sample
         samples = self.sampler.rate
         self.frames.append(message.observed())
         window = round(self.config.window_s * samples)

@@ -1,4 +1,5 @@
-"""A test node that handles each frame slowly and writes the frame numbers it handled, to watch inbox policies."""
+"""A test node that handles frames slowly, or only some of them, and writes the frame numbers it handled, to watch
+inbox policies and sampling."""
 
 from __future__ import annotations
 
@@ -14,16 +15,22 @@ from mocapflow.runtime.node import Input, Node
 class SlowSinkConfig(BaseModel):
     path: str
     delay_s: float = 0.02
+    every: int = 1  # wants one message of every ``every`` (``Node.wanted``), the first one included
 
 
 class SlowSink(Node[SlowSinkConfig]):
-    """Sleeps ``delay_s`` per frame; writes the handled frame numbers, one a line, when the stream ends."""
+    """Sleeps ``delay_s`` per frame it wants; writes the handled frame numbers, one a line, when the stream ends."""
 
     Config = SlowSinkConfig
     inputs = {"markers": Input(MarkerFrame)}
 
     def setup(self) -> None:
         self.frames: list[int] = []
+        self.offered = 0
+
+    def wanted(self, port: str) -> bool:
+        self.offered += 1
+        return (self.offered - 1) % self.config.every == 0
 
     def process(self, port: str, message: MarkerFrame) -> None:
         time.sleep(self.config.delay_s)

@@ -14,6 +14,13 @@ from mocapflow.mocap.rigs import make_rig
 from mocapflow.mocap.simulator import SimulatorConfig, simulate, truth_skeleton
 from mocapflow.plugins.clusterer import ClustererConfig, SpectralClusterer
 from mocapflow.plugins.joints import ClosedFormJoints, JointsConfig
+from mocapflow.runtime.node import Node
+
+
+def feed(node: Node, port: str, message: MarkerFrame) -> None:
+    """Hand a data message to a node as the runtime does: only if the node wants it (a model stage samples)."""
+    if node.wanted(port):
+        node.process(port, message)
 
 
 def frames(n: int) -> tuple[list[MarkerFrame], list[str]]:
@@ -30,7 +37,7 @@ def test_clusterer_seeded_with_a_skeleton_publishes_its_segments_at_once(tmp_pat
     sent: list[tuple[str, Segments]] = []
     node = SpectralClusterer(ClustererConfig(skeleton=str(path)), lambda port, msg: sent.append((port, msg)))
     for message in stream:
-        node.process("markers", message)
+        feed(node, "markers", message)
     assert len(sent) == 1 and sent[0][0] == "segments" and sent[0][1].frame == 0
     assert sent[0][1].segments == read_skeleton(path).segments
 
@@ -41,7 +48,7 @@ def test_clusterer_learns_segments_after_its_warmup_and_repeats_only_changes() -
     sent: list[Segments] = []
     node = SpectralClusterer(ClustererConfig(warmup_s=1.0, every_s=0.25), lambda port, msg: sent.append(msg))
     for message in stream:
-        node.process("markers", message)
+        feed(node, "markers", message)
     # 60 samples (one second at the default 60 Hz: every other frame, the first one included), then no change
     assert len(sent) == 1 and sent[0].frame == 118
     rig = make_rig("rods")
@@ -68,8 +75,8 @@ def test_joint_estimator_keeps_its_frames_when_new_markers_are_confirmed() -> No
     node.process("segments", segments)
     for i, positions in enumerate(rec.positions[:, order]):
         known = len(labels) - 1 if i < 150 else len(labels)  # the last marker is confirmed at frame 150
-        node.process("markers", MarkerFrame(frame=i, capture_ns=i, rate=120, positions=positions[:known],
-                                            labels=labels[:known]))
+        feed(node, "markers", MarkerFrame(frame=i, capture_ns=i, rate=120, positions=positions[:known],
+                                          labels=labels[:known]))
     # half of the 2 s window (120 samples at 60 Hz: every other frame) after the first frame, then every second, the
     # new marker no reason to wait
     assert [message.frame for message in sent] == [118, 238, 358]
@@ -91,7 +98,7 @@ def test_closed_form_joint_estimator_places_a_two_marker_segment_down_the_tree()
     node.process("segments", Segments(frame=0, capture_ns=0, segments=[
         Segment(name=name, markers=markers) for name, markers in zip(rig.segments, members, strict=True)]))
     for message in stream:
-        node.process("markers", message)
+        feed(node, "markers", message)
     assert sent, "no skeleton"
     skeleton = sent[-1].skeleton
     assert len(skeleton.joints) == len(rig.segments) - 1

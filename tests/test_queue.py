@@ -60,15 +60,16 @@ def test_a_queue_policy_must_name_a_linked_input(tmp_path: Path) -> None:
         load_graph(path)
 
 
-def _run_slow_sink(tmp_path: Path, endpoint: str, frames: int, policy: str) -> tuple[list[int], dict]:
+def _run_slow_sink(tmp_path: Path, endpoint: str, frames: int, policy: str, group: str = "",
+                   config: str = "delay_s: 0.02") -> tuple[list[int], dict]:
     out = tmp_path / "handled.txt"
     summary = tmp_path / "summary.json"
     path = tmp_path / "g.yaml"
     path.write_text(
         f"name: queue\nzenoh: {{listen: ['{endpoint}']}}\nnodes:\n"
-        f"  tracker: {{plugin: simulator, config: {{rig: rods, rate: 200, frames: {frames}}}}}\n"
-        f"  sink: {{plugin: 'slow_sink:SlowSink', inputs: {{markers: tracker/markers}}, {policy},\n"
-        f"          config: {{path: '{out}', delay_s: 0.02}}}}\n"
+        f"  tracker: {{plugin: simulator, {group} config: {{rig: rods, rate: 200, frames: {frames}}}}}\n"
+        f"  sink: {{plugin: 'slow_sink:SlowSink', inputs: {{markers: tracker/markers}}, {policy}, {group}\n"
+        f"          config: {{path: '{out}', {config}}}}}\n"
     )
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(TESTS), os.environ.get("PYTHONPATH")]))}
     run = subprocess.run([*CLI, "run", str(path), "--summary", str(summary)], capture_output=True, text=True,
@@ -97,3 +98,16 @@ def test_a_full_inbox_drops_and_counts(tmp_path: Path, free_endpoint: str) -> No
     assert handled == sorted(set(handled)) and handled[:10] == list(range(10))
     assert stats["drops"] > 0 and len(handled) + stats["drops"] == frames, (len(handled), stats)
     assert stats["skipped"] == 0 and 10 <= stats["backlog_max"] <= 11 and stats["backlog_max_ms"] > 100
+
+
+@pytest.mark.integration
+@pytest.mark.parametrize("group", ["", "group: one,"], ids=["over Zenoh", "in a group"])
+def test_a_node_is_handed_only_the_messages_it_wants(tmp_path: Path, free_endpoint: str, group: str) -> None:
+    """A node that samples its input (every fourth frame) is handed just those, in order, whether they come over
+    Zenoh (the others are not even decoded) or inside its group; the others are counted as skipped, none as lost."""
+    frames = 200
+    handled, stats = _run_slow_sink(tmp_path, free_endpoint, frames, "queue: {markers: all}", group,
+                                    "delay_s: 0, every: 4")
+    assert handled == list(range(0, frames, 4))
+    assert stats["frames_in"] == len(handled) and stats["skipped"] == frames - len(handled), stats
+    assert stats["drops"] == 0 and stats["errors"] == 0

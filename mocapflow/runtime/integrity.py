@@ -107,10 +107,9 @@ class InputGuard:
         if n > self.limits.max_markers:
             raise Refused(f"frame {message.frame} has {n} markers (at most {self.limits.max_markers}, "
                           "limits.max_markers)")
-        positions = np.array(message.positions, dtype=float)
-        with np.errstate(invalid="ignore"):
-            beyond = np.abs(positions) > self.limits.max_coordinate_mm
+        beyond = np.abs(message.positions) > self.limits.max_coordinate_mm  # NaN (missing) is not beyond
         if beyond.any():
+            positions = np.array(message.positions, dtype=float)
             positions[beyond.any(axis=1)] = np.nan
             if n and np.isnan(positions).all():
                 raise Refused(f"frame {message.frame}: every coordinate is beyond {self.limits.max_coordinate_mm:g}"

@@ -102,6 +102,13 @@ class Node(Generic[ConfigT]):
         """Send ``message`` on one of this node's declared outputs."""
         self._publish(output, message)
 
+    def wanted(self, port: str) -> bool:
+        """Whether the node will use the next message on data input ``port``. A stage that samples a stream (a model
+        stage at its model rate) says no to the messages it would drop; the runtime then passes them over without
+        decoding them or handing them over, and counts them as skipped. Asked once per message, in order, before
+        ``process``; by default every message is wanted."""
+        return True
+
     def process(self, port: str, message: Any) -> None:
         """Handle one message from input ``port``, of the type that input declares (so an override may name it).
         Exceptions are logged and counted; the stream goes on."""

@@ -34,6 +34,7 @@ class Stats:
         self.errors = 0
         self.refused = 0
         self.unpaired = 0
+        self.unwanted = 0  # messages passed over because the node did not want them (``Node.wanted``)
         self.last_error: str | None = None
         self.latencies_ms: deque[float] = deque(maxlen=4096)
         self._rate_mark = (time.monotonic(), 0)
@@ -64,7 +65,8 @@ class Stats:
             node=node, pid=os.getpid(), state=state, frames_in=self.frames_in, frames_out=self.frames_out,
             rate_hz=round(self.rate_hz, 2), latency_p50_ms=p50, latency_p99_ms=p99,
             errors=self.errors, refused=self.refused, unpaired=self.unpaired, last_error=self.last_error,
-            **{**inbox, "drops": self.drops + inbox.get("drops", 0)},
+            **{**inbox, "drops": self.drops + inbox.get("drops", 0),
+               "skipped": self.unwanted + inbox.get("skipped", 0)},
         )
 
 
@@ -79,6 +81,7 @@ class Runner:
         self.ended = False
         self._send = send
         self._last_frame: dict[str, int] = {}
+        self._passed: dict[str, int] = {}  # per data input: messages passed over since the last one counted in
         self._last_capture_ns: int | None = None
         self._open_inputs = set(end_inputs)
         self.ended_inputs: set[str] = set()
@@ -100,9 +103,26 @@ class Runner:
         elif self.stats.errors in (4, 100, 10_000):
             log.error("%s: %s (%d errors so far; further ones counted in stats)", where, exc, self.stats.errors)
 
+    def wants(self, port: str, skipped: int = 0) -> bool:
+        """Whether the node wants the next message on ``port`` (``Node.wanted``; state inputs always): one it does
+        not want is passed over, counted as skipped, with the ``skipped`` ones the inbox passed over before it."""
+        if self.node.inputs[port].state:
+            return True
+        try:
+            if self.node.wanted(port):
+                return True
+        except Exception as exc:  # a faulty sampling rule costs nothing but its own report: the message is handled
+            self.report_error(f"input {port!r}: wanted()", exc)
+            return True
+        self.stats.unwanted += 1
+        self._passed[port] = self._passed.get(port, 0) + 1 + skipped
+        return False
+
     def count_in(self, port: str, message: Message, skipped: int = 0) -> None:
         """Count a data message and check its frame number follows the last one on ``port``; ``skipped``: messages
-        of that input the inbox passed over just before it (counted there, not again as lost frames)."""
+        of that input the inbox passed over just before it (counted there, not again as lost frames), to which
+        those the node did not want are added."""
+        skipped += self._passed.pop(port, 0)
         self.stats.frames_in += 1
         last = self._last_frame.get(port)
         if last is not None and message.frame != last + 1:

@@ -307,6 +307,8 @@ class Worker:
                     self._end_outputs(member)
                 continue
             if not member.runner.node.inputs[port].state:
+                if not member.runner.wants(port):
+                    continue
                 member.runner.count_in(port, message)
             member.runner.handle(port, [message])
 
@@ -337,7 +339,8 @@ class Worker:
                 self._deferred.appendleft(following)
                 break
             batch.append((following.item, following.skipped))
-        messages = [m for m in (self._decode(member, port, s, k) for s, k in batch) if m is not None]
+        messages = [m for m in (self._decode(member, port, s, k) for s, k in batch if member.runner.wants(port, k))
+                    if m is not None]
         if type(member.runner.node).process_batch is not Node.process_batch:
             member.runner.handle(port, messages)  # vectorised: the batch at once
             return
