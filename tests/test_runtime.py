@@ -62,11 +62,13 @@ def worker_pid(prefix: str, node: str, timeout: float = 60.0) -> int:
 
 
 def wait_for_frames(endpoint: str, prefix: str, node: str, frames: int, timeout: float = 90.0) -> None:
-    """Block until ``node`` reports having handled ``frames`` input frames in its stats."""
+    """Block until ``node`` reports having received ``frames`` input frames in its stats (handled, or passed over as
+    a node that samples its input does)."""
     done = threading.Event()
 
     def on_stats(sample: zenoh.Sample) -> None:
-        if orjson.loads(sample.payload.to_bytes())["frames_in"] >= frames:
+        stats = orjson.loads(sample.payload.to_bytes())
+        if stats["frames_in"] + stats["skipped"] >= frames:
             done.set()
 
     with open_client([endpoint]) as session, session.declare_subscriber(f"{prefix}/_stats/{node}", on_stats):
