@@ -1,12 +1,13 @@
 """What the Rerun viewer sink costs the pipeline: pose latency with and without it, on the same graph at 1000 Hz.
 
-Run as ``python benchmarks/viewer_cost.py [--seconds S] [--rounds N] [--speed X]`` (about 3 x N x (S + 10) s). The
+Run as ``python benchmarks/viewer_cost.py [--seconds S] [--rounds N] [--speed X]`` (about 4 x N x (S + 10) s). The
 real lower-body capture (100 Hz) is replayed ten times as fast, looping, through deployments/c3d-replay.yaml with a
 calibrated skeleton and without the online clusterer and the recorder (whose bursts would swamp what is measured), so
 a pose is solved for each of the 1000 frames a second (``--speed``: a machine that cannot keep up with 1000 Hz is
-measured at a rate it sustains). Each round runs the graph three times, in turn: without a viewer; with the ``rerun``
-sink on the filled markers, the pose and the skeleton, drawing at its default 60 Hz into an .rrd file; and with the
-sink drawing every frame it receives (``rate: null``; its inputs keep the newest waiting frame), the worst case. Per
+measured at a rate it sustains). Each round runs the graph four times, in turn: without a viewer; with the ``rerun``
+sink on the filled markers, the pose and the skeleton, drawing at its default 60 Hz into an .rrd file; the same with
+the sink's process at a lower CPU priority (``nice: 10``); and with the sink drawing every frame it receives
+(``rate: null``; its inputs keep the newest waiting frame), the worst case. Per
 run it prints the skeleton node's pose latency from the tracker's capture timestamp (p50 / p99 over its last 4096
 frames, as the launcher's summary gives them), its poses, drops and rate, and the frames the sink received.
 """
@@ -28,7 +29,9 @@ import yaml
 ROOT = Path(__file__).resolve().parents[1]
 SOURCE = ROOT.parent / "shared" / "data" / "lowerbody_clusters_knee_0401.c3d"
 CLI = [sys.executable, "-m", "mocapflow.cli"]
-VARIANTS: dict[str, dict[str, Any] | None] = {"no viewer": None, "rerun 60 Hz": {}, "rerun every frame": {"rate": None}}
+VARIANTS: dict[str, dict[str, Any] | None] = {  # the sink's node settings (its config under "config")
+    "no viewer": None, "rerun 60 Hz": {}, "rerun 60 Hz, nice 10": {"nice": 10},
+    "rerun every frame": {"config": {"rate": None}}}
 
 
 def free_endpoint() -> str:
@@ -48,7 +51,7 @@ def run(work: Path, skeleton: Path, viewer: dict[str, Any] | None, seconds: floa
     del graph["nodes"]["joints"]["inputs"]["segments"]
     if viewer is not None:
         graph["nodes"]["viewer"] = {
-            "plugin": "rerun", "config": {"save": str(work / "scene.rrd"), **viewer},
+            **viewer, "plugin": "rerun", "config": {"save": str(work / "scene.rrd"), **viewer.get("config", {})},
             "inputs": {"markers": "filler/markers", "pose": "skeleton/pose", "skeleton": "joints/skeleton"}}
     path = work / "graph.yaml"
     path.write_text(yaml.safe_dump(graph, sort_keys=False))
