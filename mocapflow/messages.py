@@ -223,9 +223,19 @@ MESSAGE_TYPES: dict[str, MessageType] = {
 }
 
 
+_FLAT_TYPES: frozenset[type[BaseModel]] = frozenset((MarkerFrame, Pose, SimTruth))
+"""Message types whose fields are numbers, strings, lists of strings and arrays: their wire form is their fields with
+each array flattened, which ``encode`` writes without pydantic's serialiser (half the cost of a frame's encode)."""
+
+
 def encode(message: BaseModel) -> bytes:
     """Serialise a message to its JSON wire form."""
-    return orjson.dumps(message.model_dump(mode="python"), option=orjson.OPT_SERIALIZE_NUMPY)
+    if type(message) in _FLAT_TYPES:
+        data = {name: np.ascontiguousarray(value).ravel() if isinstance(value, np.ndarray) else value
+                for name, value in message.__dict__.items()}
+    else:
+        data = message.model_dump(mode="python")
+    return orjson.dumps(data, option=orjson.OPT_SERIALIZE_NUMPY)
 
 
 def decode(payload: bytes | bytearray | memoryview, message_type: MessageType) -> Any:

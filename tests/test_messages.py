@@ -9,6 +9,7 @@ import textwrap
 from pathlib import Path
 
 import numpy as np
+import orjson
 import pytest
 
 from mocapflow.messages import (
@@ -16,6 +17,7 @@ from mocapflow.messages import (
     DecodeError,
     MarkerFrame,
     Pose,
+    SimTruth,
     Skeleton,
     decode,
     encode,
@@ -41,6 +43,26 @@ def test_marker_frame_round_trip_is_exact() -> None:
     np.testing.assert_array_equal(back.positions, original.positions)  # NaN == NaN here
     assert back.positions.dtype == np.float32 and back.positions.shape == (60, 3)
     np.testing.assert_array_equal(back.flags, original.flags)
+
+
+def test_a_flat_message_is_written_as_pydantic_writes_it() -> None:
+    """``encode`` writes frames and poses from their fields directly: byte for byte what pydantic's serialiser
+    gives, whichever optional fields are set, and after a copy with changes."""
+    def by_pydantic(message: MarkerFrame | Pose | SimTruth) -> bytes:
+        return orjson.dumps(message.model_dump(mode="python"), option=orjson.OPT_SERIALIZE_NUMPY)
+
+    full = frame()
+    rays = np.full((60, 6), np.nan)
+    rays[3] = [0.0, 0.0, 0.0, 0.0, 0.0, 1.0]
+    messages = [full, full.model_copy(update={"positions": full.positions[::-1] * 2}),
+                MarkerFrame(frame=0, capture_ns=0, rate=100.0, positions=np.zeros((0, 3))),
+                MarkerFrame.derive(full, positions=full.positions, rays=rays),
+                Pose(frame=1, capture_ns=2, joint_names=["a-b"], joint_centres=np.full((1, 3), np.nan),
+                     segment_names=["a", "b"], rotations=np.eye(4)[:2], translations=np.ones((2, 3))),
+                SimTruth(frame=3, capture_ns=4, labels=["m1", "m2"], identity=np.array([1, -1, 0]),
+                         true_positions=np.ones((2, 3)), joint_names=[], joint_centres=np.zeros((0, 3)))]
+    for message in messages:
+        assert encode(message) == by_pydantic(message)
 
 
 def test_missing_values_travel_as_null() -> None:

@@ -11,6 +11,8 @@ two-segment body, and the launcher calls it before it starts a graph's nodes.
 
 from __future__ import annotations
 
+from functools import cache
+
 import numpy as np
 
 from mocapflow.mocap.filling import FillerConfig, GapFiller
@@ -20,8 +22,10 @@ from mocapflow.mocap.rigidfit import fit_one, fit_pose, kabsch, quaternion_matri
 from mocapflow.mocap.solve import PoseSolver
 
 
+@cache
 def compile_all() -> None:
-    """Run every compiled kernel once (each is then loaded from numba's cache, or compiled and cached)."""
+    """Run every compiled kernel once (each is then loaded from numba's cache, or compiled and cached); once a
+    process: the nodes of a group each ask for it."""
     square = [[0.0, 0.0, 0.0], [100.0, 0.0, 0.0], [0.0, 100.0, 0.0]]
     skeleton = SkeletonModel(
         segments=[Segment(name="a", markers=["a1", "a2", "a3"], marker_offsets=square),
