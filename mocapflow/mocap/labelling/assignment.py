@@ -40,12 +40,12 @@ def gated_cost(pred: np.ndarray, gate: np.ndarray | float, points: np.ndarray) -
         per_hypothesis = np.empty(hypotheses.shape[:2])
         per_hypothesis[:] = gates[:, None] if gates.ndim else gates
         gates = per_hypothesis
-    return _gated_cost(hypotheses, gates, np.asarray(points, dtype=np.float64))
+    return gated_cost_compiled(hypotheses, gates, np.asarray(points, dtype=np.float64))
 
 
 @njit(cache=True)
-def _gated_cost(pred: np.ndarray, gate: np.ndarray, points: np.ndarray) -> np.ndarray:  # pragma: no cover
-    """``gated_cost`` on ``(A, H, 3)`` hypotheses and ``(A, H)`` gates."""
+def gated_cost_compiled(pred: np.ndarray, gate: np.ndarray, points: np.ndarray) -> np.ndarray:  # pragma: no cover
+    """``gated_cost`` on ``(A, H, 3)`` hypotheses and ``(A, H)`` gates, for compiled callers."""
     cost = np.zeros((pred.shape[0], len(points)))
     for a in range(pred.shape[0]):
         for b in range(len(points)):

@@ -7,7 +7,15 @@ import numpy as np
 from numba import njit
 from scipy.spatial.distance import cdist
 
-from mocapflow.mocap.labelling.assignment import assign, gated_cost, match, norm, rigid_signature, screened
+from mocapflow.mocap.labelling.assignment import (
+    assign,
+    gated_cost,
+    gated_cost_compiled,
+    match,
+    norm,
+    rigid_signature,
+    screened,
+)
 from mocapflow.mocap.labelling.config import UNGATED_MM, LabellerConfig, LabelResult
 from mocapflow.mocap.labelling.placement import place_marker
 from mocapflow.mocap.labelling.tracks import Tentatives, Tracks
@@ -74,11 +82,9 @@ class Labeller:
         tracks = self._tracks
 
         # 1. tracks seen in the previous frame: constant-velocity prediction, gated optimal assignment
-        live = (tracks.streak > 0).nonzero()[0]
-        pred = tracks.pos + tracks.vel * (time - tracks.last)[:, None]
-        every = len(live) == n_tracks  # all seen in the previous frame (most frames): no subset to take
-        ti, pi = assign(pred if every else pred[live], cfg.gate_mm, z)
-        matched = ti if every else live[ti]
+        live, cost = _followed(tracks.pos, tracks.vel, tracks.last, tracks.streak, time, cfg.gate_mm, z)
+        ti, pi = match(cost)
+        matched = live[ti]
         cur = np.full((n_tracks, 3), np.nan)
         cur[matched] = z[pi]
         taken = np.full(len(z), -1, np.intp)
@@ -351,6 +357,19 @@ class Labeller:
         self.labels.append(f"M{t + 1:03d}")
         self._tracks.add()
         return t
+
+
+@njit(cache=True)
+def _followed(pos: np.ndarray, vel: np.ndarray, last: np.ndarray, streak: np.ndarray, time: float, gate: float,
+              points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover
+    """The tracks seen in the previous frame and the gated costs (``gated_cost``) of the ``points`` for them, each
+    predicted at ``time`` at constant velocity."""
+    live = np.flatnonzero(streak > 0)
+    pred = np.empty((len(live), 1, 3))
+    for i, t in enumerate(live):
+        for c in range(3):
+            pred[i, 0, c] = pos[t, c] + vel[t, c] * (time - last[t])
+    return live, gated_cost_compiled(pred, np.full((len(live), 1), gate), points)
 
 
 @njit(cache=True)
