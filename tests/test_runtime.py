@@ -236,6 +236,45 @@ def test_model_reaches_a_node_that_starts_late(tmp_path: Path, free_endpoint: st
     assert np.nanmax(np.linalg.norm(joint - truth, axis=1)) < 5.0
 
 
+def test_cores_of_their_own_go_to_the_processes_that_ask_while_one_is_left_for_the_others() -> None:
+    from mocapflow.runtime.cpus import assign_cores
+
+    assert assign_cores({"tracker": False, "frame": True, "joints": False}, {0, 1}) == (
+        {"tracker": [0], "frame": [1], "joints": [0]}, [0])
+    assert assign_cores({"a": True, "b": True, "c": False}, {0, 1, 2, 3}) == (
+        {"a": [3], "b": [2], "c": [0, 1]}, [0, 1])
+    assert assign_cores({"a": True, "b": True}, {0, 1}) is None  # none would be left for the rest
+    assert assign_cores({"a": False}, {0, 1}) is None  # nobody asks
+
+
+@pytest.mark.skipif(len(os.sched_getaffinity(0)) < 2, reason="a core of its own needs two cores")
+def test_a_node_that_asks_runs_on_a_core_of_its_own(tmp_path: Path, free_endpoint: str) -> None:
+    """A group with a member that asks for a core of its own runs on one core, every other process of the graph
+    (the launcher's too) on the others."""
+    path, prefix = graph_file(tmp_path, "cpu", free_endpoint, f"""
+  tracker: {{plugin: simulator, config: {{rig: rods, rate: {RATE}, seed: 3}}}}
+  relay: {{plugin: relay, inputs: {{markers: tracker/markers}}, group: pair, cpu: own}}
+  recorder: {{plugin: recorder, inputs: {{markers: relay/markers}}, config: {{path: {tmp_path / 'o.c3d'}}},
+             group: pair}}
+""")
+    run = start(["run", str(path), "--duration", "60"], tmp_path)
+    try:
+        wait_for_frames(free_endpoint, prefix, "recorder", RATE)
+
+        def cores(pid: int) -> set[frozenset[int]]:  # the core sets of the process's threads
+            return {frozenset(os.sched_getaffinity(int(task.name))) for task in Path(f"/proc/{pid}/task").iterdir()}
+
+        pair, tracker = cores(worker_pid(prefix, "pair")), cores(worker_pid(prefix, "tracker"))
+        launcher_main = frozenset(os.sched_getaffinity(run.pid))
+    finally:
+        run.send_signal(signal.SIGINT)
+        out, _ = run.communicate(timeout=60)
+    assert run.returncode == 0, out
+    (own,) = pair
+    assert len(own) == 1 and len(tracker) == 1 and not own & next(iter(tracker)), (pair, tracker)
+    assert launcher_main == next(iter(tracker))
+
+
 def test_a_node_runs_at_the_niceness_its_graph_sets(tmp_path: Path, free_endpoint: str) -> None:
     """A node runs at the niceness its graph sets, the others at 0; a group at its most favoured member's."""
     path, prefix = graph_file(tmp_path, "nc", free_endpoint, f"""

@@ -47,7 +47,7 @@ from mocapflow.runtime.plugins import PluginNotFound, load
 from mocapflow.runtime.protocol import Deployment, ProcStatus, keep_clock_origin
 from mocapflow.runtime.session import open_client
 from mocapflow.runtime.signals import stop_on_signals
-from mocapflow.runtime.supervisor import Proc, Supervisor
+from mocapflow.runtime.supervisor import Proc, Supervisor, place_on_cores
 
 STATUS_PERIOD_S = 1.0
 LAUNCHER_GRACE_S = 5.0
@@ -126,6 +126,7 @@ class Agent:
                  restart=p.restart, max_restarts=p.max_restarts)
             for p in deployment.nodes
         ]
+        place_on_cores(procs, sys.stdout)
         run = Run(deployment, Supervisor(procs))
         specs = {p.name: p.spec for p in procs}
 

@@ -15,6 +15,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from mocapflow.errors import GraphError
 from mocapflow.messages import NodeStats
+from mocapflow.runtime.cpus import CpuPolicy
 from mocapflow.runtime.inbox import DEFAULT_CAPACITY, QueuePolicy
 from mocapflow.runtime.integrity import StreamLimits
 from mocapflow.runtime.node import Input, Node
@@ -55,6 +56,9 @@ class NodeSpec(RestartPolicy):
                               "hand messages to one another as Python objects (see docs/ARCHITECTURE.md)")
     nice: int = Field(default=0, ge=0, le=19, description="CPU niceness of the node's process (0 most favoured, "
                       "19 least): a model stage set at 10 yields the CPU to the frame path on a busy machine")
+    cpu: CpuPolicy = Field(default="shared", description="'own': a CPU core of its own for the node's process (a "
+                           "group's, if a member asks), no other process of the graph on that machine running there, "
+                           "when the machine has a core to spare; 'shared': the cores left")
     queue: dict[str, QueuePolicy] = Field(
         default_factory=dict, description="input port -> 'all' (every message) or 'latest' (the newest); "
         "default: the plugin's choice for that input, 'all' unless it says otherwise")

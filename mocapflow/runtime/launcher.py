@@ -39,7 +39,7 @@ from mocapflow.runtime.remote import Agents, RemoteNode
 from mocapflow.runtime.security import security_path
 from mocapflow.runtime.session import DEFAULT_ENDPOINT, open_client, open_router
 from mocapflow.runtime.signals import stop_on_signals
-from mocapflow.runtime.supervisor import Proc, Supervisor
+from mocapflow.runtime.supervisor import Proc, Supervisor, place_on_cores
 from mocapflow.runtime.worker import EXIT_CONFIG, WorkerSpec
 
 
@@ -111,7 +111,7 @@ class Launcher:
                 connect=endpoints, peers=list(graph.nodes), end_inputs=ends[name],
                 security=str(self.security) if self.security else None, limits=graph.limits,
                 run=self.run_id, queue=spec.queue, queue_size=spec.queue_size, wait_for=spec.wait_for, nice=spec.nice,
-                linked=graph.linked_outputs(name),
+                cpu=spec.cpu, linked=graph.linked_outputs(name),
             )
             for name, spec in graph.nodes.items()
         }
@@ -126,13 +126,16 @@ class Launcher:
             all_procs[group] = Proc(
                 spec=specs[members[0]].model_copy(update={
                     "node": group, "plugin": "group", "members": [specs[m] for m in members], "inputs": {},
-                    "queue": {}, "queue_size": max(n.queue_size for n in nodes)}),
+                    "queue": {}, "queue_size": max(n.queue_size for n in nodes),
+                    "cpu": "own" if any(n.cpu == "own" for n in nodes) else "shared"}),
                 source=any(classes[m].is_source() for m in members),
                 restart="never" if any(n.restart == "never" for n in nodes) else "on-failure",
                 max_restarts=min(n.max_restarts for n in nodes),
             )
             specs.update({m.node: m for m in all_procs[group].spec.members})  # the very specs the group runs
-        self.supervisor = Supervisor([p for name, p in all_procs.items() if name not in placed])
+        local = [p for name, p in all_procs.items() if name not in placed]
+        place_on_cores(local, out, confine_caller=True)
+        self.supervisor = Supervisor(local)
         self.procs = self.supervisor.procs
         self.remote = {
             name: RemoteNode(Placement(spec=p.spec, source=p.source, restart=p.restart, max_restarts=p.max_restarts),

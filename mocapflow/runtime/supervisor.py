@@ -5,6 +5,7 @@ Used by the launcher for the nodes it runs itself and by each agent for the node
 
 from __future__ import annotations
 
+import os
 import queue
 import signal
 import subprocess
@@ -15,6 +16,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import IO, Literal
 
+from mocapflow.runtime.cpus import assign_cores
 from mocapflow.runtime.graph import Restart, RestartPolicy
 from mocapflow.runtime.worker import EXIT_CONFIG, EXIT_FINISH, WorkerSpec
 
@@ -49,6 +51,25 @@ class Proc:
     @property
     def pid(self) -> int | None:
         return self.popen.pid if self.popen else None
+
+
+def place_on_cores(procs: list[Proc], out: IO[str], confine_caller: bool = False) -> None:
+    """Give each process that asks for a core of its own (``cpu: own``) one, and the cores left to the others (and,
+    with ``confine_caller``, to the calling thread and the threads it starts: the launcher's embedded router); say so
+    in one line when the machine has no core to spare, and let every process share them all."""
+    asks = {p.name: p.spec.cpu == "own" for p in procs}
+    if not any(asks.values()):
+        return
+    placed = assign_cores(asks)
+    if placed is None:
+        out.write(f"mocapflow: {', '.join(name for name, own in asks.items() if own)}: no core of its own on this "
+                  f"machine ({len(os.sched_getaffinity(0))} for {len(procs)} processes): all share them\n")
+        return
+    cores, shared = placed
+    if confine_caller:
+        os.sched_setaffinity(0, shared)
+    for p in procs:
+        p.spec = p.spec.model_copy(update={"cpus": cores[p.name]})
 
 
 class Supervisor:

@@ -40,6 +40,7 @@ from pydantic import BaseModel, Field, ValidationError
 
 from mocapflow.messages import DecodeError, Message, NodeStats, decode, encode
 from mocapflow.runtime import keys
+from mocapflow.runtime.cpus import CpuPolicy
 from mocapflow.runtime.inbox import DEFAULT_CAPACITY, Entry, Inbox, QueuePolicy
 from mocapflow.runtime.integrity import InputGuard, Refused, StreamLimits, new_identity
 from mocapflow.runtime.node import RUN_ENV, Node
@@ -82,6 +83,9 @@ class WorkerSpec(BaseModel):
                                           description="input port -> policy (default: the plugin's)")
     queue_size: int = Field(default=DEFAULT_CAPACITY, ge=1, description="messages an 'all' inbox holds at most")
     nice: int = Field(default=0, ge=0, le=19, description="CPU niceness of the process")
+    cpu: CpuPolicy = Field(default="shared", description="'own': asks for a CPU core of its own")
+    cpus: list[int] | None = Field(default=None, description="the CPU cores the process runs on, as the launcher or "
+                                   "agent that starts it assigned them; none: wherever it was started")
     wait_for: dict[str, float] = Field(
         default_factory=dict, description="input port -> ms: how long a frame waits for that input's message of the "
         "same frame number (feedback from another process)")
@@ -419,6 +423,8 @@ def run_worker(spec: WorkerSpec) -> int:
         nice = min(n.nice for n in spec.nodes())
         if nice:
             os.nice(nice)
+        if spec.cpus:  # before the session opens, so that its threads run there too
+            os.sched_setaffinity(0, spec.cpus)
         session = open_client(spec.connect, spec.security)
     except (PluginNotFound, ValidationError, SecurityError) as exc:
         log.error("node %s: %s", spec.node, exc)

@@ -1,0 +1,27 @@
+"""Cores of their own: a node of a graph may ask for a CPU core that no other process of the graph on its machine
+runs on (``cpu: own``), the frame path above all. On a machine with few cores the operating system otherwise moves
+every process from core to core as they wake, and a frame's Python work, its caches cold each time, costs up to twice
+as much (docs/ARCHITECTURE.md, Speed)."""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Mapping
+from typing import Literal
+
+CpuPolicy = Literal["shared", "own"]
+
+
+def assign_cores(own: Mapping[str, bool],
+                 cores: set[int] | None = None) -> tuple[dict[str, list[int]], list[int]] | None:
+    """The cores each process runs on, given which ask for one of their own (``own``: process name -> asks), and the
+    cores left for the others (the launcher or agent itself among them). Each process that asks gets one core, the
+    highest-numbered first; ``cores`` are those this process may use (default: its own affinity). None when no process
+    asks, or when too few cores are left: one at least must remain for the others."""
+    owners = [name for name, asks in own.items() if asks]
+    available = sorted(os.sched_getaffinity(0) if cores is None else cores)
+    if not owners or len(available) <= len(owners):
+        return None
+    shared = available[:len(available) - len(owners)]
+    placed = {name: [core] for name, core in zip(owners, reversed(available), strict=False)}
+    return {name: placed.get(name, shared) for name in own}, shared
