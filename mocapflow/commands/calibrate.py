@@ -91,7 +91,6 @@ def run(args: argparse.Namespace) -> int:
     if args.segments is not None and args.segments < 2:
         raise MocapflowError("--segments must be at least 2")
     out = distinct_output(args.output, *args.inputs)
-    compile_kernels(sys.stderr)
     data = join_trials([read_chosen(path, args) for path in args.inputs])
     if data.n_markers > MAX_MARKERS:
         raise MocapflowError(f"{data.n_markers} markers: calibrate takes at most {MAX_MARKERS} (its memory grows with "
@@ -100,6 +99,7 @@ def run(args: argparse.Namespace) -> int:
     if wild.any():  # a reflection a few frames long must not decide which markers move together
         print(f"{int(wild.sum())} wild samples (a metre or more from their marker's neighbourhood in time) left out")
         data.positions = np.where(wild[..., None], np.nan, data.positions)
+    compile_kernels(sys.stderr)  # the input is read and checked: the work is to be done
     start = time.perf_counter()
     skeleton = calibrate(data.positions, data.labels, data.rate, segments=args.segments, method=args.method,
                          joint_method=args.joints, name=args.name or Path(args.inputs[0]).stem, progress=Reporter())

@@ -62,7 +62,6 @@ def run(args: argparse.Namespace) -> int:
     from mocapflow.runtime.kernels import compile_kernels
 
     out = distinct_output(args.output, args.input)
-    compile_kernels(sys.stderr)
     if out.suffix.lower() not in (".c3d", ".trc"):
         raise MocapflowError(f"{out}: output must be .c3d or .trc")
     config = settings(FillerConfig, args.overrides)
@@ -75,6 +74,7 @@ def run(args: argparse.Namespace) -> int:
 
     rays = read_rays(args.rays, data.positions.shape[:2]) if args.rays else None
 
+    compile_kernels(sys.stderr)  # the input is read and checked: the work is to be done
     joints = [j.name for j in skeleton.joints] if args.joints and skeleton is not None else []
     fill = fill_both_ways if args.offline else fill_recording
     positions, flags, centres = fill(data.positions, data.labels, data.rate, config, skeleton, rays=rays,

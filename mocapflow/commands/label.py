@@ -49,12 +49,12 @@ def run(args: argparse.Namespace) -> int:
     from mocapflow.runtime.kernels import compile_kernels
 
     config = _config(args)
-    compile_kernels(sys.stderr)
     out = distinct_output(args.output, args.input)
     data = read_chosen(args.input, args)
     points = data.positions
     if not np.isfinite(points).all(axis=2).any():
         raise MocapflowError(f"{args.input}: no points to label")
+    compile_kernels(sys.stderr)  # the input is read and checked: the work is to be done
     if args.skeleton is not None:
         from mocapflow.io.skeleton import read_skeleton
         from mocapflow.mocap.labelling.model import label_with_skeleton

@@ -44,7 +44,6 @@ def run(args: argparse.Namespace) -> int:
     from mocapflow.runtime.kernels import compile_kernels
 
     out = distinct_output(args.output, args.input, args.skeleton)
-    compile_kernels(sys.stderr)
     if out.suffix.lower() not in (".c3d", ".trc", ".json", ".bvh"):
         raise MocapflowError(f"{out}: output must be .c3d, .trc, .json or .bvh")
     skeleton = read_skeleton(args.skeleton)
@@ -52,6 +51,7 @@ def run(args: argparse.Namespace) -> int:
     missing = sorted({m for s in skeleton.segments for m in s.markers} - set(data.labels))
     if len(missing) == sum(len(s.markers) for s in skeleton.segments):
         raise MocapflowError(f"{args.input}: none of the skeleton's markers is in the file")
+    compile_kernels(sys.stderr)  # the input is read and checked: the work is to be done
     try:
         pose = solve(skeleton, data.positions, data.labels, progress=Reporter())
     except ValueError as exc:
