@@ -1,7 +1,7 @@
 """Cores of their own: a node of a graph may ask for a CPU core that no other process of the graph on its machine
 runs on (``cpu: own``), the frame path above all. On a machine with few cores the operating system otherwise moves
-every process from core to core as they wake, and a frame's Python work, its caches cold each time, costs up to twice
-as much (docs/ARCHITECTURE.md, Speed)."""
+every process from core to core as they wake, and a frame's Python work, its caches cold each time, costs about half
+as much again (docs/ARCHITECTURE.md, Speed)."""
 
 from __future__ import annotations
 
