@@ -88,7 +88,7 @@ def _nodes(args: argparse.Namespace) -> int:
 
     def backlog(s: dict[str, Any]) -> str:
         return f"{s['backlog']}/{s['backlog_ms']:.0f}ms" if "backlog" in s else "-"
-    print(f"{'NODE':<44}{'STATE':<10}{'PID':>8}{'RATE Hz':>10}{'P50 ms':>8}{'P99 ms':>8}{'DROPS':>7}"
+    print(f"{'NODE':<44}{'STATE':<10}{'PID':>8}{'RATE Hz':>10}{'P50 ms':>8}{'P99 ms':>8}{'DROPS':>7}{'SKIP':>7}"
           f"{'BACKLOG':>12}{'ERR':>5}")
     for key in alive:
         s = stats.get(key, {})
@@ -96,7 +96,7 @@ def _nodes(args: argparse.Namespace) -> int:
         name = key.replace("/_alive/", "/")
         print(f"{name:<44}{s.get('state', '?'):<10}{s.get('pid', '-'):>8}{fmt(s.get('rate_hz')):>10}"
               f"{fmt(s.get('latency_p50_ms')):>8}{fmt(s.get('latency_p99_ms')):>8}"
-              f"{s.get('drops', 0) + s.get('skipped', 0):>7}{backlog(s):>12}{s.get('errors', 0):>5}")
+              f"{s.get('drops', 0):>7}{s.get('skipped', 0):>7}{backlog(s):>12}{s.get('errors', 0):>5}")
     return 0
 
 

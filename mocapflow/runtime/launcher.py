@@ -175,7 +175,7 @@ class Launcher:
     def table(self) -> str:
         where = f"{'MACHINE':<14}" if self.remote else ""
         head = f"{'NODE':<14}{'PLUGIN':<20}{where}{'STATE':<11}{'PID':>8}{'RATE Hz':>9}{'P50 ms':>8}{'P99 ms':>8}" \
-               f"{'IN':>8}{'OUT':>8}{'DROPS':>6}{'BACKLOG':>12}{'ERR':>5}{'RESTARTS':>9}"
+               f"{'IN':>8}{'OUT':>8}{'DROPS':>6}{'SKIP':>7}{'BACKLOG':>12}{'ERR':>5}{'RESTARTS':>9}"
         rows = [head]
         for name, plugin, machine, state, pid, restarts in self._rows():
             s = self.stats.get(name)
@@ -186,7 +186,8 @@ class Launcher:
                 f"{fmt(s.rate_hz if s else None):>9}{fmt(s.latency_p50_ms if s else None):>8}"
                 f"{fmt(s.latency_p99_ms if s else None):>8}{(s.frames_in if s else 0):>8}"
                 f"{(s.frames_out if s else 0):>8}"
-                f"{(s.drops + s.skipped if s else 0):>6}{_backlog(s):>12}{(s.errors if s else 0):>5}{restarts:>9}"
+                f"{(s.drops if s else 0):>6}{(s.skipped if s else 0):>7}{_backlog(s):>12}{(s.errors if s else 0):>5}"
+                f"{restarts:>9}"
             )
         return "\n".join(rows)
 
