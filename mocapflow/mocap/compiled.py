@@ -4,7 +4,7 @@ The per-frame arithmetic of the live stages, the labeller's assignments and trac
 occlusion filler's Kalman filters (``kalman``), the rigid fits (``rigidfit``) and the skeleton's pose solve
 (``solve``), is compiled by numba the first time it runs, and numba keeps what it compiled in a cache beside the code
 (or in the user's cache folder where that is not writable). Loading it costs a fraction of a second; compiling it, on
-a machine that has never run it, about a minute of CPU. A live graph must not pay that on its first frames, nor in
+a machine that has never run it, about half a minute of CPU. A live graph must not pay that on its first frames, nor in
 four processes at once: ``compile_all`` runs every kernel once, in every form the project calls it, on a tiny
 two-segment body, and the launcher calls it before it starts a graph's nodes.
 """

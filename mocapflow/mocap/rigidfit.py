@@ -52,6 +52,13 @@ def _rotors(x: np.ndarray, y: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np
 
 
 @njit(cache=True)
+def det3(m: np.ndarray) -> float:  # pragma: no cover
+    """The determinant of a 3x3 matrix."""
+    return (m[0, 0] * (m[1, 1] * m[2, 2] - m[1, 2] * m[2, 1]) - m[0, 1] * (m[1, 0] * m[2, 2] - m[1, 2] * m[2, 0])
+            + m[0, 2] * (m[1, 0] * m[2, 1] - m[1, 1] * m[2, 0]))
+
+
+@njit(cache=True)
 def finite(v: np.ndarray) -> bool:  # pragma: no cover
     """Whether every coordinate of the short vector ``v`` is finite, without a temporary array."""
     for c in v:
@@ -201,9 +208,7 @@ def _kabsch_one(local: np.ndarray, world: np.ndarray, w: np.ndarray, r: np.ndarr
     for a in range(3):
         for b in range(3):
             r[a, b] = vt[0, a] * u[b, 0] + vt[1, a] * u[b, 1] + vt[2, a] * u[b, 2]  # V U^T
-    det = (r[0, 0] * (r[1, 1] * r[2, 2] - r[1, 2] * r[2, 1]) - r[0, 1] * (r[1, 0] * r[2, 2] - r[1, 2] * r[2, 0])
-           + r[0, 2] * (r[1, 0] * r[2, 1] - r[1, 1] * r[2, 0]))
-    if det < 0:  # a reflection: V diag(1, 1, -1) U^T
+    if det3(r) < 0:  # a reflection: V diag(1, 1, -1) U^T
         for a in range(3):
             for b in range(3):
                 r[a, b] -= 2.0 * vt[2, a] * u[b, 2]

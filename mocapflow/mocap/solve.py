@@ -22,7 +22,16 @@ from scipy.spatial.transform import Rotation
 
 from mocapflow.mocap.model import SkeletonModel
 from mocapflow.mocap.report import Progress
-from mocapflow.mocap.rigidfit import MIN_GAP, finite, fit_frames, hold_turns, place, pose_matrices, quaternion_matrices
+from mocapflow.mocap.rigidfit import (
+    MIN_GAP,
+    det3,
+    finite,
+    fit_frames,
+    hold_turns,
+    place,
+    pose_matrices,
+    quaternion_matrices,
+)
 
 
 @dataclass
@@ -282,15 +291,8 @@ def _solve3(a: np.ndarray, b: np.ndarray) -> np.ndarray:  # pragma: no cover
     for k in range(3):
         m[:] = a
         m[:, k] = b
-        x[k] = _det3(m)
-    return x / _det3(a)
-
-
-@njit(cache=True)
-def _det3(m: np.ndarray) -> float:  # pragma: no cover
-    """The determinant of a 3x3 matrix."""
-    return (m[0, 0] * (m[1, 1] * m[2, 2] - m[1, 2] * m[2, 1]) - m[0, 1] * (m[1, 0] * m[2, 2] - m[1, 2] * m[2, 0])
-            + m[0, 2] * (m[1, 0] * m[2, 1] - m[1, 1] * m[2, 0]))
+        x[k] = det3(m)
+    return x / det3(a)
 
 
 @njit(cache=True)

@@ -44,6 +44,16 @@ def gated_cost(pred: np.ndarray, gate: np.ndarray | float, points: np.ndarray) -
 
 
 @njit(cache=True)
+def distance(p: np.ndarray, q: np.ndarray) -> float:  # pragma: no cover
+    """The distance between two points (3,), NaN if either is missing."""
+    s = 0.0
+    for c in range(3):
+        d = p[c] - q[c]
+        s += d * d
+    return np.sqrt(s)
+
+
+@njit(cache=True)
 def gated_cost_compiled(pred: np.ndarray, gate: np.ndarray, points: np.ndarray) -> np.ndarray:  # pragma: no cover
     """``gated_cost`` on ``(A, H, 3)`` hypotheses and ``(A, H)`` gates, for compiled callers."""
     cost = np.zeros((pred.shape[0], len(points)))
@@ -51,11 +61,7 @@ def gated_cost_compiled(pred: np.ndarray, gate: np.ndarray, points: np.ndarray) 
         for b in range(len(points)):
             best = np.inf
             for h in range(pred.shape[1]):
-                s = 0.0
-                for c in range(3):
-                    d = pred[a, h, c] - points[b, c]
-                    s += d * d
-                ratio = np.sqrt(s) / gate[a, h]
+                ratio = distance(pred[a, h], points[b]) / gate[a, h]
                 if ratio < best:  # NaN (no hypothesis) never is
                     best = ratio
             if best < 1.0:

@@ -9,6 +9,7 @@ from scipy.spatial.distance import cdist
 
 from mocapflow.mocap.labelling.assignment import (
     assign,
+    distance,
     gated_cost,
     gated_cost_compiled,
     match,
@@ -379,10 +380,6 @@ def _drop_near(hypotheses: np.ndarray, points: np.ndarray, radius: float) -> Non
     for i in range(hypotheses.shape[0]):
         for h in range(hypotheses.shape[1]):
             for t in range(len(points)):
-                s = 0.0
-                for c in range(3):
-                    d = hypotheses[i, h, c] - points[t, c]
-                    s += d * d
-                if np.sqrt(s) < radius:
+                if distance(hypotheses[i, h], points[t]) < radius:
                     hypotheses[i, h] = np.nan
                     break
