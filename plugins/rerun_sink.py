@@ -49,7 +49,8 @@ class RerunSink(Node[RerunConfig]):
     """Draws markers (coloured by segment, and by flag where estimated), rays, joint centres and bones at up to
     ``rate`` frames a second, and, linked to ``_stats/*``, each node's latency and rate as time series beside the
     scene. Its frame inputs keep only the newest waiting frame (``queue: latest``), and frames that arrive faster
-    than ``rate`` are passed over, so the viewer never holds the pipeline back."""
+    than ``rate`` are passed over undecoded (the last one is still shown), so the viewer never holds the pipeline
+    back."""
 
     Config = RerunConfig
     inputs = {
@@ -68,8 +69,12 @@ class RerunSink(Node[RerunConfig]):
         self.scene = Scene(self.stream, up=config.up, ray_length_mm=config.ray_length_mm)
         self.period = 1.0 / config.rate if config.rate else 0.0
         self.due: dict[str, float] = {}
-        self.skipped: dict[str, Message] = {}
         self.health_shown = False
+
+    def wanted(self, port: str) -> bool:
+        """A frame when one is due at the display rate; the runtime passes the others over undecoded and hands over
+        the last one passed over at the end of the stream."""
+        return self.config.rate is None or time.monotonic() >= self.due.get(port, 0.0)
 
     def process(self, port: str, message: Message) -> None:
         self.process_batch(port, [message])
@@ -86,18 +91,10 @@ class RerunSink(Node[RerunConfig]):
             for message in messages:
                 self.scene.log(f"world/{port}", message)
             return
-        latest = messages[-1]
-        now = time.monotonic()
-        if now < self.due.get(port, 0.0):
-            self.skipped[port] = latest
-            return
-        self.due[port] = now + self.period
-        self.skipped.pop(port, None)
-        self.scene.log(f"world/{port}", latest)
+        self.due[port] = time.monotonic() + self.period
+        self.scene.log(f"world/{port}", messages[-1])
 
     def finish(self) -> None:
-        for port, message in self.skipped.items():  # the last frame is always shown
-            self.scene.log(f"world/{port}", message)
         problem = close_stream(self.stream)
         if problem:
             self.log.warning("the scene's last frames were not delivered: %s", problem)

@@ -111,3 +111,19 @@ def test_a_node_is_handed_only_the_messages_it_wants(tmp_path: Path, free_endpoi
     assert handled == list(range(0, frames, 4))
     assert stats["frames_in"] == len(handled) and stats["skipped"] == frames - len(handled), stats
     assert stats["drops"] == 0 and stats["errors"] == 0
+
+
+@pytest.mark.integration
+@pytest.mark.parametrize("group", ["", "group: one,"], ids=["over Zenoh", "in a group"])
+def test_a_latest_input_hands_over_its_last_frame_passed_over(tmp_path: Path, free_endpoint: str,
+                                                                group: str) -> None:
+    """A sink that samples a 'latest' input (as a viewer does at its display rate) is still handed the stream's last
+    frame, passed over when it came, before the stream ends; it is counted in, not as skipped."""
+    frames = 200  # the last, 199, is not one of every seventh
+    handled, stats = _run_slow_sink(tmp_path, free_endpoint, frames, "queue: {markers: latest}", group,
+                                    "delay_s: 0, every: 7")
+    assert handled == sorted(set(handled)) and handled[-1] == frames - 1 and len(handled) < frames, handled
+    if group:  # inside the group every frame is offered in turn
+        assert handled == [*range(0, frames, 7), frames - 1]
+    assert stats["frames_in"] == len(handled) and stats["skipped"] == frames - len(handled), stats
+    assert stats["drops"] == 0 and stats["errors"] == 0

@@ -118,6 +118,11 @@ class Runner:
         self._passed[port] = self._passed.get(port, 0) + 1 + skipped
         return False
 
+    def take_back(self, port: str) -> None:
+        """The message on ``port`` last passed over (``wants`` said no) is handed over after all: not skipped."""
+        self.stats.unwanted -= 1
+        self._passed[port] -= 1
+
     def count_in(self, port: str, message: Message, skipped: int = 0) -> None:
         """Count a data message and check its frame number follows the last one on ``port``; ``skipped``: messages
         of that input the inbox passed over just before it (counted there, not again as lost frames), to which

@@ -117,6 +117,8 @@ class Member:
     routes: dict[str, list[tuple[Member, str]]] = field(default_factory=dict)  # output -> members' inputs it feeds
     internal: set[str] = field(default_factory=set)  # inputs fed by another member
     wanted: dict[str, bool] = field(default_factory=dict)  # output -> published on Zenoh now
+    latest: set[str] = field(default_factory=set)  # inputs whose policy is 'latest'
+    held: dict[str, Any] = field(default_factory=dict)  # latest input -> newest message passed over (maybe undecoded)
     listeners: list[Any] = field(default_factory=list)
     stats_pub: Any = None
     token: Any = None
@@ -181,6 +183,7 @@ class Worker:
             p for p, i in node_cls.inputs.items() if i.required and not i.state and p in spec.inputs
         }
         member = Member(spec=spec, publishers=publishers, identity=new_identity(spec.node),
+                        latest={p for p, i in node_cls.inputs.items() if spec.queue.get(p, i.queue) == "latest"},
                         guards={port: InputGuard(upstream=key.rsplit("/", 2)[-2], limits=spec.limits)
                                 for port, key in spec.inputs.items()
                                 if port in node_cls.inputs and not node_cls.inputs[port].state})
@@ -307,14 +310,33 @@ class Worker:
         while self._local:
             member, port, message = self._local.popleft()
             if message is END:
+                self._hand_held(member, port)
                 if member.runner.end_of(port):
                     self._end_outputs(member)
                 continue
             if not member.runner.node.inputs[port].state:
                 if not member.runner.wants(port):
+                    if port in member.latest:
+                        member.held[port] = message
                     continue
+                member.held.pop(port, None)
                 member.runner.count_in(port, message)
             member.runner.handle(port, [message])
+
+    def _hand_held(self, member: Member, port: str) -> None:
+        """At the end of a ``latest`` input, the newest message the node passed over is handed over after all: a
+        sink that shows a sample of a stream (a viewer at its display rate) always shows its last frame."""
+        held = member.held.pop(port, None)
+        if held is None:
+            return
+        member.runner.take_back(port)
+        if isinstance(held, zenoh.Sample):
+            held = self._decode(member, port, held, 0)
+            if held is None:
+                return
+        else:
+            member.runner.count_in(port, held)
+        member.runner.handle(port, [held])
 
     def _next(self, timeout: float) -> Entry[zenoh.Sample] | None:
         """The next message from outside: one set aside while waiting for feedback first, else the inbox's."""
@@ -330,8 +352,10 @@ class Worker:
                 member.runner.stats.refused += 1
                 member.runner.report_error(f"input {port!r}", Refused(
                     f"end of stream from {_who(sample)}, not from the stream's publisher: ignored"))
-            elif member.runner.end_of(port):
-                self._end_outputs(member)
+            else:
+                self._hand_held(member, port)
+                if member.runner.end_of(port):
+                    self._end_outputs(member)
             return
         # A node that fell behind catches up on what has queued on this input since, in one batch.
         batch = [(sample, entry.skipped)]
@@ -343,8 +367,16 @@ class Worker:
                 self._deferred.appendleft(following)
                 break
             batch.append((following.item, following.skipped))
-        messages = [m for m in (self._decode(member, port, s, k) for s, k in batch if member.runner.wants(port, k))
-                    if m is not None]
+        messages = []
+        for sample, skipped in batch:
+            if not member.runner.wants(port, skipped):
+                if port in member.latest:
+                    member.held[port] = sample
+                continue
+            member.held.pop(port, None)
+            message = self._decode(member, port, sample, skipped)
+            if message is not None:
+                messages.append(message)
         if type(member.runner.node).process_batch is not Node.process_batch:
             member.runner.handle(port, messages)  # vectorised: the batch at once
             return
