@@ -6,8 +6,8 @@ calibrated skeleton and without the online clusterer and the recorder (whose bur
 a pose is solved for each of the 1000 frames a second (``--speed``: a machine that cannot keep up with 1000 Hz is
 measured at a rate it sustains). Each round runs the graph four times, in turn: without a viewer; with the ``rerun``
 sink on the filled markers, the pose and the skeleton, drawing at its default 60 Hz into an .rrd file; the same with
-the sink's process at a lower CPU priority (``nice: 10``); and with the sink drawing every frame it receives
-(``rate: null``; its inputs keep the newest waiting frame), the worst case. Per
+the sink's process on CPU time the pipeline leaves (``cpu: idle``); and, the worst case, with the sink on the whole streams
+instead of their previews (``queue: latest``) drawing every frame it receives (``rate: null``). Per
 run it prints the skeleton node's pose latency from the tracker's capture timestamp (p50 / p99 over its last 4096
 frames, as the launcher's summary gives them), its poses, drops and rate, and the frames the sink received.
 """
@@ -30,8 +30,8 @@ ROOT = Path(__file__).resolve().parents[1]
 SOURCE = ROOT.parent / "shared" / "data" / "lowerbody_clusters_knee_0401.c3d"
 CLI = [sys.executable, "-m", "mocapflow.cli"]
 VARIANTS: dict[str, dict[str, Any] | None] = {  # the sink's node settings (its config under "config")
-    "no viewer": None, "rerun 60 Hz": {}, "rerun 60 Hz, nice 10": {"nice": 10},
-    "rerun every frame": {"config": {"rate": None}}}
+    "no viewer": None, "rerun 60 Hz": {}, "rerun 60 Hz, cpu idle": {"cpu": "idle"},
+    "rerun every frame": {"config": {"rate": None}, "queue": {"markers": "latest", "pose": "latest"}}}
 
 
 def free_endpoint() -> str:

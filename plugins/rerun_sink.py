@@ -13,6 +13,11 @@ from mocapflow.messages import MarkerFrame, Message, NodeStats, Pose, Segments, 
 from mocapflow.runtime.node import Input, Node
 
 
+EARLY = 0.8
+"""A frame is due a fifth of a period early: frames that come at the display rate (a preview's) are all drawn, in
+spite of jitter."""
+
+
 class RerunConfig(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
@@ -24,8 +29,9 @@ class RerunConfig(BaseModel):
     web_port: int = Field(default=9090, ge=1, le=65535, description="web viewer port when serving")
     save: str | None = Field(default=None, description="write the scene to this .rrd file")
     rate: float | None = Field(default=60.0, gt=0, description="display rate, Hz; frames in between are skipped "
-                               "(null: every frame received; with 'queue: {markers: all, pose: all}' on the node, "
-                               "every frame, even when the viewer falls behind)")
+                               "(null: every frame received: the preview's, up to 60 a second; with 'queue: "
+                               "{markers: all, pose: all}' on the node, every frame of the streams, even when the "
+                               "viewer falls behind)")
     memory_limit: str = Field(default="1GiB", description="memory of the spawned viewer or server; beyond it the "
                                                           "oldest data is dropped")
     up: Literal["+Z", "+Y", "+X", "-Z", "-Y", "-X"] = Field(default="+Z", description="the capture's up axis")
@@ -48,14 +54,15 @@ class RerunConfig(BaseModel):
 class RerunSink(Node[RerunConfig]):
     """Draws markers (coloured by segment, and by flag where estimated), rays, joint centres and bones at up to
     ``rate`` frames a second, and, linked to ``_stats/*``, each node's latency and rate as time series beside the
-    scene. Its frame inputs keep only the newest waiting frame (``queue: latest``), and frames that arrive faster
+    scene. Its frame inputs take the streams' previews (``queue: preview``: the newest frame, at most 60 a second, so
+    that a 1000 Hz stream is neither encoded nor sent for the viewer at its full rate), and frames that arrive faster
     than ``rate`` are passed over undecoded (the last one is still shown), so the viewer never holds the pipeline
     back."""
 
     Config = RerunConfig
     inputs = {
-        "markers": Input(MarkerFrame, doc="markers to draw", queue="latest"),
-        "pose": Input(Pose, required=False, doc="joint centres and bones to draw", queue="latest"),
+        "markers": Input(MarkerFrame, doc="markers to draw", queue="preview"),
+        "pose": Input(Pose, required=False, doc="joint centres and bones to draw", queue="preview"),
         "skeleton": Input(Skeleton, required=False, state=True, doc="joint tree for the bones"),
         "segments": Input(Segments, required=False, state=True, doc="marker colours by segment"),
         "health": Input(NodeStats, required=False, state=True, doc="node latency and rate: link to '_stats/*'"),
@@ -91,7 +98,7 @@ class RerunSink(Node[RerunConfig]):
             for message in messages:
                 self.scene.log(f"world/{port}", message)
             return
-        self.due[port] = time.monotonic() + self.period
+        self.due[port] = time.monotonic() + EARLY * self.period
         self.scene.log(f"world/{port}", messages[-1])
 
     def finish(self) -> None:

@@ -1,5 +1,6 @@
 """Inbox policies: ``queue: all`` keeps every message up to a bound and counts what it refuses, ``queue: latest`` keeps
-the newest and counts what it passes over; the backlog is reported. Unit tests of the inbox, then real runs."""
+the newest and counts what it passes over, ``queue: preview`` takes the newest of a thinned copy; the backlog is
+reported. Unit tests of the inbox, then real runs."""
 
 from __future__ import annotations
 
@@ -14,6 +15,7 @@ from conftest import CLI
 from mocapflow.errors import GraphError
 from mocapflow.runtime.graph import load_graph
 from mocapflow.runtime.inbox import Inbox
+from mocapflow.runtime.preview import PREVIEW_HZ
 
 TESTS = Path(__file__).resolve().parent
 
@@ -125,5 +127,18 @@ def test_a_latest_input_hands_over_its_last_frame_passed_over(tmp_path: Path, fr
     assert handled == sorted(set(handled)) and handled[-1] == frames - 1 and len(handled) < frames, handled
     if group:  # inside the group every frame is offered in turn
         assert handled == [*range(0, frames, 7), frames - 1]
+    assert stats["frames_in"] == len(handled) and stats["skipped"] == frames - len(handled), stats
+    assert stats["drops"] == 0 and stats["errors"] == 0
+
+
+@pytest.mark.integration
+def test_a_preview_input_takes_at_most_a_display_rate_with_the_last_frame(tmp_path: Path,
+                                                                           free_endpoint: str) -> None:
+    """An input on an output's preview ('queue: preview') receives at most 60 of the 200 frames a second, in order,
+    the last one included; the frames the preview left out are counted as skipped, none as lost."""
+    frames = 400  # two seconds
+    handled, stats = _run_slow_sink(tmp_path, free_endpoint, frames, "queue: {markers: preview}", "", "delay_s: 0")
+    assert handled == sorted(set(handled)) and handled[-1] == frames - 1, handled
+    assert 60 <= len(handled) <= 2 * PREVIEW_HZ + 2, len(handled)
     assert stats["frames_in"] == len(handled) and stats["skipped"] == frames - len(handled), stats
     assert stats["drops"] == 0 and stats["errors"] == 0

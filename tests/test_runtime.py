@@ -276,13 +276,14 @@ def test_a_node_that_asks_runs_on_a_core_of_its_own(tmp_path: Path, free_endpoin
 
 
 def test_a_node_runs_at_the_niceness_its_graph_sets(tmp_path: Path, free_endpoint: str) -> None:
-    """A node runs at the niceness its graph sets, the others at 0; a group at its most favoured member's. Every
-    node process runs BLAS on one thread, whose spinning helpers would take CPU from the other processes."""
+    """A node runs at the niceness its graph sets, the others at 0; a group at its most favoured member's. A node
+    with 'cpu: idle' runs on CPU time nothing else wants (SCHED_IDLE). Every node process runs BLAS on one thread,
+    whose spinning helpers would take CPU from the other processes."""
     path, prefix = graph_file(tmp_path, "nc", free_endpoint, f"""
   tracker: {{plugin: simulator, config: {{rig: rods, rate: {RATE}, seed: 3}}}}
   clusterer: {{plugin: clusterer-spectral, inputs: {{markers: tracker/markers}}, nice: 10}}
-  relay: {{plugin: relay, inputs: {{markers: tracker/markers}}, nice: 4}}
-  other: {{plugin: relay, inputs: {{markers: relay/markers}}, nice: 12, group: pair}}
+  relay: {{plugin: relay, inputs: {{markers: tracker/markers}}, nice: 4, cpu: idle}}
+  other: {{plugin: relay, inputs: {{markers: relay/markers}}, nice: 12, group: pair, cpu: idle}}
   recorder: {{plugin: recorder, inputs: {{markers: other/markers}}, config: {{path: {tmp_path / 'o.c3d'}}},
              group: pair}}
 """)
@@ -299,8 +300,10 @@ def test_a_node_runs_at_the_niceness_its_graph_sets(tmp_path: Path, free_endpoin
             deadline = time.monotonic() + 60
             while len(pids) < 5 and time.monotonic() < deadline:  # every node's statistics, with its PID
                 time.sleep(0.2)
-            nice = {node: int(Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[16])
+            stat = {node: Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
                     for node, pid in dict(pids).items()}
+            nice = {node: int(fields[16]) for node, fields in stat.items()}
+            idle = {node for node, fields in stat.items() if int(fields[38]) == os.SCHED_IDLE}
             blas = {node: dict(v.split("=", 1) for v in Path(f"/proc/{pid}/environ").read_text().split("\0")
                                if v.startswith("OPENBLAS_NUM_THREADS="))
                     for node, pid in dict(pids).items()}
@@ -308,5 +311,6 @@ def test_a_node_runs_at_the_niceness_its_graph_sets(tmp_path: Path, free_endpoin
         run.send_signal(signal.SIGINT)
         out, _ = run.communicate(timeout=60)
     assert nice == {"tracker": 0, "clusterer": 10, "relay": 4, "other": 0, "recorder": 0}, (nice, out)
+    assert idle == {"relay"}, idle  # 'cpu: idle'; a group only when all its members ask
     one = os.environ.get("OPENBLAS_NUM_THREADS", "1")  # the setting of whoever runs the graph, else one thread
     assert all(env == {"OPENBLAS_NUM_THREADS": one} for env in blas.values()), blas

@@ -38,12 +38,17 @@ def _record(args: argparse.Namespace) -> int:
     import zenoh
 
     from mocapflow.io.recording import RecordedSample, RecordingWriter
+    from mocapflow.runtime import keys
     from mocapflow.runtime.session import open_client, subscribe_with_cache
 
     inbox: queue.Queue[RecordedSample] = queue.Queue()
     stop = threading.Event()
 
+    previews = any(keys.is_preview(key) for key in args.keys)
+
     def on_sample(sample: zenoh.Sample) -> None:
+        if not previews and keys.is_preview(str(sample.key_expr)):  # copies of the streams, unless asked for
+            return
         inbox.put(RecordedSample(key=str(sample.key_expr), encoding=str(sample.encoding),
                                  payload=sample.payload.to_bytes(), log_time_ns=time.time_ns(),
                                  delete=sample.kind == zenoh.SampleKind.DELETE))

@@ -129,7 +129,10 @@ class _Streams:
 
     def handle(self, key: str, encoding: str, payload: bytes, delete: bool, time_ns: int) -> None:
         from mocapflow.messages import MESSAGE_TYPES, SCHEMA_PREFIX, DecodeError, decode
+        from mocapflow.runtime import keys
 
+        if keys.is_preview(key):  # a copy of a stream drawn whole
+            return
         if delete:
             if key in self.open:
                 self.open.discard(key)

@@ -69,6 +69,7 @@ def _packed(rgb: np.ndarray) -> np.ndarray:
 
 _BY_FLAG = _packed(np.array([LOST, UNASSIGNED] + [FLAG_COLOURS.get(f, OTHER_ESTIMATE) for f in range(2, 256)]))
 _BY_SEGMENT = _packed(np.array(SEGMENT_COLOURS))
+_JOINT_RGBA, _BONE_RGBA = (int(c) for c in _packed(np.array([JOINT_COLOUR, BONE_COLOUR])))
 
 
 def marker_colours(flags: np.ndarray, segment_of: np.ndarray) -> np.ndarray:
@@ -123,6 +124,8 @@ class Scene:
             [(int(c), c.name.lower().replace("_", " ")) for c in FillCase]), static=True)
         self.segment_of: dict[str, int] = {}
         self.bones: list[tuple[str, str]] = []
+        self._layout_key: tuple[object, ...] | None = None
+        self._layout: tuple[list[str], np.ndarray, list[str]] = ([], np.zeros(0, np.intp), [])
         self._last_seen: dict[str, np.ndarray] = {}  # stream path -> (N, 3) last known positions
 
     def _at(self, message: Message) -> None:
@@ -147,6 +150,7 @@ class Scene:
 
     def skeleton(self, message: Skeleton) -> None:
         self.bones = bones(message.skeleton)
+        self._layout_key = None
         if not self.segment_of:
             self.segment_of = {label: i for i, s in enumerate(message.skeleton.segments) for label in s.markers}
 
@@ -192,15 +196,29 @@ class Scene:
 
     def pose(self, path: str, pose: Pose) -> None:
         rr = self.rr
-        centres: dict[str, np.ndarray] = dict(zip(pose.joint_names, pose.joint_centres, strict=True))
+        centres = np.asarray(pose.joint_centres, dtype=float).reshape(-1, 3)
         self._at(pose)
-        known = [n for n in pose.joint_names if np.isfinite(centres[n]).all()]
+        known = np.isfinite(centres).all(axis=1)
+        names, ends, bone_names = self._pose_layout(pose.joint_names, known)
         self.stream.log(f"{path}/joints", rr.Points3D(
-            [centres[n] for n in known], labels=known, show_labels=False, colors=JOINT_COLOUR, radii=JOINT_RADIUS_MM))
-        pairs = [(a, b) for a, b in self.bones if a in known and b in known]
+            centres[known], labels=names, show_labels=False, colors=np.full(len(names), _JOINT_RGBA, np.uint32),
+            radii=np.full(len(names), JOINT_RADIUS_MM, np.float32)))
         self.stream.log(f"{path}/bones", rr.LineStrips3D(
-            [[centres[a], centres[b]] for a, b in pairs], labels=[f"{a} → {b}" for a, b in pairs], show_labels=False,
-            colors=BONE_COLOUR, radii=BONE_RADIUS_MM))
+            centres[ends].reshape(-1, 2, 3), labels=bone_names, show_labels=False,
+            colors=np.full(len(bone_names), _BONE_RGBA, np.uint32),
+            radii=np.full(len(bone_names), BONE_RADIUS_MM, np.float32)))
+
+    def _pose_layout(self, joint_names: list[str], known: np.ndarray) -> tuple[list[str], np.ndarray, list[str]]:
+        """The joints with a centre, the rows of the centres each bone joins (flat: its two ends in turn) and the
+        bones' names, for these joints and this mask of known centres (kept: they change only with the mask)."""
+        key = (tuple(joint_names), known.tobytes())
+        if self._layout_key != key:
+            row = {n: i for i, n in enumerate(joint_names) if known[i]}
+            pairs = [(a, b) for a, b in self.bones if a in row and b in row]
+            ends = np.array([row[n] for pair in pairs for n in pair], dtype=np.intp)
+            self._layout = ([n for n in joint_names if n in row], ends, [f"{a} → {b}" for a, b in pairs])
+            self._layout_key = key
+        return self._layout
 
     def stats(self, stats: NodeStats, received_ns: int) -> None:
         """A node's latency and rate on the capture-time timeline, at the moment they were received."""

@@ -9,7 +9,9 @@ import os
 from collections.abc import Mapping
 from typing import Literal
 
-CpuPolicy = Literal["shared", "own"]
+CpuPolicy = Literal["shared", "own", "idle"]
+"""``shared``: the cores no process asked for; ``own``: a core of its own; ``idle``: the shared cores, but only the
+CPU time nothing else wants (Linux's SCHED_IDLE), so that a sink such as a viewer never delays the pipeline."""
 
 
 def assign_cores(own: Mapping[str, bool],

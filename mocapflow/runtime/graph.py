@@ -58,9 +58,12 @@ class NodeSpec(RestartPolicy):
                       "19 least): a model stage set at 10 yields the CPU to the frame path on a busy machine")
     cpu: CpuPolicy = Field(default="shared", description="'own': a CPU core of its own for the node's process (a "
                            "group's, if a member asks), no other process of the graph on that machine running there, "
-                           "when the machine has a core to spare; 'shared': the cores left")
+                           "when the machine has a core to spare; 'shared': the cores left; 'idle': the cores left, "
+                           "but only the CPU time no other process wants (a viewer: it never delays the pipeline, "
+                           "and on a machine with no time to spare it draws nothing)")
     queue: dict[str, QueuePolicy] = Field(
-        default_factory=dict, description="input port -> 'all' (every message) or 'latest' (the newest); "
+        default_factory=dict, description="input port -> 'all' (every message), 'latest' (the newest) or 'preview' "
+        "(the newest of the output's preview, at most 60 a second: for viewers); "
         "default: the plugin's choice for that input, 'all' unless it says otherwise")
     queue_size: int = Field(default=DEFAULT_CAPACITY, ge=1,
                             description="messages the inbox holds at most; beyond, new ones are dropped and counted")

@@ -3,7 +3,8 @@
 ``all`` (the default) keeps every message, up to ``capacity`` waiting at once; beyond that a new message is refused
 and counted in ``drops``. ``latest`` keeps at most one waiting message per input: a newer one replaces it where it
 waits, and each replaced one is counted in ``skipped`` (a viewer shows the newest frame rather than fall behind).
-End of stream is never refused or replaced. ``backlog`` says how far behind the node is: messages waiting and how
+``preview`` is ``latest`` on a thinned copy of the stream (``mocapflow.runtime.preview``): the inbox holds it as
+``latest``, the worker subscribes to the preview. End of stream is never refused or replaced. ``backlog`` says how far behind the node is: messages waiting and how
 long the oldest has waited. Transport-free: it holds whatever the caller puts in (a Zenoh sample, a message).
 """
 
@@ -17,7 +18,7 @@ from typing import Generic, Literal, TypeVar
 
 T = TypeVar("T")
 
-QueuePolicy = Literal["all", "latest"]
+QueuePolicy = Literal["all", "latest", "preview"]
 DEFAULT_CAPACITY = 100_000
 
 

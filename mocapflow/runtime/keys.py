@@ -8,6 +8,21 @@ def output_key(prefix: str, node: str, output: str) -> str:
     return f"{prefix}/{node}/{output}"
 
 
+def preview_key(prefix: str, node: str, output: str) -> str:
+    """A thinned copy of a node's output stream, for viewers (``mocapflow.runtime.preview``)."""
+    return f"{prefix}/_preview/{node}/{output}"
+
+
+def preview_of(key: str) -> str:
+    """The preview key of output key ``{prefix}/{node}/{output}``."""
+    prefix, node, output = key.rsplit("/", 2)
+    return preview_key(prefix, node, output)
+
+
+def is_preview(key: str) -> bool:
+    return "/_preview/" in key
+
+
 def stats_key(prefix: str, node: str = "*") -> str:
     return f"{prefix}/_stats/{node}"
 

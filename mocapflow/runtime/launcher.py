@@ -127,7 +127,8 @@ class Launcher:
                 spec=specs[members[0]].model_copy(update={
                     "node": group, "plugin": "group", "members": [specs[m] for m in members], "inputs": {},
                     "queue": {}, "queue_size": max(n.queue_size for n in nodes),
-                    "cpu": "own" if any(n.cpu == "own" for n in nodes) else "shared"}),
+                    "cpu": "own" if any(n.cpu == "own" for n in nodes) else
+                    "idle" if all(n.cpu == "idle" for n in nodes) else "shared"}),
                 source=any(classes[m].is_source() for m in members),
                 restart="never" if any(n.restart == "never" for n in nodes) else "on-failure",
                 max_restarts=min(n.max_restarts for n in nodes),

@@ -37,7 +37,8 @@ class Input:
     """An input port. ``state`` inputs carry models (segments, skeleton): a late joiner receives the latest one at
     once. A ``required`` input must be linked. A node finishes when every data input it is fed by (feedback loops
     aside, see ``graph.end_inputs``) has ended. ``queue`` is the port's inbox policy unless the graph sets one:
-    ``latest`` for a sink that only ever shows the newest frame. An input of type ``NodeStats`` is linked to the
+    ``latest`` for a sink that only ever shows the newest frame, ``preview`` for one that shows it at a display's
+    rate (``mocapflow.runtime.preview``). An input of type ``NodeStats`` is linked to the
     nodes' health, ``_stats/*`` (every node) or ``_stats/NODE``, and must be a ``state`` input (it never ends)."""
 
     type: MessageType

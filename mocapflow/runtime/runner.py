@@ -34,7 +34,7 @@ class Stats:
         self.errors = 0
         self.refused = 0
         self.unpaired = 0
-        self.unwanted = 0  # messages passed over because the node did not want them (``Node.wanted``)
+        self.passed = 0  # messages passed over: the node did not want them (``Node.wanted``), or a preview left them out
         self.last_error: str | None = None
         self.latencies_ms: deque[float] = deque(maxlen=4096)
         self._rate_mark = (time.monotonic(), 0)
@@ -66,7 +66,7 @@ class Stats:
             rate_hz=round(self.rate_hz, 2), latency_p50_ms=p50, latency_p99_ms=p99,
             errors=self.errors, refused=self.refused, unpaired=self.unpaired, last_error=self.last_error,
             **{**inbox, "drops": self.drops + inbox.get("drops", 0),
-               "skipped": self.unwanted + inbox.get("skipped", 0)},
+               "skipped": self.passed + inbox.get("skipped", 0)},
         )
 
 
@@ -114,14 +114,22 @@ class Runner:
         except Exception as exc:  # a faulty sampling rule costs nothing but its own report: the message is handled
             self.report_error(f"input {port!r}: wanted()", exc)
             return True
-        self.stats.unwanted += 1
+        self.stats.passed += 1
         self._passed[port] = self._passed.get(port, 0) + 1 + skipped
         return False
 
     def take_back(self, port: str) -> None:
         """The message on ``port`` last passed over (``wants`` said no) is handed over after all: not skipped."""
-        self.stats.unwanted -= 1
+        self.stats.passed -= 1
         self._passed[port] -= 1
+
+    def thinned(self, port: str, frame: int, skipped: int) -> int:
+        """The frames before ``frame`` that a preview on ``port`` left out (``skipped`` of them replaced in the
+        inbox, counted there): counted as passed over, not lost. Returns them all."""
+        last = self._last_frame.get(port)
+        gap = 0 if last is None else max(0, frame - last - 1)
+        self.stats.passed += max(0, gap - skipped)
+        return max(gap, skipped)
 
     def count_in(self, port: str, message: Message, skipped: int = 0) -> None:
         """Count a data message and check its frame number follows the last one on ``port``; ``skipped``: messages

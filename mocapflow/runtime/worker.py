@@ -45,6 +45,7 @@ from mocapflow.runtime.inbox import DEFAULT_CAPACITY, Entry, Inbox, QueuePolicy
 from mocapflow.runtime.integrity import InputGuard, Refused, StreamLimits, new_identity
 from mocapflow.runtime.node import RUN_ENV, Node
 from mocapflow.runtime.plugins import PluginNotFound, load
+from mocapflow.runtime.preview import Preview
 from mocapflow.runtime.runner import Runner
 from mocapflow.runtime.security import SecurityError
 from mocapflow.runtime.session import open_client
@@ -83,7 +84,8 @@ class WorkerSpec(BaseModel):
                                           description="input port -> policy (default: the plugin's)")
     queue_size: int = Field(default=DEFAULT_CAPACITY, ge=1, description="messages an 'all' inbox holds at most")
     nice: int = Field(default=0, ge=0, le=19, description="CPU niceness of the process")
-    cpu: CpuPolicy = Field(default="shared", description="'own': asks for a CPU core of its own")
+    cpu: CpuPolicy = Field(default="shared", description="'own': asks for a CPU core of its own; 'idle': runs on "
+                           "CPU time no other process wants")
     cpus: list[int] | None = Field(default=None, description="the CPU cores the process runs on, as the launcher or "
                                    "agent that starts it assigned them; none: wherever it was started")
     wait_for: dict[str, float] = Field(
@@ -117,7 +119,10 @@ class Member:
     routes: dict[str, list[tuple[Member, str]]] = field(default_factory=dict)  # output -> members' inputs it feeds
     internal: set[str] = field(default_factory=set)  # inputs fed by another member
     wanted: dict[str, bool] = field(default_factory=dict)  # output -> published on Zenoh now
-    latest: set[str] = field(default_factory=set)  # inputs whose policy is 'latest'
+    preview_publishers: dict[str, Any] = field(default_factory=dict)  # data output -> publisher of its preview
+    previews: dict[str, Preview[Message]] = field(default_factory=dict)  # data output -> its preview, while watched
+    latest: set[str] = field(default_factory=set)  # inputs whose policy is 'latest' or 'preview'
+    previewed: set[str] = field(default_factory=set)  # inputs whose policy is 'preview'
     held: dict[str, Any] = field(default_factory=dict)  # latest input -> newest message passed over (maybe undecoded)
     listeners: list[Any] = field(default_factory=list)
     stats_pub: Any = None
@@ -140,7 +145,7 @@ class Worker:
         self.clock_origin_ns: int | None = None
         self.inbox: Inbox[zenoh.Sample] = Inbox(spec.queue_size, {
             f"{n.node}/{p}" for n in spec.nodes() for p, i in classes[n.node].inputs.items()
-            if n.queue.get(p, i.queue) == "latest"})
+            if n.queue.get(p, i.queue) != "all"})
         self._local: deque[tuple[Member, str, Any]] = deque()  # hand-overs inside the group, in order
         self._deferred: deque[Entry[zenoh.Sample]] = deque()  # from outside, set aside while waiting for feedback
         self.members: dict[str, Member] = {}
@@ -182,8 +187,10 @@ class Worker:
         ends = set(spec.end_inputs) if spec.end_inputs is not None else {
             p for p, i in node_cls.inputs.items() if i.required and not i.state and p in spec.inputs
         }
+        policy = {p: spec.queue.get(p, i.queue) for p, i in node_cls.inputs.items()}
         member = Member(spec=spec, publishers=publishers, identity=new_identity(spec.node),
-                        latest={p for p, i in node_cls.inputs.items() if spec.queue.get(p, i.queue) == "latest"},
+                        latest={p for p, q in policy.items() if q != "all"},
+                        previewed={p for p, q in policy.items() if q == "preview"},
                         guards={port: InputGuard(upstream=key.rsplit("/", 2)[-2], limits=spec.limits)
                                 for port, key in spec.inputs.items()
                                 if port in node_cls.inputs and not node_cls.inputs[port].state})
@@ -194,9 +201,28 @@ class Worker:
                     member.wanted[port] = status.matching
                 member.listeners.append(publishers[port].declare_matching_listener(on_matching))
                 member.wanted[port] = publishers[port].matching_status.matching
+            if not out.state:
+                self._preview(member, port, out.type.encoding())
         member.runner = Runner(spec.node, node_cls, config, lambda port, msg: self._send(member, port, msg), ends,
                                set(spec.inputs))
         return member
+
+    def _preview(self, member: Member, port: str, encoding: str) -> None:
+        """Publish a preview of output ``port`` while someone subscribes to it."""
+        pub = self.session.declare_publisher(keys.preview_key(member.spec.prefix, member.name, port),
+                                             encoding=zenoh.Encoding(encoding))
+        preview: Preview[Message] = Preview(lambda message: pub.put(encode(message), attachment=member.identity))
+
+        def on_matching(status: zenoh.MatchingStatus) -> None:
+            if status.matching:
+                member.previews[port] = preview
+            else:
+                member.previews.pop(port, None)
+
+        member.listeners.append(pub.declare_matching_listener(on_matching))
+        member.preview_publishers[port] = pub
+        if pub.matching_status.matching:
+            member.previews[port] = preview
 
     # -- plumbing -------------------------------------------------------------------------------------------------
     def _subscribe(self, member: Member, port: str, key: str) -> Any:
@@ -205,6 +231,8 @@ class Worker:
         def on_sample(sample: zenoh.Sample) -> None:
             self.inbox.put(where, sample, end=sample.kind == zenoh.SampleKind.DELETE)
 
+        if port in member.previewed:
+            key = keys.preview_of(key)
         if member.runner.node.inputs[port].state:
             return zext.declare_advanced_subscriber(
                 self.session, key, on_sample,
@@ -217,13 +245,20 @@ class Worker:
             self._local.append((target, target_port, message))
         if member.wanted[port]:
             member.publishers[port].put(encode(message), attachment=member.identity)
+        preview = member.previews.get(port)
+        if preview is not None:
+            preview.offer(message)
 
     def _end_outputs(self, member: Member) -> None:
-        for port, pub in member.publishers.items():
-            if not member.runner.node.outputs[port].state:
+        for port, out in member.runner.node.outputs.items():
+            if not out.state:
                 for target, target_port in member.routes.get(port, ()):
                     self._local.append((target, target_port, END))
-                pub.delete(attachment=member.identity)
+                member.publishers[port].delete(attachment=member.identity)
+                preview = member.previews.get(port)
+                if preview is not None:
+                    preview.end()
+                member.preview_publishers[port].delete(attachment=member.identity)
 
     def _stats_loop(self) -> None:
         while not self.stop_event.wait(STATS_PERIOD_S):
@@ -425,6 +460,8 @@ class Worker:
                     member.runner.stats.refused += 1
                     member.runner.report_error(f"input {port!r} ({_who(sample)})", exc)
                     return None
+            if port in member.previewed:
+                skipped = member.runner.thinned(port, message.frame, skipped)
             member.runner.count_in(port, message, skipped)
         return message
 
@@ -457,6 +494,8 @@ def run_worker(spec: WorkerSpec) -> int:
             os.nice(nice)
         if spec.cpus:  # before the session opens, so that its threads run there too
             os.sched_setaffinity(0, spec.cpus)
+        if spec.cpu == "idle":
+            os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
         session = open_client(spec.connect, spec.security)
     except (PluginNotFound, ValidationError, SecurityError) as exc:
         log.error("node %s: %s", spec.node, exc)
