@@ -6,9 +6,9 @@ calibrated skeleton and without the online clusterer and the recorder (whose bur
 a pose is solved for each of the 1000 frames a second (``--speed``: a machine that cannot keep up with 1000 Hz is
 measured at a rate it sustains). Each round runs the graph four times, in turn: without a viewer; with the ``rerun``
 sink on the filled markers, the pose and the skeleton, drawing at its default 60 Hz into an .rrd file; the same with
-the sink's process on CPU time the pipeline leaves (``cpu: idle``); and, the worst case, with the sink on the whole streams
-instead of their previews (``queue: latest``) drawing every frame it receives (``rate: null``). Per
-run it prints the skeleton node's pose latency from the tracker's capture timestamp (p50 / p99 over its last 4096
+the sink's process on CPU time the pipeline leaves (``cpu: idle``); and, the worst case, with the sink on the whole
+streams instead of their previews (``queue: latest``) drawing every frame it receives (``rate: null``). Per run it
+prints the skeleton node's pose latency from the tracker's capture timestamp (p50 / p99 over its last 4096
 frames, as the launcher's summary gives them), its poses, drops and rate, and the frames the sink received.
 """
 

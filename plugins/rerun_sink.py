@@ -12,7 +12,6 @@ from mocapflow.io.scene import Scene, blueprint, close_stream, open_stream
 from mocapflow.messages import MarkerFrame, Message, NodeStats, Pose, Segments, Skeleton
 from mocapflow.runtime.node import Input, Node
 
-
 EARLY = 0.8
 """A frame is due a fifth of a period early: frames that come at the display rate (a preview's) are all drawn, in
 spite of jitter."""

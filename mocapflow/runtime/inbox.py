@@ -4,8 +4,9 @@
 and counted in ``drops``. ``latest`` keeps at most one waiting message per input: a newer one replaces it where it
 waits, and each replaced one is counted in ``skipped`` (a viewer shows the newest frame rather than fall behind).
 ``preview`` is ``latest`` on a thinned copy of the stream (``mocapflow.runtime.preview``): the inbox holds it as
-``latest``, the worker subscribes to the preview. End of stream is never refused or replaced. ``backlog`` says how far behind the node is: messages waiting and how
-long the oldest has waited. Transport-free: it holds whatever the caller puts in (a Zenoh sample, a message).
+``latest``, the worker subscribes to the preview. End of stream is never refused or replaced. ``backlog`` says how
+far behind the node is: messages waiting and how long the oldest has waited. Transport-free: it holds whatever the
+caller puts in (a Zenoh sample, a message).
 """
 
 from __future__ import annotations

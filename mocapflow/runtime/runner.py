@@ -34,7 +34,7 @@ class Stats:
         self.errors = 0
         self.refused = 0
         self.unpaired = 0
-        self.passed = 0  # messages passed over: the node did not want them (``Node.wanted``), or a preview left them out
+        self.passed = 0  # passed over: the node did not want them (``Node.wanted``), or a preview left them out
         self.last_error: str | None = None
         self.latencies_ms: deque[float] = deque(maxlen=4096)
         self._rate_mark = (time.monotonic(), 0)

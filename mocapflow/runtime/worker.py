@@ -209,8 +209,8 @@ class Worker:
 
     def _preview(self, member: Member, port: str, encoding: str) -> None:
         """Publish a preview of output ``port`` while someone subscribes to it."""
-        pub = self.session.declare_publisher(keys.preview_key(member.spec.prefix, member.name, port),
-                                             encoding=zenoh.Encoding(encoding))
+        pub: Any = self.session.declare_publisher(  # Any: zenoh's stub says matching_status is a bool
+            keys.preview_key(member.spec.prefix, member.name, port), encoding=zenoh.Encoding(encoding))
         preview: Preview[Message] = Preview(lambda message: pub.put(encode(message), attachment=member.identity))
 
         def on_matching(status: zenoh.MatchingStatus) -> None:
