@@ -1,7 +1,9 @@
 """``mocapflow view [GRAPH | PREFIX | FILE]``: a running graph, or a recording, as a Rerun 3D scene.
 
-Live, the command joins the graph's Zenoh router with its own session and subscribes to every key under the graph's
-prefix, so a viewer attaches from any machine of the lab without touching the graph. Each data stream is drawn under
+Live, the command joins the graph's Zenoh router with its own session and subscribes to the graph's streams, so a
+viewer attaches from any machine of the lab without touching the graph: at a display rate (``--rate``, up to 60 Hz)
+to their previews and the nodes' health, so that the graph sends it no more than it draws; at ``--rate 0`` to every
+key under the graph's prefix. Each data stream is drawn under
 ``world/{node}/{output}``, node health under ``health/``. From an MCAP recording the same samples give the same scene;
 from a C3D or TRC file, its markers (and joint centres, with bones when ``--skeleton`` is given).
 """
@@ -121,8 +123,10 @@ class _Streams:
 
     DATA = ("MarkerFrame", "Pose")
 
-    def __init__(self, scene: Any, prefix: str) -> None:
-        self.scene, self.prefix = scene, prefix
+    def __init__(self, scene: Any, prefix: str, previews: bool = False) -> None:
+        """``previews``: draw the streams' previews, under their streams' names; otherwise previews (a copy of the
+        streams drawn whole) are passed over."""
+        self.scene, self.prefix, self.previews = scene, prefix, previews
         self.frames = 0
         self.open: set[str] = set()
         self.ended = False
@@ -131,8 +135,10 @@ class _Streams:
         from mocapflow.messages import MESSAGE_TYPES, SCHEMA_PREFIX, DecodeError, decode
         from mocapflow.runtime import keys
 
-        if keys.is_preview(key):  # a copy of a stream drawn whole
-            return
+        if keys.is_preview(key):
+            if not self.previews:
+                return
+            key = keys.unpreview(key)
         if delete:
             if key in self.open:
                 self.open.discard(key)
@@ -211,10 +217,13 @@ def _draw_markers(scene: Any, data: MarkerData, model: SkeletonModel | None) -> 
 def _live(scene: Any, *, prefix: str, connect: list[str], rate: float, duration: float | None,
           stop: threading.Event) -> int:
     """Draw the graph's streams until Ctrl-C, ``duration``, or the end of every data stream seen. Live, only the
-    latest message of each data key is drawn at each display tick, so a slow viewer skips frames, never lags."""
+    latest message of each data key is drawn at each display tick, so a slow viewer skips frames, never lags; at a
+    display rate (up to 60 Hz) the streams' previews are drawn, so that the graph sends no more than that for it."""
     import zenoh
     import zenoh.ext as zext
 
+    from mocapflow.runtime import keys
+    from mocapflow.runtime.preview import PREVIEW_HZ
     from mocapflow.runtime.session import open_client
 
     inbox: queue.Queue[tuple[str, str, bytes, bool, int]] = queue.Queue()
@@ -223,12 +232,21 @@ def _live(scene: Any, *, prefix: str, connect: list[str], rate: float, duration:
         inbox.put((str(sample.key_expr), str(sample.encoding), sample.payload.to_bytes(),
                    sample.kind == zenoh.SampleKind.DELETE, time.time_ns()))
 
-    streams = _Streams(scene, prefix)
+    previews = 0 < rate <= PREVIEW_HZ
+    streams = _Streams(scene, prefix, previews)
     period = 1.0 / rate if rate else 0.0
     deadline = None if duration is None else time.monotonic() + duration
+    history = zext.HistoryConfig(detect_late_publishers=True, max_samples=1)
     with open_client(connect) as session:
-        subscriber = zext.declare_advanced_subscriber(  # models (segments, skeleton) come from the publishers' cache
-            session, f"{prefix}/**", on_sample, history=zext.HistoryConfig(detect_late_publishers=True, max_samples=1))
+        # models (segments, skeleton) come from the publishers' cache
+        subscribers: list[Any]
+        if previews:
+            subscribers = [
+                zext.declare_advanced_subscriber(session, f"{prefix}/**/{keys.PREVIEW}/**", on_sample,
+                                                 history=history),
+                session.declare_subscriber(keys.stats_key(f"{prefix}/**"), on_sample)]
+        else:
+            subscribers = [zext.declare_advanced_subscriber(session, f"{prefix}/**", on_sample, history=history)]
         print(f"viewing {prefix}/** (Ctrl-C to stop)", flush=True)
         latest: dict[str, tuple[str, str, bytes, bool, int]] = {}
         due = time.monotonic()
@@ -252,5 +270,6 @@ def _live(scene: Any, *, prefix: str, connect: list[str], rate: float, duration:
                 due = max(due + period, time.monotonic())
         for pending in latest.values():
             streams.handle(*pending)
-        subscriber.undeclare()
+        for subscriber in subscribers:
+            subscriber.undeclare()
     return streams.frames

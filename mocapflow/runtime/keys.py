@@ -8,9 +8,12 @@ def output_key(prefix: str, node: str, output: str) -> str:
     return f"{prefix}/{node}/{output}"
 
 
+PREVIEW = "_preview"
+
+
 def preview_key(prefix: str, node: str, output: str) -> str:
     """A thinned copy of a node's output stream, for viewers (``mocapflow.runtime.preview``)."""
-    return f"{prefix}/_preview/{node}/{output}"
+    return f"{prefix}/{PREVIEW}/{node}/{output}"
 
 
 def preview_of(key: str) -> str:
@@ -20,7 +23,15 @@ def preview_of(key: str) -> str:
 
 
 def is_preview(key: str) -> bool:
-    return "/_preview/" in key
+    return f"/{PREVIEW}/" in key
+
+
+def unpreview(key: str) -> str:
+    """The output key a preview key previews."""
+    prefix, preview, node, output = key.rsplit("/", 3)
+    if preview != PREVIEW:
+        raise ValueError(f"{key!r} is not a preview key")
+    return f"{prefix}/{node}/{output}"
 
 
 def stats_key(prefix: str, node: str = "*") -> str:

@@ -119,7 +119,8 @@ class Member:
     routes: dict[str, list[tuple[Member, str]]] = field(default_factory=dict)  # output -> members' inputs it feeds
     internal: set[str] = field(default_factory=set)  # inputs fed by another member
     wanted: dict[str, bool] = field(default_factory=dict)  # output -> published on Zenoh now
-    preview_publishers: dict[str, Any] = field(default_factory=dict)  # data output -> publisher of its preview
+    preview_publishers: dict[str, Any] = field(default_factory=dict)  # output -> publisher of its preview
+    models: set[str] = field(default_factory=set)  # outputs that carry models (state)
     previews: dict[str, Preview[Message]] = field(default_factory=dict)  # data output -> its preview, while watched
     latest: set[str] = field(default_factory=set)  # inputs whose policy is 'latest' or 'preview'
     previewed: set[str] = field(default_factory=set)  # inputs whose policy is 'preview'
@@ -189,6 +190,7 @@ class Worker:
         }
         policy = {p: spec.queue.get(p, i.queue) for p, i in node_cls.inputs.items()}
         member = Member(spec=spec, publishers=publishers, identity=new_identity(spec.node),
+                        models={p for p, out in node_cls.outputs.items() if out.state},
                         latest={p for p, q in policy.items() if q != "all"},
                         previewed={p for p, q in policy.items() if q == "preview"},
                         guards={port: InputGuard(upstream=key.rsplit("/", 2)[-2], limits=spec.limits)
@@ -201,16 +203,22 @@ class Worker:
                     member.wanted[port] = status.matching
                 member.listeners.append(publishers[port].declare_matching_listener(on_matching))
                 member.wanted[port] = publishers[port].matching_status.matching
-            if not out.state:
-                self._preview(member, port, out.type.encoding())
+            self._preview(member, port, out.state, out.type.encoding())
         member.runner = Runner(spec.node, node_cls, config, lambda port, msg: self._send(member, port, msg), ends,
                                set(spec.inputs))
         return member
 
-    def _preview(self, member: Member, port: str, encoding: str) -> None:
-        """Publish a preview of output ``port`` while someone subscribes to it."""
+    def _preview(self, member: Member, port: str, state: bool, encoding: str) -> None:
+        """Publish a preview of output ``port``: of a data output, while someone subscribes to it; a model output's
+        preview carries each model, cached for late joiners as the output itself is."""
+        key = keys.preview_key(member.spec.prefix, member.name, port)
+        if state:
+            member.preview_publishers[port] = zext.declare_advanced_publisher(
+                self.session, key, encoding=zenoh.Encoding(encoding), cache=zext.CacheConfig(max_samples=1),
+                publisher_detection=True)
+            return
         pub: Any = self.session.declare_publisher(  # Any: zenoh's stub says matching_status is a bool
-            keys.preview_key(member.spec.prefix, member.name, port), encoding=zenoh.Encoding(encoding))
+            key, encoding=zenoh.Encoding(encoding))
         preview: Preview[Message] = Preview(lambda message: pub.put(encode(message), attachment=member.identity))
 
         def on_matching(status: zenoh.MatchingStatus) -> None:
@@ -243,8 +251,11 @@ class Worker:
     def _send(self, member: Member, port: str, message: Message) -> None:
         for target, target_port in member.routes.get(port, ()):
             self._local.append((target, target_port, message))
-        if member.wanted[port]:
-            member.publishers[port].put(encode(message), attachment=member.identity)
+        if member.wanted[port]:  # always for a model
+            payload = encode(message)
+            member.publishers[port].put(payload, attachment=member.identity)
+            if port in member.models:
+                member.preview_publishers[port].put(payload, attachment=member.identity)
         preview = member.previews.get(port)
         if preview is not None:
             preview.offer(message)
