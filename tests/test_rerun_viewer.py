@@ -20,6 +20,7 @@ from mocapflow.io.markers import MarkerData, read_markers, write_markers
 from mocapflow.io.recording import read_recording
 from mocapflow.io.scene import FLAG_COLOURS, LOST, OTHER_ESTIMATE, SEGMENT_COLOURS, UNASSIGNED, up_axis_of_file
 from mocapflow.messages import MarkerFrame, decode
+from mocapflow.runtime import keys
 from mocapflow.runtime.graph import load_graph
 
 rr = pytest.importorskip("rerun")
@@ -199,6 +200,9 @@ def test_sink_draws_a_real_capture_replayed_at_its_display_rate(tmp_path: Path, 
 
 @pytest.mark.integration
 def test_view_attaches_to_a_running_graph_and_replays_its_recording(tmp_path: Path, free_endpoint: str) -> None:
+    """`view` on a running graph draws its streams' previews at 30 Hz, the last frame included, with the models and
+    the nodes' health; `record` beside it keeps every frame of the streams, and `view` of that recording draws them
+    all."""
     sinks: dict[str, dict[str, Any]] = {}
     # 12 s: segments (2 s window) and a skeleton (3 s window) learnt, and solved by a joint estimator that a busy
     # machine slows, with seconds of frames left to pose
@@ -244,6 +248,8 @@ def test_view_attaches_to_a_running_graph_and_replays_its_recording(tmp_path: Pa
     streams = Counter(r.key for r in read_recording(tmp_path / "run.mcap")
                       if not r.delete and r.encoding.endswith("/MarkerFrame"))
     recorded_frames = sum(streams.values())
+    # the live view drew the streams' previews; `record`, asked for the streams, left those copies out
+    assert not any(keys.is_preview(r.key) for r in read_recording(tmp_path / "run.mcap"))
     assert f"{recorded_frames} marker frames" in replay_out, replay_out
     # the tracker's and the filler's markers go to other processes of the graph, so they are sent from the first
     # frame; the labeller's markers and the filler's predictions only once Zenoh tells their senders that `record`
