@@ -243,6 +243,8 @@ def test_a_restarted_labeller_keeps_every_identity(tmp_path: Path, free_endpoint
 
 
 def test_record_and_echo_receive_the_cached_models(tmp_path: Path, free_endpoint: str) -> None:
+    """A recorder or echo started long after a model was published receives it from the publisher's cache. The joint
+    estimator's process caches two (its skeleton and the skeleton's preview): a late subscriber receives both."""
     from mocapflow.mocap.simulator import simulate, truth_skeleton
 
     sim = Simulator(SimulatorConfig(rig="rods", rate=RATE, seed=3))
@@ -260,14 +262,15 @@ def test_record_and_echo_receive_the_cached_models(tmp_path: Path, free_endpoint
         rec = subprocess.run([*cli, "record", f"{prefix}/**", "-o", str(tmp_path / "late.mcap"), "--connect",
                               free_endpoint, "--duration", "2"], capture_output=True, text=True, timeout=60)
         assert rec.returncode == 0, rec.stderr
-        echo = subprocess.run([*cli, "echo", f"{prefix}/joints/skeleton", "-n", "1", "--connect", free_endpoint],
+        echo = subprocess.run([*cli, "echo", f"{prefix}/**/skeleton", "-n", "2", "--connect", free_endpoint],
                               capture_output=True, text=True, timeout=30)
     finally:
         run.send_signal(signal.SIGINT)
         run.communicate(timeout=60)
     models = [s for s in read_recording(tmp_path / "late.mcap") if s.key == f"{prefix}/joints/skeleton"]
     assert len(models) == 1 and models[0].encoding.endswith("mocapflow/Skeleton")
-    assert "application/json;mocapflow/Skeleton" in echo.stdout, echo.stdout + echo.stderr
+    for key in (f"{prefix}/joints/skeleton", f"{prefix}/_preview/joints/skeleton"):
+        assert f"{key} [application/json;mocapflow/Skeleton]" in echo.stdout, echo.stdout + echo.stderr
 
 
 def test_commands_fail_in_one_line(tmp_path: Path, free_endpoint: str) -> None:

@@ -224,7 +224,7 @@ def _live(scene: Any, *, prefix: str, connect: list[str], rate: float, duration:
 
     from mocapflow.runtime import keys
     from mocapflow.runtime.preview import PREVIEW_HZ
-    from mocapflow.runtime.session import open_client
+    from mocapflow.runtime.session import model_history, open_client
 
     inbox: queue.Queue[tuple[str, str, bytes, bool, int]] = queue.Queue()
 
@@ -236,7 +236,7 @@ def _live(scene: Any, *, prefix: str, connect: list[str], rate: float, duration:
     streams = _Streams(scene, prefix, previews)
     period = 1.0 / rate if rate else 0.0
     deadline = None if duration is None else time.monotonic() + duration
-    history = zext.HistoryConfig(detect_late_publishers=True, max_samples=1)
+    history = model_history()
     with open_client(connect) as session:
         # models (segments, skeleton) come from the publishers' cache
         subscribers: list[Any]

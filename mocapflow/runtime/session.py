@@ -48,11 +48,22 @@ def zenoh_config(mode: Literal["router", "client"], *, listen: Sequence[str] = (
     return config
 
 
+MODELS_SEEN = 64
+"""How many cached models a subscriber is sent at once from each publishing session. Zenoh counts them per session,
+not per key: at 1, of a session's several cached outputs (a group's segments and skeleton, a model and its preview)
+a late subscriber received one, or at random not all (9 times in 12 with three)."""
+
+
+def model_history() -> zext.HistoryConfig:
+    """What a subscriber asks of the publishers' caches: the latest value of every model output it matches, also of
+    publishers that appear later."""
+    return zext.HistoryConfig(detect_late_publishers=True, max_samples=MODELS_SEEN)
+
+
 def subscribe_with_cache(session: zenoh.Session, key: str, callback: Callable[[zenoh.Sample], None]) -> Any:
     """A subscriber that also receives, at once, the cached latest value of every model output (segments,
     skeleton) matching ``key``, as nodes do; plain data keys arrive as with an ordinary subscriber."""
-    return zext.declare_advanced_subscriber(
-        session, key, callback, history=zext.HistoryConfig(detect_late_publishers=True, max_samples=1))
+    return zext.declare_advanced_subscriber(session, key, callback, history=model_history())
 
 
 def settings(security: str | Path | None = None) -> SecuritySettings | None:

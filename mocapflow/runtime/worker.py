@@ -48,7 +48,7 @@ from mocapflow.runtime.plugins import PluginNotFound, load
 from mocapflow.runtime.preview import Preview
 from mocapflow.runtime.runner import Runner
 from mocapflow.runtime.security import SecurityError
-from mocapflow.runtime.session import open_client
+from mocapflow.runtime.session import open_client, subscribe_with_cache
 from mocapflow.runtime.signals import stop_on_signals
 
 EXIT_CONFIG = 2
@@ -242,10 +242,7 @@ class Worker:
         if port in member.previewed:
             key = keys.preview_of(key)
         if member.runner.node.inputs[port].state:
-            return zext.declare_advanced_subscriber(
-                self.session, key, on_sample,
-                history=zext.HistoryConfig(detect_late_publishers=True, max_samples=1),
-            )
+            return subscribe_with_cache(self.session, key, on_sample)
         return self.session.declare_subscriber(key, on_sample)
 
     def _send(self, member: Member, port: str, message: Message) -> None:
