@@ -93,7 +93,9 @@ def test_skeleton_validation() -> None:
         labeller.update(np.zeros((0, 3)), 0.0)
 
 
-def test_label_command_with_a_skeleton(tmp_path: Path) -> None:
+def test_label_command_with_a_skeleton(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A new trial named from its subject's skeleton; another subject's skeleton names few points, and the command
+    says so; a missing or broken skeleton file is a one-line error."""
     from mocapflow.cli import main
     from mocapflow.io.markers import MarkerData, read_markers, write_markers
     from mocapflow.io.skeleton import write_skeleton
@@ -110,6 +112,11 @@ def test_label_command_with_a_skeleton(tmp_path: Path) -> None:
     assert sorted(out.labels) == sorted(trial.labels)
     right, wrong, total = _named(out.positions, out.labels, read_markers(source).positions, identity, trial.labels)
     assert wrong == 0 and right >= 0.98 * total
+    assert "fit the segments" not in capsys.readouterr().err
+    quadruped = Simulator(SimulatorConfig(rig="quadruped", seed=3))
+    write_skeleton(tmp_path / "other.json", truth_skeleton(quadruped.rig, quadruped.frame(0).true_positions))
+    assert main(["label", str(source), "-o", str(target), "--skeleton", str(tmp_path / "other.json")]) == 0
+    assert f"of the points fit the segments of {tmp_path / 'other.json'}" in capsys.readouterr().err
     assert main(["label", str(source), "-o", str(target), "--skeleton", str(tmp_path / "absent.json")]) == 2
     (tmp_path / "bad.json").write_text("{}")
     assert main(["label", str(source), "-o", str(target), "--skeleton", str(tmp_path / "bad.json")]) == 2

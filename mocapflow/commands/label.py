@@ -15,6 +15,10 @@ if TYPE_CHECKING:
     from mocapflow.mocap.labelling import LabellerConfig
 
 
+FEW_FIT = 0.8
+"""Below this share of the points named from a skeleton, the command says the skeleton may not fit the capture."""
+
+
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("label", help="give every marker of an unlabelled C3D/TRC capture one persistent label")
     p.add_argument("input", help="C3D or TRC file of unlabelled points (slot order meaningless from frame to frame)")
@@ -74,4 +78,8 @@ def run(args: argparse.Namespace) -> int:
     print(f"wrote {out}: {len(labels)} markers over {len(tracks)} frames at {data.rate:g} Hz; "
           f"{kept}/{given} points labelled ({100.0 * kept / given:.2f} %), the rest dropped as ghosts"
           f"{' or markers the skeleton does not know' if args.skeleton else ''}")
+    if args.skeleton and kept < FEW_FIT * given:
+        print(f"only {100.0 * kept / given:.0f} % of the points fit the segments of {args.skeleton}: is it this "
+              "subject's skeleton, with this marker set, calibrated on a trial that moved every joint? (mocapflow "
+              "calibrate says how sure each segment and joint is)", file=sys.stderr)
     return 0
