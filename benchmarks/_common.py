@@ -14,7 +14,9 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+from mocapflow.runtime.cpus import ONE_THREAD  # loads no numpy
+
+for _var in ONE_THREAD:
     os.environ.setdefault(_var, "1")
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -16,16 +16,13 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import IO, Literal
 
-from mocapflow.runtime.cpus import assign_cores
+from mocapflow.runtime.cpus import ONE_THREAD, assign_cores
 from mocapflow.runtime.graph import Restart, RestartPolicy
 from mocapflow.runtime.worker import EXIT_CONFIG, EXIT_FINISH, WorkerSpec
 
 DRAIN_S = 10.0
 TERM_S = 3.0
 HEALTHY_S = 30.0
-ONE_THREAD = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
-"""A node's numerical work is on small arrays, where a BLAS library's worker threads only spin: at 1000 Hz they
-took the frame group from 0.8 to 1.03 cores. Node processes run BLAS on one thread unless these are set."""
 
 State = Literal["starting", "running", "restarting", "finished", "failed"]
 

@@ -144,14 +144,13 @@ class Worker:
         self.stop_event = threading.Event()
         self.finished_ok = True
         self.clock_origin_ns: int | None = None
-        self.inbox: Inbox[zenoh.Sample] = Inbox(spec.queue_size, {
-            f"{n.node}/{p}" for n in spec.nodes() for p, i in classes[n.node].inputs.items()
-            if n.queue.get(p, i.queue) != "all"})
         self._local: deque[tuple[Member, str, Any]] = deque()  # hand-overs inside the group, in order
         self._deferred: deque[Entry[zenoh.Sample]] = deque()  # from outside, set aside while waiting for feedback
         self.members: dict[str, Member] = {}
         for node in spec.nodes():
             self.members[node.node] = self._member(node, classes[node.node], configs[node.node])
+        self.inbox: Inbox[zenoh.Sample] = Inbox(
+            spec.queue_size, {f"{m.name}/{port}" for m in self.members.values() for port in m.latest})
         by_key = {keys.output_key(m.spec.prefix, m.name, port): (m, port)
                   for m in self.members.values() for port in m.runner.node.outputs}
         self._subscribers = []
@@ -353,33 +352,40 @@ class Worker:
         while self._local:
             member, port, message = self._local.popleft()
             if message is END:
-                self._hand_held(member, port)
-                if member.runner.end_of(port):
-                    self._end_outputs(member)
+                self._input_ended(member, port)
                 continue
             if not member.runner.node.inputs[port].state:
-                if not member.runner.wants(port):
-                    if port in member.latest:
-                        member.held[port] = message
+                if not self._takes(member, port, message):
                     continue
-                member.held.pop(port, None)
                 member.runner.count_in(port, message)
             member.runner.handle(port, [message])
 
-    def _hand_held(self, member: Member, port: str) -> None:
-        """At the end of a ``latest`` input, the newest message the node passed over is handed over after all: a
-        sink that shows a sample of a stream (a viewer at its display rate) always shows its last frame."""
+    @staticmethod
+    def _takes(member: Member, port: str, item: Any, skipped: int = 0) -> bool:
+        """Whether the node takes the next message on data input ``port`` (``item``: the message, or its sample
+        still undecoded); one it passes over on a ``latest`` input is held, the newest, for the input's end."""
+        if not member.runner.wants(port, skipped):
+            if port in member.latest:
+                member.held[port] = item
+            return False
+        member.held.pop(port, None)
+        return True
+
+    def _input_ended(self, member: Member, port: str) -> None:
+        """Input ``port`` has ended: the newest message the node passed over on it, if it is a ``latest`` input, is
+        handed over after all (a sink that shows a sample of a stream, a viewer at its display rate, always shows
+        its last frame); then the node's outputs end if that was the last input it waited for."""
         held = member.held.pop(port, None)
-        if held is None:
-            return
-        member.runner.take_back(port)
-        if isinstance(held, zenoh.Sample):
-            held = self._decode(member, port, held, 0)
-            if held is None:
-                return
-        else:
-            member.runner.count_in(port, held)
-        member.runner.handle(port, [held])
+        if held is not None:
+            member.runner.take_back(port)
+            if isinstance(held, zenoh.Sample):
+                held = self._decode(member, port, held, 0)
+            else:
+                member.runner.count_in(port, held)
+            if held is not None:
+                member.runner.handle(port, [held])
+        if member.runner.end_of(port):
+            self._end_outputs(member)
 
     def _next(self, timeout: float) -> Entry[zenoh.Sample] | None:
         """The next message from outside: one set aside while waiting for feedback first, else the inbox's."""
@@ -396,9 +402,7 @@ class Worker:
                 member.runner.report_error(f"input {port!r}", Refused(
                     f"end of stream from {_who(sample)}, not from the stream's publisher: ignored"))
             else:
-                self._hand_held(member, port)
-                if member.runner.end_of(port):
-                    self._end_outputs(member)
+                self._input_ended(member, port)
             return
         # A node that fell behind catches up on what has queued on this input since, in one batch.
         batch = [(sample, entry.skipped)]
@@ -412,14 +416,10 @@ class Worker:
             batch.append((following.item, following.skipped))
         messages = []
         for sample, skipped in batch:
-            if not member.runner.wants(port, skipped):
-                if port in member.latest:
-                    member.held[port] = sample
-                continue
-            member.held.pop(port, None)
-            message = self._decode(member, port, sample, skipped)
-            if message is not None:
-                messages.append(message)
+            if self._takes(member, port, sample, skipped):
+                message = self._decode(member, port, sample, skipped)
+                if message is not None:
+                    messages.append(message)
         if type(member.runner.node).process_batch is not Node.process_batch:
             member.runner.handle(port, messages)  # vectorised: the batch at once
             return
