@@ -19,13 +19,15 @@ class SlowSinkConfig(BaseModel):
 
 
 class SlowSink(Node[SlowSinkConfig]):
-    """Sleeps ``delay_s`` per frame it wants; writes the handled frame numbers, one a line, when the stream ends."""
+    """Sleeps ``delay_s`` per frame it wants; writes the handled frame numbers, one a line, when the stream ends, and
+    their capture times (ns) to ``path`` + ``.capture``."""
 
     Config = SlowSinkConfig
     inputs = {"markers": Input(MarkerFrame)}
 
     def setup(self) -> None:
         self.frames: list[int] = []
+        self.captures: list[int] = []
         self.offered = 0
 
     def wanted(self, port: str) -> bool:
@@ -35,6 +37,8 @@ class SlowSink(Node[SlowSinkConfig]):
     def process(self, port: str, message: MarkerFrame) -> None:
         time.sleep(self.config.delay_s)
         self.frames.append(message.frame)
+        self.captures.append(message.capture_ns)
 
     def finish(self) -> None:
         Path(self.config.path).write_text("".join(f"{f}\n" for f in self.frames))
+        Path(self.config.path + ".capture").write_text("".join(f"{t}\n" for t in self.captures))
