@@ -4,9 +4,9 @@ Run as ``python benchmarks/frame_path.py [--rate HZ] [--seconds S]`` (about 3 x 
 nodes of deployments/quickstart.yaml are built from that file (the tracker at ``--rate``) and driven in the order the
 runtime drives them: the tracker's frame is encoded (in the tracker's process) and decoded (in the group's), then the
 ``frame`` group hands it from node to node as Python objects, each frame followed by all it causes (the filler's
-prediction back to the labeller); the filled markers are encoded once for the clusterer and the joint estimator,
-which run in processes of their own, decode only the frames they sample at their model rate (``Node.wanted``) and
-whose costs are shown apart (they do not hold the frame back; their models reach the group as they would live).
+prediction back to the labeller); the clusterer and the joint estimator run in processes of their own and read the
+filled markers' sampled copy (``queue: sampled``), so only its frames are encoded for them and decoded there; their
+costs are shown apart (they do not hold the frame back; their models reach the group as they would live).
 Frames are produced as fast as they are handled, so each step's time is its cost alone, with no wait in a queue;
 Zenoh's own transport is what ``mocapflow bench`` measures next to it. Printed: per step, the wall-clock time per
 frame (p50 / p99 over the frames after the skeleton model arrived) and the sum along the frame's path.
@@ -27,8 +27,14 @@ import yaml
 
 from mocapflow.messages import MarkerFrame, decode, encode
 from mocapflow.runtime.plugins import load
+from mocapflow.runtime.sampling import base_stride
 
 QUICKSTART = _common.ROOT / "deployments" / "quickstart.yaml"
+
+
+def sampled_frame(message: MarkerFrame) -> bool:
+    """Whether a frame is in its stream's sampled copy."""
+    return message.frame % base_stride(message.rate) == 0
 
 
 def main() -> None:
@@ -73,15 +79,15 @@ def main() -> None:
             sent.clear()
             while queue:
                 src, out, message = queue.pop(0)
-                # a node takes the frames it wants (a model stage samples): the others it is not handed, undecoded
+                # a node in another process with a sampled input is sent only the sampled copy's frames
                 targets = [(n, p) for n, p in links[(src, out)]
-                           if not isinstance(message, MarkerFrame) or nodes[n].wanted(p)]
-                crosses = [n for n, _ in links[(src, out)] if n not in group or src not in group]
-                if crosses and isinstance(message, MarkerFrame):  # frames that leave a process (models: rarely)
+                           if not isinstance(message, MarkerFrame) or sampled_frame(message)
+                           or n in group and src in group or nodes[n].inputs[p].queue != "sampled"]
+                crosses = [n for n, _ in targets if n not in group or src not in group]
+                if crosses and isinstance(message, MarkerFrame):  # frames that leave a process
                     payload = step(f"{src}: encode {out}", encode, message)
                     for target in crosses:
-                        if any(n == target for n, _ in targets):
-                            step(f"{target}: decode", decode, payload, MarkerFrame)
+                        step(f"{target}: decode", decode, payload, MarkerFrame)
                 if src == "joints" and skeleton_at is None:
                     skeleton_at = index
                 for target, port in targets:

@@ -20,7 +20,8 @@ class ClustererConfig(BaseModel):
     window_s: float = Field(default=20.0, gt=0, description="recent motion the distance statistics cover (s)")
     warmup_s: float = Field(default=5.0, gt=0, description="motion seen before the first partition (s)")
     sample_hz: float = Field(default=60.0, gt=0, description="rate at which frames enter the statistics (Hz); every "
-                             "frame of a slower stream")
+                             "frame of a slower stream, at most the sampled copy's (about 120 Hz) unless the input "
+                             "takes the whole stream ('queue: all')")
     every_s: float = Field(default=0.5, gt=0, description="how often the partition is computed again (s); up to four "
                            "times less often while it holds")
     segments: int | None = Field(default=None, ge=2, description="number of segments; none: chosen from the data")
@@ -36,25 +37,23 @@ class RigidityClusterer(Node[ClustererConfig]):
     calibrate`` finds them (``clustering.partition_rigidity``). Publishes a segment model after the warm-up and again
     only when it changes (at once, when seeded with a saved skeleton).
 
-    The statistics sample the stream at ``sample_hz`` and cover a long window, as the filler's learner does: a joint
-    held still for a few seconds keeps the segments it was seen to separate, and each frame costs little."""
+    The statistics sample the stream at ``sample_hz`` (by frame number, ``mocapflow.runtime.sampling``: from another
+    process the node receives only the stream's sampled copy) and cover a long window, as the filler's learner does:
+    a joint held still for a few seconds keeps the segments it was seen to separate, and each frame costs little."""
 
     Config: ClassVar[type[ClustererConfig]] = ClustererConfig
     method: ClassVar[Literal["rigidity", "spectral", "distance-threshold"]] = "rigidity"
-    inputs = {"markers": Input(MarkerFrame, doc="labelled markers (filled ones too: only observed samples count)")}
+    inputs = {"markers": Input(MarkerFrame, doc="labelled markers (filled ones too: only observed samples count)",
+                               queue="sampled")}
     outputs = {"segments": Output(Segments, state=True, doc="the current segment model")}
 
     def setup(self) -> None:
         self.tracker: SegmentTracker | None = None
-        self.sampler: Sampler | None = None
+        self.sampler = Sampler(self.config.sample_hz)
         self.seed = read_skeleton(self.config.skeleton).segments if self.config.skeleton else None
 
     def options(self) -> dict[str, Any]:
         return {"k": self.config.segments}
-
-    def wanted(self, port: str) -> bool:
-        """A frame of each ``sample_hz``-th of a second: the others are passed over undecoded."""
-        return self.sampler is None or self.sampler.take()
 
     def process(self, port: str, message: MarkerFrame) -> None:
         if message.labels is None:
@@ -62,13 +61,13 @@ class RigidityClusterer(Node[ClustererConfig]):
         if self.seed is not None:  # a calibrated subject: its segments from the first frame, no warm-up
             self.publish("segments", Segments.derive(message, segments=self.seed))
             self.seed = None
+        if not self.sampler.take(message.frame, message.rate):
+            return
         if self.tracker is not None and added(self.tracker.labels, message.labels):
             self.tracker.grow(message.labels)  # new markers confirmed upstream: the statistics so far still count
         elif self.tracker is None or self.tracker.labels != message.labels:  # another marker set
             config = self.config
-            self.sampler = Sampler(message.rate, config.sample_hz)
-            self.sampler.take()  # this frame is its first sample
-            samples = self.sampler.rate
+            samples = self.sampler.rate(message.rate)
             self.tracker = SegmentTracker(message.labels, window=max(2, round(config.window_s * samples)),
                                           warmup=max(2, round(min(config.warmup_s, config.window_s) * samples)),
                                           every=max(1, round(config.every_s * samples)),

@@ -26,7 +26,8 @@ class JointsConfig(BaseModel):
     window_s: float = Field(default=20.0, gt=0, description="recent motion the estimate uses (s)")
     every_s: float = Field(default=5.0, gt=0, description="time between two estimates (s)")
     sample_hz: float = Field(default=60.0, gt=0, description="rate at which frames enter the window (Hz); every "
-                             "frame of a slower stream")
+                             "frame of a slower stream, at most the sampled copy's (about 120 Hz) unless the input "
+                             "takes the whole stream ('queue: all')")
 
 
 class VarianceJoints(Node[JointsConfig]):
@@ -37,7 +38,8 @@ class VarianceJoints(Node[JointsConfig]):
     Config = JointsConfig
     joint_method: ClassVar[Literal["variance", "closed-form", "auto"]] = "variance"
     inputs = {
-        "markers": Input(MarkerFrame, doc="labelled markers (filled ones too: only observed samples count)"),
+        "markers": Input(MarkerFrame, doc="labelled markers (filled ones too: only observed samples count)",
+                         queue="sampled"),
         "segments": Input(Segments, required=False, state=True, doc="segment model; without it no estimate is made"),
     }
     outputs = {"skeleton": Output(Skeleton, state=True, doc="the current skeleton model")}
@@ -50,14 +52,12 @@ class VarianceJoints(Node[JointsConfig]):
         self.frames: deque[np.ndarray] = deque()
         self.labels: list[str] | None = None
         self.next_estimate = 0  # samples to the next estimate
-        self.sampler: Sampler | None = None  # of the current marker set
+        self.sampler = Sampler(self.config.sample_hz)
 
     def wanted(self, port: str) -> bool:
-        """A frame of each ``sample_hz``-th of a second while refining (the others are passed over undecoded); with
-        ``refine`` off, only the first, which publishes the given skeleton."""
-        if not self.config.refine:
-            return not self.published
-        return self.sampler is None or self.sampler.take()
+        """With ``refine`` off, only the first frame (which publishes the given skeleton): the others are passed over
+        undecoded."""
+        return self.config.refine or not self.published
 
     def process(self, port: str, message: MarkerFrame | Segments) -> None:
         if isinstance(message, Segments):
@@ -66,7 +66,7 @@ class VarianceJoints(Node[JointsConfig]):
         if self.seed is not None and not self.published:
             self.published = True
             self.publish("skeleton", Skeleton.derive(message, skeleton=self.seed))
-        if not self.config.refine or message.labels is None:
+        if not self.config.refine or message.labels is None or not self.sampler.take(message.frame, message.rate):
             return
         if message.labels != self.labels:
             new = added(self.labels or [], message.labels)
@@ -76,12 +76,8 @@ class VarianceJoints(Node[JointsConfig]):
             else:
                 self.frames.clear()
                 self.next_estimate = 0
-                self.sampler = None
             self.labels = message.labels
-        if self.sampler is None:
-            self.sampler = Sampler(message.rate, self.config.sample_hz)
-            self.sampler.take()  # this frame is its first sample
-        samples = self.sampler.rate
+        samples = self.sampler.rate(message.rate)
         self.frames.append(message.observed())
         window = round(self.config.window_s * samples)
         while len(self.frames) > window:

@@ -1,6 +1,6 @@
 """Inbox policies: ``queue: all`` keeps every message up to a bound and counts what it refuses, ``queue: latest`` keeps
-the newest and counts what it passes over, ``queue: preview`` takes the newest of a thinned copy; the backlog is
-reported. Unit tests of the inbox, then real runs."""
+the newest and counts what it passes over, ``queue: preview`` takes the newest of a thinned copy, ``queue: sampled``
+every frame of a sampled copy; the backlog is reported. Unit tests of the inbox and of sampling, then real runs."""
 
 from __future__ import annotations
 
@@ -14,9 +14,12 @@ import pytest
 from conftest import CLI
 
 from mocapflow.errors import GraphError
+from mocapflow.messages import MarkerFrame
 from mocapflow.runtime.graph import load_graph
 from mocapflow.runtime.inbox import Inbox
 from mocapflow.runtime.preview import PREVIEW_HZ
+from mocapflow.runtime.runner import Runner
+from mocapflow.runtime.sampling import SAMPLED_HZ, Sampler, base_stride
 
 TESTS = Path(__file__).resolve().parent
 
@@ -51,6 +54,33 @@ def test_all_is_bounded_counts_what_it_refuses_and_never_refuses_an_end() -> Non
     assert (figures["drops"], figures["skipped"], figures["backlog"], figures["backlog_max"]) == (2, 0, 0, 4)
 
 
+@pytest.mark.parametrize("rate", [50.0, 100.0, 120.0, 240.0, 500.0, 1000.0, 2000.0])
+@pytest.mark.parametrize("hz", [30.0, 60.0, 100.0, 500.0])
+def test_a_stage_takes_the_same_samples_from_the_whole_stream_and_from_its_sampled_copy(rate: float,
+                                                                                       hz: float) -> None:
+    frames = np.arange(3 * int(rate))
+    copy = frames[frames % base_stride(rate) == 0]
+    sampler = Sampler(hz)
+    whole = [f for f in frames if sampler.take(int(f), rate)]
+    assert whole == [f for f in copy if sampler.take(int(f), rate)]
+    # about the rate asked for, never more than the copy carries (every frame of a slower stream)
+    taken = len(whole) / 3
+    assert taken <= max(SAMPLED_HZ, rate / base_stride(rate)) + 1 and abs(sampler.rate(rate) - taken) <= 1 / 3
+    assert taken == rate or abs(taken - min(hz, rate / base_stride(rate))) <= 0.5 * min(hz, rate) + 1
+
+
+def test_a_sampled_copy_counts_the_frames_it_leaves_out_as_skipped_and_a_missing_sample_as_lost(
+        tmp_path: Path) -> None:
+    from slow_sink import SlowSink
+
+    runner = Runner("sink", SlowSink, SlowSink.Config(path=str(tmp_path / "h.txt"), delay_s=0), lambda *a: None,
+                    {"markers"})
+    for frame in (0, 8, 16, 32):  # the copy of a 960 Hz stream carries every 8th frame; 24 was lost
+        message = MarkerFrame(frame=frame, capture_ns=1, rate=960.0, positions=np.zeros((1, 3)))
+        runner.count_in("markers", message, runner.thinned("markers", frame, 0, base_stride(960.0)))
+    assert (runner.stats.frames_in, runner.stats.drops, runner.stats.passed) == (4, 1, 28)
+
+
 def test_a_queue_policy_must_name_a_linked_input(tmp_path: Path) -> None:
     path = tmp_path / "g.yaml"
     path.write_text("name: q\nnodes:\n  tracker: {plugin: simulator}\n"
@@ -64,13 +94,13 @@ def test_a_queue_policy_must_name_a_linked_input(tmp_path: Path) -> None:
 
 
 def _run_slow_sink(tmp_path: Path, endpoint: str, frames: int, policy: str, group: str = "",
-                   config: str = "delay_s: 0.02") -> tuple[list[int], dict]:
+                   config: str = "delay_s: 0.02", rate: int = 200) -> tuple[list[int], dict]:
     out = tmp_path / "handled.txt"
     summary = tmp_path / "summary.json"
     path = tmp_path / "g.yaml"
     path.write_text(
         f"name: queue\nzenoh: {{listen: ['{endpoint}']}}\nnodes:\n"
-        f"  tracker: {{plugin: simulator, {group} config: {{rig: rods, rate: 200, frames: {frames}}}}}\n"
+        f"  tracker: {{plugin: simulator, {group} config: {{rig: rods, rate: {rate}, frames: {frames}}}}}\n"
         f"  sink: {{plugin: 'slow_sink:SlowSink', inputs: {{markers: tracker/markers}}, {policy}, {group}\n"
         f"          config: {{path: '{out}', {config}}}}}\n"
     )
@@ -147,4 +177,17 @@ def test_a_preview_input_takes_at_most_a_display_rate_with_the_last_frame(tmp_pa
     span_s = (captured[-2] - captured[0]) / 1e9
     assert len(handled) < frames and len(handled) - 2 <= span_s * PREVIEW_HZ + 2, (len(handled), span_s)
     assert stats["frames_in"] == len(handled) and stats["skipped"] == frames - len(handled), stats
+    assert stats["drops"] == 0 and stats["errors"] == 0
+
+
+@pytest.mark.integration
+def test_a_sampled_input_takes_every_frame_of_the_sampled_copy(tmp_path: Path, free_endpoint: str) -> None:
+    """An input on an output's sampled copy ('queue: sampled', a model stage's) receives, in order, exactly the frames
+    whose number is a multiple of the copy's stride (every fourth of a 480 Hz stream), and the end; the frames the
+    copy left out are counted as skipped, none as lost."""
+    frames = 480
+    handled, stats = _run_slow_sink(tmp_path, free_endpoint, frames, "queue: {markers: sampled}", "", "delay_s: 0",
+                                    rate=480)
+    assert handled == list(range(0, frames, base_stride(480.0))) and base_stride(480.0) == 4, handled
+    assert stats["frames_in"] == len(handled) and stats["skipped"] == frames - len(handled) - 3, stats
     assert stats["drops"] == 0 and stats["errors"] == 0

@@ -249,7 +249,7 @@ def test_view_attaches_to_a_running_graph_and_replays_its_recording(tmp_path: Pa
                       if not r.delete and r.encoding.endswith("/MarkerFrame"))
     recorded_frames = sum(streams.values())
     # the live view drew the streams' previews; `record`, asked for the streams, left those copies out
-    assert not any(keys.is_preview(r.key) for r in read_recording(tmp_path / "run.mcap"))
+    assert not any(keys.copy_kind(r.key) for r in read_recording(tmp_path / "run.mcap"))
     assert f"{recorded_frames} marker frames" in replay_out, replay_out
     # the tracker's and the filler's markers go to other processes of the graph, so they are sent from the first
     # frame; the labeller's markers and the filler's predictions only once Zenoh tells their senders that `record`

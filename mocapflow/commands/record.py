@@ -44,10 +44,11 @@ def _record(args: argparse.Namespace) -> int:
     inbox: queue.Queue[RecordedSample] = queue.Queue()
     stop = threading.Event()
 
-    previews = any(keys.is_preview(key) for key in args.keys)
+    asked = {kind for kind in keys.COPIES if any(f"/{kind}" in key for key in args.keys)}
 
     def on_sample(sample: zenoh.Sample) -> None:
-        if not previews and keys.is_preview(str(sample.key_expr)):  # copies of the streams, unless asked for
+        kind = keys.copy_kind(str(sample.key_expr))
+        if kind is not None and kind not in asked:  # copies of the streams (previews, samples), unless asked for
             return
         inbox.put(RecordedSample(key=str(sample.key_expr), encoding=str(sample.encoding),
                                  payload=sample.payload.to_bytes(), log_time_ns=time.time_ns(),

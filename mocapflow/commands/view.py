@@ -125,7 +125,7 @@ class _Streams:
 
     def __init__(self, scene: Any, prefix: str, previews: bool = False) -> None:
         """``previews``: draw the streams' previews, under their streams' names; otherwise previews (a copy of the
-        streams drawn whole) are passed over."""
+        streams drawn whole) are passed over. Sampled copies (for model stages) are always passed over."""
         self.scene, self.prefix, self.previews = scene, prefix, previews
         self.frames = 0
         self.open: set[str] = set()
@@ -135,10 +135,11 @@ class _Streams:
         from mocapflow.messages import MESSAGE_TYPES, SCHEMA_PREFIX, DecodeError, decode
         from mocapflow.runtime import keys
 
-        if keys.is_preview(key):
-            if not self.previews:
+        kind = keys.copy_kind(key)
+        if kind is not None:
+            if kind != keys.PREVIEW or not self.previews:
                 return
-            key = keys.unpreview(key)
+            key = keys.original(key)
         if delete:
             if key in self.open:
                 self.open.discard(key)

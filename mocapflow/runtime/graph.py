@@ -63,7 +63,8 @@ class NodeSpec(RestartPolicy):
                            "and on a machine with no time to spare it draws nothing)")
     queue: dict[str, QueuePolicy] = Field(
         default_factory=dict, description="input port -> 'all' (every message), 'latest' (the newest) or 'preview' "
-        "(the newest of the output's preview, at most 60 a second: for viewers); "
+        "(the newest of the output's preview, at most 60 a second: for viewers) or 'sampled' (every frame of the "
+        "output's sampled copy, about 120 a second, frame numbers multiples of a stride: for model stages); "
         "default: the plugin's choice for that input, 'all' unless it says otherwise")
     queue_size: int = Field(default=DEFAULT_CAPACITY, ge=1,
                             description="messages the inbox holds at most; beyond, new ones are dropped and counted")

@@ -4,7 +4,8 @@
 and counted in ``drops``. ``latest`` keeps at most one waiting message per input: a newer one replaces it where it
 waits, and each replaced one is counted in ``skipped`` (a viewer shows the newest frame rather than fall behind).
 ``preview`` is ``latest`` on a thinned copy of the stream (``mocapflow.runtime.preview``): the inbox holds it as
-``latest``, the worker subscribes to the preview. End of stream is never refused or replaced. ``backlog`` says how
+``latest``, the worker subscribes to the preview. ``sampled`` is ``all`` on the stream's sampled copy
+(``mocapflow.runtime.sampling``), for model stages. End of stream is never refused or replaced. ``backlog`` says how
 far behind the node is: messages waiting and how long the oldest has waited. Transport-free: it holds whatever the
 caller puts in (a Zenoh sample, a message).
 """
@@ -19,7 +20,7 @@ from typing import Generic, Literal, TypeVar
 
 T = TypeVar("T")
 
-QueuePolicy = Literal["all", "latest", "preview"]
+QueuePolicy = Literal["all", "latest", "preview", "sampled"]
 DEFAULT_CAPACITY = 100_000
 
 

@@ -9,28 +9,34 @@ def output_key(prefix: str, node: str, output: str) -> str:
 
 
 PREVIEW = "_preview"
+"""Thinned copies of the data outputs, for viewers (``mocapflow.runtime.preview``)."""
+SAMPLED = "_sampled"
+"""Sampled copies of the data outputs, for model stages (``mocapflow.runtime.sampling``)."""
+COPIES = (PREVIEW, SAMPLED)
 
 
-def preview_key(prefix: str, node: str, output: str) -> str:
-    """A thinned copy of a node's output stream, for viewers (``mocapflow.runtime.preview``)."""
-    return f"{prefix}/{PREVIEW}/{node}/{output}"
+def copy_key(prefix: str, kind: str, node: str, output: str) -> str:
+    """A copy (``PREVIEW`` or ``SAMPLED``) of a node's output stream."""
+    return f"{prefix}/{kind}/{node}/{output}"
 
 
-def preview_of(key: str) -> str:
-    """The preview key of output key ``{prefix}/{node}/{output}``."""
+def copy_of(key: str, kind: str) -> str:
+    """The key of the ``kind`` copy of output key ``{prefix}/{node}/{output}``."""
     prefix, node, output = key.rsplit("/", 2)
-    return preview_key(prefix, node, output)
+    return copy_key(prefix, kind, node, output)
 
 
-def is_preview(key: str) -> bool:
-    return f"/{PREVIEW}/" in key
+def copy_kind(key: str) -> str | None:
+    """Which copy of an output stream ``key`` is (``PREVIEW`` or ``SAMPLED``); None for any other key."""
+    parts = key.rsplit("/", 3)
+    return parts[1] if len(parts) == 4 and parts[1] in COPIES else None
 
 
-def unpreview(key: str) -> str:
-    """The output key a preview key previews."""
-    prefix, preview, node, output = key.rsplit("/", 3)
-    if preview != PREVIEW:
-        raise ValueError(f"{key!r} is not a preview key")
+def original(key: str) -> str:
+    """The output key that a copy's key copies."""
+    prefix, kind, node, output = key.rsplit("/", 3)
+    if kind not in COPIES:
+        raise ValueError(f"{key!r} is not the key of a stream's copy")
     return f"{prefix}/{node}/{output}"
 
 

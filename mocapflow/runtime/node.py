@@ -38,7 +38,8 @@ class Input:
     once. A ``required`` input must be linked. A node finishes when every data input it is fed by (feedback loops
     aside, see ``graph.end_inputs``) has ended. ``queue`` is the port's inbox policy unless the graph sets one:
     ``latest`` for a sink that only ever shows the newest frame, ``preview`` for one that shows it at a display's
-    rate (``mocapflow.runtime.preview``). An input of type ``NodeStats`` is linked to the
+    rate (``mocapflow.runtime.preview``), ``sampled`` for a model stage that takes a sample of the frames by their
+    number (``mocapflow.runtime.sampling``). An input of type ``NodeStats`` is linked to the
     nodes' health, ``_stats/*`` (every node) or ``_stats/NODE``, and must be a ``state`` input (it never ends)."""
 
     type: MessageType
@@ -104,8 +105,8 @@ class Node(Generic[ConfigT]):
         self._publish(output, message)
 
     def wanted(self, port: str) -> bool:
-        """Whether the node will use the next message on data input ``port``. A stage that samples a stream (a model
-        stage at its model rate) says no to the messages it would drop; the runtime then passes them over without
+        """Whether the node will use the next message on data input ``port``. A stage that shows a stream at its own
+        rate (a viewer) says no to the messages it would drop; the runtime then passes them over without
         decoding them or handing them over, and counts them as skipped. Asked once per message, in order, before
         ``process``; by default every message is wanted."""
         return True

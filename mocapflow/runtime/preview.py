@@ -2,7 +2,7 @@
 
 A viewer draws 60 frames a second at most; handed a 1000 Hz stream it would receive, and its router forward, all 1000
 for nothing, and a node would encode every frame of an output only a viewer reads. So each node also publishes, only
-while someone subscribes to it, a preview of each data output (``keys.preview_key``): the newest message whenever one
+while someone subscribes to it, a preview of each data output (``keys.PREVIEW``): the newest message whenever one
 is due, the stream's last message before its end, then the end. An input with ``queue: preview`` (the ``rerun``
 sink's frames by default) subscribes to the preview instead of the stream. Transport-free: ``send`` carries what is
 due.

@@ -34,7 +34,7 @@ class Stats:
         self.errors = 0
         self.refused = 0
         self.unpaired = 0
-        self.passed = 0  # passed over: the node did not want them (``Node.wanted``), or a preview left them out
+        self.passed = 0  # passed over: the node did not want them (``Node.wanted``), or a stream's copy left them out
         self.last_error: str | None = None
         self.latencies_ms: deque[float] = deque(maxlen=4096)
         self._rate_mark = (time.monotonic(), 0)
@@ -123,11 +123,15 @@ class Runner:
         self.stats.passed -= 1
         self._passed[port] -= 1
 
-    def thinned(self, port: str, frame: int, skipped: int) -> int:
-        """The frames before ``frame`` that a preview on ``port`` left out (``skipped`` of them replaced in the
-        inbox, counted there): counted as passed over, not lost. Returns them all."""
+    def thinned(self, port: str, frame: int, skipped: int, stride: int | None = None) -> int:
+        """The frames before ``frame`` that a copy of the stream on ``port`` left out (``skipped`` of them replaced
+        in the inbox, counted there): counted as passed over, not lost. A preview may leave out any frame; a sampled
+        copy (``stride``) only those whose number is not a multiple of its stride, so a missing multiple is a loss.
+        Returns the frames left out, skipped included."""
         last = self._last_frame.get(port)
         gap = 0 if last is None else max(0, frame - last - 1)
+        if stride is not None and last is not None and gap:
+            gap -= (frame - 1) // stride - last // stride  # the samples between: those the copy was to carry
         self.stats.passed += max(0, gap - skipped)
         return max(gap, skipped)
 

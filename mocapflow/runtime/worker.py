@@ -47,6 +47,7 @@ from mocapflow.runtime.node import RUN_ENV, Node
 from mocapflow.runtime.plugins import PluginNotFound, load
 from mocapflow.runtime.preview import Preview
 from mocapflow.runtime.runner import Runner
+from mocapflow.runtime.sampling import base_stride
 from mocapflow.runtime.security import SecurityError
 from mocapflow.runtime.session import open_client, subscribe_with_cache
 from mocapflow.runtime.signals import stop_on_signals
@@ -122,8 +123,11 @@ class Member:
     preview_publishers: dict[str, Any] = field(default_factory=dict)  # output -> publisher of its preview
     models: set[str] = field(default_factory=set)  # outputs that carry models (state)
     previews: dict[str, Preview[Message]] = field(default_factory=dict)  # data output -> its preview, while watched
+    sampled_publishers: dict[str, Any] = field(default_factory=dict)  # data output -> publisher of its sampled copy
+    sampling: set[str] = field(default_factory=set)  # data outputs whose sampled copy someone subscribes to
     latest: set[str] = field(default_factory=set)  # inputs whose policy is 'latest' or 'preview'
     previewed: set[str] = field(default_factory=set)  # inputs whose policy is 'preview'
+    sampled: set[str] = field(default_factory=set)  # inputs whose policy is 'sampled'
     held: dict[str, Any] = field(default_factory=dict)  # latest input -> newest message passed over (maybe undecoded)
     listeners: list[Any] = field(default_factory=list)
     stats_pub: Any = None
@@ -190,8 +194,9 @@ class Worker:
         policy = {p: spec.queue.get(p, i.queue) for p, i in node_cls.inputs.items()}
         member = Member(spec=spec, publishers=publishers, identity=new_identity(spec.node),
                         models={p for p, out in node_cls.outputs.items() if out.state},
-                        latest={p for p, q in policy.items() if q != "all"},
+                        latest={p for p, q in policy.items() if q in ("latest", "preview")},
                         previewed={p for p, q in policy.items() if q == "preview"},
+                        sampled={p for p, q in policy.items() if q == "sampled"},
                         guards={port: InputGuard(upstream=key.rsplit("/", 2)[-2], limits=spec.limits)
                                 for port, key in spec.inputs.items()
                                 if port in node_cls.inputs and not node_cls.inputs[port].state})
@@ -203,6 +208,8 @@ class Worker:
                 member.listeners.append(publishers[port].declare_matching_listener(on_matching))
                 member.wanted[port] = publishers[port].matching_status.matching
             self._preview(member, port, out.state, out.type.encoding())
+            if not out.state:
+                self._sampled(member, port, out.type.encoding())
         member.runner = Runner(spec.node, node_cls, config, lambda port, msg: self._send(member, port, msg), ends,
                                set(spec.inputs))
         return member
@@ -210,7 +217,7 @@ class Worker:
     def _preview(self, member: Member, port: str, state: bool, encoding: str) -> None:
         """Publish a preview of output ``port``: of a data output, while someone subscribes to it; a model output's
         preview carries each model, cached for late joiners as the output itself is."""
-        key = keys.preview_key(member.spec.prefix, member.name, port)
+        key = keys.copy_key(member.spec.prefix, keys.PREVIEW, member.name, port)
         if state:
             member.preview_publishers[port] = zext.declare_advanced_publisher(
                 self.session, key, encoding=zenoh.Encoding(encoding), cache=zext.CacheConfig(max_samples=1),
@@ -231,6 +238,24 @@ class Worker:
         if pub.matching_status.matching:
             member.previews[port] = preview
 
+    def _sampled(self, member: Member, port: str, encoding: str) -> None:
+        """Publish the sampled copy of data output ``port`` (``mocapflow.runtime.sampling``) while someone subscribes
+        to it; as lossless as the output itself."""
+        pub: Any = self.session.declare_publisher(  # Any: zenoh's stub says matching_status is a bool
+            keys.copy_key(member.spec.prefix, keys.SAMPLED, member.name, port), encoding=zenoh.Encoding(encoding),
+            congestion_control=zenoh.CongestionControl.BLOCK)
+
+        def on_matching(status: zenoh.MatchingStatus) -> None:
+            if status.matching:
+                member.sampling.add(port)
+            else:
+                member.sampling.discard(port)
+
+        member.listeners.append(pub.declare_matching_listener(on_matching))
+        member.sampled_publishers[port] = pub
+        if pub.matching_status.matching:
+            member.sampling.add(port)
+
     # -- plumbing -------------------------------------------------------------------------------------------------
     def _subscribe(self, member: Member, port: str, key: str) -> Any:
         where = f"{member.name}/{port}"
@@ -239,7 +264,9 @@ class Worker:
             self.inbox.put(where, sample, end=sample.kind == zenoh.SampleKind.DELETE)
 
         if port in member.previewed:
-            key = keys.preview_of(key)
+            key = keys.copy_of(key, keys.PREVIEW)
+        elif port in member.sampled:
+            key = keys.copy_of(key, keys.SAMPLED)
         if member.runner.node.inputs[port].state:
             return subscribe_with_cache(self.session, key, on_sample)
         return self.session.declare_subscriber(key, on_sample)
@@ -247,11 +274,14 @@ class Worker:
     def _send(self, member: Member, port: str, message: Message) -> None:
         for target, target_port in member.routes.get(port, ()):
             self._local.append((target, target_port, message))
+        payload = None
         if member.wanted[port]:  # always for a model
             payload = encode(message)
             member.publishers[port].put(payload, attachment=member.identity)
             if port in member.models:
                 member.preview_publishers[port].put(payload, attachment=member.identity)
+        if port in member.sampling and message.frame % base_stride(getattr(message, "rate", None)) == 0:
+            member.sampled_publishers[port].put(payload or encode(message), attachment=member.identity)
         preview = member.previews.get(port)
         if preview is not None:
             preview.offer(message)
@@ -266,6 +296,7 @@ class Worker:
                 if preview is not None:
                     preview.end()
                 member.preview_publishers[port].delete(attachment=member.identity)
+                member.sampled_publishers[port].delete(attachment=member.identity)
 
     def _stats_loop(self) -> None:
         while not self.stop_event.wait(STATS_PERIOD_S):
@@ -470,6 +501,9 @@ class Worker:
                     return None
             if port in member.previewed:
                 skipped = member.runner.thinned(port, message.frame, skipped)
+            elif port in member.sampled:
+                skipped = member.runner.thinned(port, message.frame, skipped,
+                                                base_stride(getattr(message, "rate", None)))
             member.runner.count_in(port, message, skipped)
         return message
 
