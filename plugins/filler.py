@@ -9,6 +9,7 @@ from mocapflow.io.skeleton import read_skeleton
 from mocapflow.messages import MarkerFrame, Skeleton
 from mocapflow.mocap.compiled import compile_all
 from mocapflow.mocap.filling import FillerConfig, GapFiller
+from mocapflow.mocap.flags import FillCase
 from mocapflow.mocap.markerset import added
 from mocapflow.mocap.model import SkeletonModel
 from mocapflow.runtime.node import Input, Node, Output
@@ -20,7 +21,8 @@ class FillerNodeConfig(FillerConfig):
 
 class Filler(Node[FillerNodeConfig]):
     """Kalman filter per marker fused with rigid-body constraints; causal. Flags say how each sample was obtained.
-    Also publishes, after each frame, its prediction of the next one (the labeller re-identifies markers with it)."""
+    Also publishes, after each frame, its prediction of the next one (the labeller re-identifies markers with it): of
+    the markers seen, or placed by the body's constraints, in this one (a filter coasting alone is left out)."""
 
     Config = FillerNodeConfig
     inputs = {
@@ -29,7 +31,8 @@ class Filler(Node[FillerNodeConfig]):
     }
     outputs = {
         "markers": Output(MarkerFrame, doc="filled markers with per-sample flags"),
-        "predictions": Output(MarkerFrame, doc="predicted positions for the next frame"),
+        "predictions": Output(MarkerFrame, doc="predicted positions for the next frame of the markers seen or placed "
+                                               "by the body's constraints in this one (NaN for the others)"),
     }
 
     def setup(self) -> None:
@@ -59,5 +62,8 @@ class Filler(Node[FillerNodeConfig]):
         result = self.filler.update(message.positions.astype(np.float64), message.rays)
         self.publish("markers", MarkerFrame.derive(message, positions=result.positions, labels=message.labels,
                                                    flags=result.flags))
-        self.publish("predictions", MarkerFrame.derive(message, frame=message.frame + 1,
-                                                       positions=self.filler.predict_next(), labels=message.labels))
+        predicted = self.filler.predict_next()
+        alone = (result.flags == FillCase.MISSING) | (result.flags == FillCase.KALMAN)
+        predicted[alone] = np.nan  # a filter coasting alone knows no more than the labeller's own coast
+        self.publish("predictions", MarkerFrame.derive(message, frame=message.frame + 1, positions=predicted,
+                                                       labels=message.labels))

@@ -109,6 +109,27 @@ def test_marker_hidden_two_seconds_gets_its_track_back(segments: bool) -> None:
     assert len(labeller.labels) == 12
 
 
+def test_a_marker_back_beside_two_rigid_partners_is_labelled_from_its_second_frame() -> None:
+    """Back with only two of its rigid partners in view (too few to place it), a marker keeps their distances, which
+    hold it to a circle: in each of two frames that is sure enough, in one it is not (a ghost on that circle for one
+    frame takes nothing). Without that rule it would wait ``confirm_frames`` frames unlabelled."""
+    truth = _clusters(5.0)
+    hidden = np.zeros(truth.shape[:2], bool)
+    hidden[100:300, 0] = True
+    hidden[290:320, 1] = True  # a mate hidden as the marker comes back: markers 2 and 3 alone in view
+    line = truth[295, 3] - truth[295, 2]
+    turn = Rotation.from_rotvec(np.pi / 2 * line / np.linalg.norm(line))
+    ghost = turn.apply(truth[295, 0] - truth[295, 2]) + truth[295, 2]  # at the marker's distances from 2 and 3
+    labeller = Labeller(LabellerConfig(), RATE)
+    got = _stream(labeller, truth[:295], hidden[:295])
+    result = labeller.update(np.vstack([truth[295, ~hidden[295]], ghost]), 295 / RATE)
+    assert result.point_track[-1] == -1 and np.isnan(result.positions[got[99, 0]]).all()
+    got = np.vstack([got, np.full((1, 12), -1), _stream(labeller, truth[296:], hidden[296:], start=296)])
+    assert got[300, 0] == -1, "a point on a circle of distances taken in its first frame"
+    assert (got[301:, 0] == got[99, 0]).all()
+    assert len(labeller.labels) == 12
+
+
 def test_hidden_marker_without_neighbours_is_a_new_track() -> None:
     """Control for the test above: with no rigid neighbour and no segment the lost marker cannot be found."""
     truth = _clusters(5.0)

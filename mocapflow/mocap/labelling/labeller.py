@@ -102,16 +102,23 @@ class Labeller:
             lost_pred, lost_gate = np.empty((len(lost), 2, 3)), np.empty((len(lost), 2))
         tracks.observe(cur, time)
 
-        # 3. tentative tracks on what is left; the long-lived ones become markers
-        ready, ready_rows = self._advance_tentatives(z, free[taken[free] < 0], time)
+        # 3. tentative tracks on what is left; the long-lived ones become markers, the younger ones that surely are a
+        # lost marker go back to it at once
+        at = self._advance_tentatives(z, free[taken[free] < 0], time)
         history: list[tuple[int, np.ndarray, np.ndarray]] = []
-        if len(ready):  # some point was left over, so any lost track has its hypotheses
+        if len(at):  # some point was left over, so any lost track has its hypotheses
+            ready = np.flatnonzero(self._tentative.hits >= cfg.confirm_frames)
             still = np.isnan(cur[lost, 0])
-            owners = self._owners(z[ready_rows], cur, lost[still], lost_pred[still], lost_gate[still])
+            owners = (self._owners(z[at[ready]], cur, lost[still], lost_pred[still], lost_gate[still]) if len(ready)
+                      else ready)
+            young = np.flatnonzero(self._tentative.hits < cfg.confirm_frames)
+            still[still] = ~np.isin(lost[still], owners)
+            sure = self._sure_owners(z[at[young]], self._tentative.hits[young], cur, lost[still])
+            ready, owners = np.concatenate([ready, young]), np.concatenate([owners, sure])
             cur = np.vstack([cur, np.full((len(self.labels) - n_tracks, 3), np.nan)])
             history = self._adopt(ready, owners)
-            cur[owners[owners >= 0]] = z[ready_rows[owners >= 0]]
-            taken[ready_rows[owners >= 0]] = owners[owners >= 0]
+            cur[owners[owners >= 0]] = z[at[ready[owners >= 0]]]
+            taken[at[ready[owners >= 0]]] = owners[owners >= 0]
         ray_out = None
         if rays is not None:
             rays = np.asarray(rays, dtype=float)
@@ -255,17 +262,17 @@ class Labeller:
         fits = best < 1.0
         return np.where(fits, best, 0.0).max(axis=1, initial=0.0), fits.sum(axis=1)
 
-    def _advance_tentatives(self, z: np.ndarray, free: np.ndarray, time: float) -> tuple[np.ndarray, np.ndarray]:
+    def _advance_tentatives(self, z: np.ndarray, free: np.ndarray, time: float) -> np.ndarray:
         """Carry tentative tracks on the ``free`` points of ``z`` (those no marker took) and start new ones on the rest.
 
         A tentative track missing one frame dies: a new marker must be tracked without a gap to be believed. Returns
-        the tentative tracks now old enough to confirm and their rows in ``z``.
+        the row in ``z`` of each tentative track.
         """
         cfg = self.config
         tent = self._tentative
         if len(tent.hits) == 0 or len(free) == 0:  # nothing carried on: every free point starts a tentative track
             tent.start(z[free], time, self.frame)
-            return free[:0], free[:0]
+            return free
         dt = time - tent.time
         pred = tent.pos + tent.vel * dt
         # a point seen once has no velocity yet: its first step may be as long as the fastest marker moves
@@ -290,8 +297,7 @@ class Labeller:
         tent.vel = np.concatenate([vel, tent.vel])
         tent.hits = np.concatenate([hits, tent.hits])
         tent.points = kept + tent.points
-        ready = (hits >= cfg.confirm_frames).nonzero()[0]
-        return ready, rows[ready]
+        return rows
 
     def _owners(self, z: np.ndarray, cur: np.ndarray, lost: np.ndarray, pred: np.ndarray,
                 gate: np.ndarray) -> np.ndarray:
@@ -333,6 +339,23 @@ class Labeller:
         room = len(z) if cfg.expected_markers is None else cfg.expected_markers - len(self.labels)
         for j in np.flatnonzero(owners < 0)[: max(room, 0)]:
             owners[j] = self._new_track()
+        return owners
+
+    def _sure_owners(self, z: np.ndarray, hits: np.ndarray, cur: np.ndarray, lost: np.ndarray) -> np.ndarray:
+        """The lost track each young tentative point (``hits`` frames old) surely belongs to, -1 where none: it keeps
+        its distances to three of the track's rigid partners seen now (a point in space, up to a mirror image no
+        marker of a body takes), or to two (a circle) in each of two frames, and no other point or lost track fits
+        so. That is the evidence a confirmed point needs (``_owners``), asked of a point seen in two frames or
+        pinned in one: a ghost seldom lies on a circle of distances, and hardly ever two frames running. A returning
+        marker is then labelled from its first or second frame rather than after ``confirm_frames``."""
+        owners = np.full(len(z), -1, np.intp)
+        if len(z) == 0 or len(lost) == 0:
+            return owners
+        broken, partners, _ = self._signature(lost, cur, z)
+        fits = (broken < 1.0) & (partners >= np.where(hits >= 2, 2, 3)[None])
+        fits &= (fits.sum(axis=0) == 1)[None] & (fits.sum(axis=1) == 1)[:, None]
+        li, ri = np.nonzero(fits)
+        owners[ri] = lost[li]
         return owners
 
     def _adopt(self, ready: np.ndarray, owners: np.ndarray) -> list[tuple[int, np.ndarray, np.ndarray]]:
