@@ -111,7 +111,7 @@ def test_marker_hidden_two_seconds_gets_its_track_back(segments: bool) -> None:
 
 def test_a_marker_back_beside_two_rigid_partners_is_labelled_from_its_second_frame() -> None:
     """Back with only two of its rigid partners in view (too few to place it), a marker keeps their distances, which
-    hold it to a circle: in each of two frames that is sure enough, in one it is not (a ghost on that circle for one
+    hold it to a circle: followed for two frames that is sure enough, in one it is not (a ghost on that circle for one
     frame takes nothing). Without that rule it would wait ``confirm_frames`` frames unlabelled."""
     truth = _clusters(5.0)
     hidden = np.zeros(truth.shape[:2], bool)

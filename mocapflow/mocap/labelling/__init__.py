@@ -27,9 +27,10 @@ more than one lost marker so (a mirror-symmetric segment) is left to a new track
 A placement from a rigid neighbourhood re-identifies at once; a looser one (neighbours across a joint) only takes a
 point that has lived ``confirm_frames`` frames, so that a passing ghost cannot steal the track. Points that match no
 track start tentative tracks, which become markers (or re-identify a lost one) when they live ``confirm_frames``
-frames, or go back to a lost marker sooner when its rigid partners pin them (three in one frame, two in each of two);
-the rest, short-lived ghosts, are dropped. Offline, :func:`label_sequence` also merges what streaming could
-not (the thesis's *Marker Set* merging, :func:`merge_tracks`) and drops tracks too short to be markers.
+frames, or go back to a lost marker sooner when its rigid partners pin them (three from a point's first frame, two
+from its second); the rest, short-lived ghosts, are dropped. Offline, :func:`label_sequence` also merges what
+streaming could not (the thesis's *Marker Set* merging, :func:`merge_tracks`) and drops tracks too short to be
+markers.
 
 With a skeleton of the subject (``mocapflow calibrate`` on a labelled trial), :mod:`.model` names every point with
 the skeleton's own marker names instead, by fitting its segments' marker layouts frame by frame.

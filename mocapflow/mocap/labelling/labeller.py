@@ -344,10 +344,10 @@ class Labeller:
     def _sure_owners(self, z: np.ndarray, hits: np.ndarray, cur: np.ndarray, lost: np.ndarray) -> np.ndarray:
         """The lost track each young tentative point (``hits`` frames old) surely belongs to, -1 where none: it keeps
         its distances to three of the track's rigid partners seen now (a point in space, up to a mirror image no
-        marker of a body takes), or to two (a circle) in each of two frames, and no other point or lost track fits
-        so. That is the evidence a confirmed point needs (``_owners``), asked of a point seen in two frames or
-        pinned in one: a ghost seldom lies on a circle of distances, and hardly ever two frames running. A returning
-        marker is then labelled from its first or second frame rather than after ``confirm_frames``."""
+        marker of a body takes), or to two (a circle) once it has been followed for two frames, and no other point
+        or lost track fits so. That is the evidence a confirmed point needs (``_owners``), asked of a point followed
+        for two frames, or pinned in one: a ghost seldom lies on a circle of distances, and seldom lives two frames.
+        A returning marker is then labelled from its first or second frame rather than after ``confirm_frames``."""
         owners = np.full(len(z), -1, np.intp)
         if len(z) == 0 or len(lost) == 0:
             return owners
