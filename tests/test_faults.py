@@ -361,8 +361,10 @@ def test_a_live_run_that_never_poses_a_frame_fails(tmp_path: Path, free_endpoint
 
 def test_killed_model_stages_cost_no_frame_and_a_killed_filler_one_gap(tmp_path: Path, free_endpoint: str) -> None:
     """The clusterer and the joint estimator only refresh models: killing them loses no frame of the filled stream.
-    Killing the filler loses the frames of its own restart gap, and nothing else."""
-    frames = 10 * RATE
+    Killing the filler loses the frames of its own restart gap, and nothing else. The stream runs 11 s past the last
+    kill, so that the filler is back before it ends even on a loaded machine (a node that restarts after its input
+    has ended waits for the stop)."""
+    frames = 15 * RATE
     path, prefix = graph_file(tmp_path, "mdl", free_endpoint, f"""
   tracker: {{plugin: simulator, config: {{rig: human, rate: {RATE}, seed: 3, frames: {frames}}}}}
   clusterer: {{plugin: clusterer-spectral, inputs: {{markers: tracker/markers}}}}
