@@ -27,14 +27,9 @@ import yaml
 
 from mocapflow.messages import MarkerFrame, decode, encode
 from mocapflow.runtime.plugins import load
-from mocapflow.runtime.sampling import base_stride
+from mocapflow.runtime.sampling import in_copy
 
 QUICKSTART = _common.ROOT / "deployments" / "quickstart.yaml"
-
-
-def sampled_frame(message: MarkerFrame) -> bool:
-    """Whether a frame is in its stream's sampled copy."""
-    return message.frame % base_stride(message.rate) == 0
 
 
 def main() -> None:
@@ -81,7 +76,7 @@ def main() -> None:
                 src, out, message = queue.pop(0)
                 # a node in another process with a sampled input is sent only the sampled copy's frames
                 targets = [(n, p) for n, p in links[(src, out)]
-                           if not isinstance(message, MarkerFrame) or sampled_frame(message)
+                           if not isinstance(message, MarkerFrame) or in_copy(message.frame, message.rate)
                            or n in group and src in group or nodes[n].inputs[p].queue != "sampled"]
                 crosses = [n for n, _ in targets if n not in group or src not in group]
                 if crosses and isinstance(message, MarkerFrame):  # frames that leave a process

@@ -17,6 +17,11 @@ def base_stride(rate: float | None) -> int:
     return max(1, round(rate / SAMPLED_HZ)) if rate else 1
 
 
+def in_copy(frame: int, rate: float | None) -> bool:
+    """Whether frame number ``frame`` of a stream at ``rate`` Hz is in the stream's sampled copy."""
+    return frame % base_stride(rate) == 0
+
+
 class Sampler:
     """Which frames of a stream a stage takes for about ``hz`` a second: those whose number is a multiple of a
     stride that the sampled copy's divides (so at most ``SAMPLED_HZ`` a second; every frame of a slower stream)."""

@@ -47,7 +47,7 @@ from mocapflow.runtime.node import RUN_ENV, Node
 from mocapflow.runtime.plugins import PluginNotFound, load
 from mocapflow.runtime.preview import Preview
 from mocapflow.runtime.runner import Runner
-from mocapflow.runtime.sampling import base_stride
+from mocapflow.runtime.sampling import base_stride, in_copy
 from mocapflow.runtime.security import SecurityError
 from mocapflow.runtime.session import open_client, subscribe_with_cache
 from mocapflow.runtime.signals import stop_on_signals
@@ -280,7 +280,7 @@ class Worker:
             member.publishers[port].put(payload, attachment=member.identity)
             if port in member.models:
                 member.preview_publishers[port].put(payload, attachment=member.identity)
-        if port in member.sampling and message.frame % base_stride(getattr(message, "rate", None)) == 0:
+        if port in member.sampling and in_copy(message.frame, getattr(message, "rate", None)):
             member.sampled_publishers[port].put(payload or encode(message), attachment=member.identity)
         preview = member.previews.get(port)
         if preview is not None:

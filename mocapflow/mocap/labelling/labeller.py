@@ -110,7 +110,7 @@ class Labeller:
             ready = np.flatnonzero(self._tentative.hits >= cfg.confirm_frames)
             still = np.isnan(cur[lost, 0])
             owners = (self._owners(z[at[ready]], cur, lost[still], lost_pred[still], lost_gate[still]) if len(ready)
-                      else ready)
+                      else np.empty(0, np.intp))
             young = np.flatnonzero(self._tentative.hits < cfg.confirm_frames)
             still[still] = ~np.isin(lost[still], owners)
             sure = self._sure_owners(z[at[young]], self._tentative.hits[young], cur, lost[still])
