@@ -31,8 +31,8 @@ class LabellerConfig(BaseModel):
                                "velocity; after that only its neighbours can find it again")
     max_accel_mm_s2: float = Field(10_000.0, ge=0, description="acceleration bounding how fast a coasting track's gate "
                                    "grows: gate_mm + a t^2 / 2")
-    max_speed_mm_s: float = Field(6_000.0, gt=0, description="fastest a marker moves; bounds the first step of a new "
-                                  "point, which has no velocity yet")
+    max_speed_mm_s: float = Field(20_000.0, gt=0, description="fastest a marker moves; bounds the first step of a new "
+                                  "point, which has no velocity yet (a sprinter's swinging foot passes 18 m/s)")
     velocity_smoothing: float = Field(0.7, gt=0, le=1, description="weight of the newest frame-to-frame velocity in a "
                                       "track's velocity estimate")
     confirm_frames: int = Field(5, ge=1, description="consecutive frames a new point must be tracked before it is "
