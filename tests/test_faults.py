@@ -8,6 +8,7 @@ import os
 import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -15,7 +16,7 @@ import numpy as np
 import orjson
 import pytest
 import zenoh
-from conftest import graph_file
+from conftest import CLI, graph_file
 from test_runtime import RATE, read_c3d, start, wait_for_frames, worker_pid, workers_of
 
 from mocapflow.io.framelog import scan
@@ -346,6 +347,37 @@ def test_a_killed_stage_loses_only_its_restart_gap(tmp_path: Path, free_endpoint
     assert not workers_of(prefix)
 
 
+def test_a_node_restarted_after_its_input_ended_finishes_by_itself(tmp_path: Path, free_endpoint: str) -> None:
+    """A slow sink killed once its tracker has finished comes back after that stream's end went by: it learns from
+    the launcher that its input has ended, finishes (writing what it has) and the run ends by itself."""
+    handled = tmp_path / "handled.txt"
+    path, prefix = graph_file(tmp_path, "late", free_endpoint, f"""
+  tracker: {{plugin: simulator, config: {{rig: rods, rate: {RATE}, frames: {RATE}}}}}
+  sink: {{plugin: 'slow_sink:SlowSink', inputs: {{markers: tracker/markers}},
+         config: {{path: '{handled}', delay_s: 0.05}}}}
+""")
+    tests = str(Path(__file__).resolve().parent)
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [tests, os.environ.get("PYTHONPATH")]))}
+    run = subprocess.Popen([*CLI, "run", str(path), "--duration", "60"], cwd=tmp_path, env=env,
+                           stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    finished = threading.Event()
+
+    def on_stats(sample: zenoh.Sample) -> None:
+        if orjson.loads(sample.payload.to_bytes())["state"] == "finished":
+            finished.set()
+
+    with open_client([free_endpoint]) as session, session.declare_subscriber(f"{prefix}/_stats/tracker", on_stats):
+        assert finished.wait(60), "the tracker did not finish"
+    os.kill(worker_pid(prefix, "sink"), signal.SIGKILL)  # a second of frames takes it 12 s: it is still busy
+    out, _ = run.communicate(timeout=90)
+    assert run.returncode == 0, out
+    assert "[sink] stopped (exit code -9); restart 1" in out, out
+    assert "sink: input 'markers' had ended before this process listened (tracker has finished)" in out, out
+    assert "mocapflow: stopped (all nodes finished)" in out, out
+    assert handled.read_text() == ""  # the restarted sink received no frame: they had all gone by
+    assert not workers_of(prefix)
+
+
 def test_a_live_run_that_never_poses_a_frame_fails(tmp_path: Path, free_endpoint: str) -> None:
     path, _ = graph_file(tmp_path, "nosk", free_endpoint, f"""
   tracker: {{plugin: simulator, config: {{rig: human, rate: {RATE}, frames: {2 * RATE}}}}}
@@ -361,10 +393,9 @@ def test_a_live_run_that_never_poses_a_frame_fails(tmp_path: Path, free_endpoint
 
 def test_killed_model_stages_cost_no_frame_and_a_killed_filler_one_gap(tmp_path: Path, free_endpoint: str) -> None:
     """The clusterer and the joint estimator only refresh models: killing them loses no frame of the filled stream.
-    Killing the filler loses the frames of its own restart gap, and nothing else. The stream runs 11 s past the last
-    kill, so that the filler is back before it ends even on a loaded machine (a node that restarts after its input
-    has ended waits for the stop)."""
-    frames = 15 * RATE
+    Killing the filler loses the frames of its own restart gap, and nothing else (on a machine so loaded that the
+    filler is back only after the stream has ended, the gap runs to the end, and the filler still finishes)."""
+    frames = 8 * RATE
     path, prefix = graph_file(tmp_path, "mdl", free_endpoint, f"""
   tracker: {{plugin: simulator, config: {{rig: human, rate: {RATE}, seed: 3, frames: {frames}}}}}
   clusterer: {{plugin: clusterer-spectral, inputs: {{markers: tracker/markers}}}}

@@ -52,6 +52,11 @@ def schema_key(prefix: str, type_name: str = "*") -> str:
     return f"{prefix}/_schema/{type_name}"
 
 
+def ended_key(prefix: str, node: str = "*") -> str:
+    """The launcher's answer to which nodes of its run have finished, so their streams have ended."""
+    return f"{prefix}/_ended/{node}"
+
+
 AGENTS = "mocapflow/_agents"
 CONTROL = "mocapflow-control"
 """Agents' control queryables (deploy, stop): a key space of their own, outside ``mocapflow/**``, so that an access

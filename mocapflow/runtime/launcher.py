@@ -155,6 +155,18 @@ class Launcher:
         if stats is not None and stats.node in self.specs:
             self.stats[stats.node] = stats
 
+    def _serve_ended(self, session: zenoh.Session) -> zenoh.Queryable:
+        """Answer ``{prefix}/_ended/{node}`` for each node that has finished (its last statistics say so): its output
+        streams have ended. A node that (re)starts after an end of stream went by asks here (``worker``)."""
+
+        def on_query(query: zenoh.Query) -> None:
+            for name, stats in list(self.stats.items()):
+                key = keys.ended_key(self.prefix, name)
+                if stats.state == "finished" and query.key_expr.intersects(zenoh.KeyExpr(key)):
+                    query.reply(key, b"")
+
+        return session.declare_queryable(keys.ended_key(self.prefix, "*"), on_query)
+
     def _rows(self) -> Iterator[tuple[str, str, str, str, int | None, int]]:
         """(node, plugin, machine, state, pid, restarts) in graph order."""
         for name in self.graph.nodes:
@@ -250,7 +262,7 @@ class Launcher:
             with stop_on_signals(stop, on_signal=stop_reason), \
                     session.liveliness().declare_token(keys.launcher_key(self.prefix, self.run_id)), \
                     session.declare_subscriber(keys.stats_key(self.prefix), self._on_stats), \
-                    serve_schemas(session, self.prefix), agents or nullcontext():
+                    serve_schemas(session, self.prefix), self._serve_ended(session), agents or nullcontext():
                 where = ", ".join(self.connect) if self.connect else f"embedded router on {', '.join(self.listen)}"
                 self.out.write(f"mocapflow: running {self.graph.name!r} ({len(self.specs)} nodes, {where}, "
                                f"keys {self.prefix}/...)\n")

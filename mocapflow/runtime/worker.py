@@ -57,6 +57,7 @@ EXIT_FINISH = 3
 STATS_PERIOD_S = 0.5
 PEER_WAIT_S = 20.0
 MAX_BATCH = 256
+QUIET_S = 1.0  # an input silent this long may have ended before this process listened: the launcher is asked
 
 log = logging.getLogger("mocapflow.worker")
 
@@ -150,6 +151,8 @@ class Worker:
         self.clock_origin_ns: int | None = None
         self._local: deque[tuple[Member, str, Any]] = deque()  # hand-overs inside the group, in order
         self._deferred: deque[Entry[zenoh.Sample]] = deque()  # from outside, set aside while waiting for feedback
+        self._heard = self._asked = time.monotonic()  # when something last came from outside; when ``_ask_ended`` ran
+        self._finished: deque[str] = deque()  # nodes the launcher says have finished (filled by its replies)
         self.members: dict[str, Member] = {}
         for node in spec.nodes():
             self.members[node.node] = self._member(node, classes[node.node], configs[node.node])
@@ -370,13 +373,53 @@ class Worker:
                 due = t0 + index * period if src.runner.node.paced else 0.0
             entry = self._next(0.1 if due is None else min(0.1, max(0.0, due - time.monotonic())))
             if entry is not None:
+                self._heard = time.monotonic()
                 self._external(entry)
                 self._drain()
+            elif time.monotonic() - max(self._heard, self._asked) >= QUIET_S:
+                self._ask_ended()
+            if self._finished:
+                self._end_finished()
             if src is not None and due is not None and time.monotonic() >= due and not self.stop_event.is_set():
                 if not src.runner.emit(index):
                     self._end_outputs(src)
                 index += 1
                 self._drain()
+
+    def _waiting(self) -> dict[tuple[str, str], str]:
+        """The data inputs from outside that have not ended, as (member, port), each with the node whose output it
+        is."""
+        return {(m.name, port): key.rsplit("/", 2)[-2] for m in self.members.values()
+                for port, key in m.spec.inputs.items()
+                if port not in m.internal and port not in m.runner.ended_inputs and key.count("/") >= 2
+                and not m.runner.node.inputs[port].state}
+
+    def _ask_ended(self) -> None:
+        """Ask the launcher which nodes have finished (``keys.ended_key``), for inputs whose end of stream may have
+        gone by before this process listened: it started late, or restarted after a crash. Asked after ``QUIET_S`` of
+        silence, so that nothing the upstream sent before its end is still on its way; answered on Zenoh's thread,
+        taken up by ``_end_finished``."""
+        self._asked = time.monotonic()
+        if not self._waiting():
+            return
+
+        def on_reply(reply: zenoh.Reply) -> None:
+            if reply.ok is not None:
+                self._finished.append(str(reply.ok.key_expr).rsplit("/", 1)[-1])
+
+        self.session.get(keys.ended_key(self.spec.prefix, "*"), on_reply, timeout=QUIET_S)
+
+    def _end_finished(self) -> None:
+        """End the inputs whose upstream node the launcher said has finished."""
+        finished = set()
+        while self._finished:
+            finished.add(self._finished.popleft())
+        for (name, port), upstream in self._waiting().items():
+            if upstream in finished:
+                log.info("%s: input %r had ended before this process listened (%s has finished)", name, port,
+                         upstream)
+                self._input_ended(self.members[name], port)
+        self._drain()
 
     def _drain(self) -> None:
         """Hand over, in order, everything the group's members published for one another."""
