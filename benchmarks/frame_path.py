@@ -36,7 +36,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--rate", type=float, default=1000.0, help="tracker rate (default 1000 Hz)")
     parser.add_argument("--seconds", type=float, default=14.0,
-                        help="frames of capture to run (default 14 s: the skeleton model comes after 10 s)")
+                        help="frames of capture to run (default 14 s: the skeleton model comes after 5 s)")
     args = parser.parse_args()
     graph = yaml.safe_load(QUICKSTART.read_text())["nodes"]
     graph["tracker"]["config"]["rate"] = args.rate

@@ -191,7 +191,8 @@ class NodeStats(BaseModel):
 
     node: str
     pid: int
-    state: Literal["starting", "running", "finished", "stopping"]
+    state: Literal["starting", "running", "finished", "stopping", "failed"] = Field(
+        description="'failed': its finish() failed at the end of its stream, so what it was to write is lost")
     frames_in: int = 0
     frames_out: int = 0
     rate_hz: float = 0.0

@@ -24,6 +24,8 @@ class JointsConfig(BaseModel):
     skeleton: str | None = Field(default=None, description="SKELETON.json to publish at once (no warm-up)")
     refine: bool = Field(default=True, description="estimate the skeleton again from live data")
     window_s: float = Field(default=20.0, gt=0, description="recent motion the estimate uses (s)")
+    warmup_s: float = Field(default=5.0, gt=0, description="motion seen before the first estimate (s), at most half "
+                            "the window; later ones use all the window holds")
     every_s: float = Field(default=5.0, gt=0, description="time between two estimates (s)")
     sample_hz: float = Field(default=60.0, gt=0, description="rate at which frames enter the window (Hz); every "
                              "frame of a slower stream, at most the sampled copy's (about 120 Hz) unless the input "
@@ -83,7 +85,8 @@ class VarianceJoints(Node[JointsConfig]):
         while len(self.frames) > window:
             self.frames.popleft()
         self.next_estimate -= 1
-        if self.segments is None or self.next_estimate > 0 or len(self.frames) < window // 2:
+        warmup = min(round(self.config.warmup_s * samples), window // 2)
+        if self.segments is None or self.next_estimate > 0 or len(self.frames) < warmup:
             return
         self.next_estimate = round(self.config.every_s * samples)
         index = {label: i for i, label in enumerate(self.labels)}

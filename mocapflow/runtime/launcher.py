@@ -40,7 +40,7 @@ from mocapflow.runtime.security import security_path
 from mocapflow.runtime.session import DEFAULT_ENDPOINT, open_client, open_router
 from mocapflow.runtime.signals import stop_on_signals
 from mocapflow.runtime.supervisor import Proc, Supervisor, place_on_cores
-from mocapflow.runtime.worker import EXIT_CONFIG, WorkerSpec
+from mocapflow.runtime.worker import EXIT_CONFIG, EXIT_FINISH, WorkerSpec
 
 
 def client_endpoints(listen: list[str]) -> list[str]:
@@ -172,10 +172,20 @@ class Launcher:
         for name in self.graph.nodes:
             if name in self.remote:
                 r = self.remote[name]
-                yield name, r.spec.plugin, r.machine, r.state, r.pid, r.restarts
+                yield name, r.spec.plugin, r.machine, self._state(name, r.state, r.exit_code), r.pid, r.restarts
             else:
                 p = self.procs[self.graph.process_of(name)]
-                yield name, self.graph.nodes[name].plugin, "local", p.state, p.pid, p.restarts
+                yield (name, self.graph.nodes[name].plugin, "local", self._state(name, p.state, p.exit_code), p.pid,
+                       p.restarts)
+
+    def _state(self, name: str, state: str, exit_code: int | None) -> str:
+        """A node's state: its process's, but finished for a member of a group whose process failed because another
+        member's finish() did, as the members' last statistics tell."""
+        if state != "failed" or exit_code != EXIT_FINISH:
+            return state
+        group = self.graph.groups().get(self.graph.process_of(name), [name])
+        failed = {m for m in group if m in self.stats and self.stats[m].state == "failed"}
+        return "finished" if failed and name not in failed else "failed"
 
     def summarise(self) -> dict[str, dict[str, Any]]:
         """Per node: plugin, machine, state, restarts and its last statistics, as written by ``--summary``."""
@@ -235,9 +245,7 @@ class Launcher:
     def _failed(self, final: bool = False) -> list[str]:
         """Nodes that failed for good, locally or on an agent; at the end of a run, also those whose agent was lost
         and is not back."""
-        local = {p.name for p in self.supervisor.failed()}
-        remote = {r.name for r in self.remote.values() if r.state == "failed" or (final and r.state == "lost")}
-        return [name for name in self.graph.nodes if self.graph.process_of(name) in local or name in remote]
+        return [name for name, _, _, state, _, _ in self._rows() if state == "failed" or (final and state == "lost")]
 
     def _exit_code(self, name: str) -> int | None:
         return self.remote[name].exit_code if name in self.remote else self.procs[self.graph.process_of(name)].exit_code

@@ -79,6 +79,7 @@ class Runner:
         self.name = name
         self.stats = Stats()
         self.ended = False
+        self.failed = False  # its finish() failed: what it was to write is lost
         self._send = send
         self._last_frame: dict[str, int] = {}
         self._passed: dict[str, int] = {}  # per data input: messages passed over since the last one counted in
@@ -198,5 +199,6 @@ class Runner:
             self.stats.errors += 1
             self.stats.last_error = f"finish: {exc}"
             log.error("node %s: finish failed, its output is lost: %s", self.name, exc)
+            self.failed = True
             return False
         return True

@@ -307,7 +307,8 @@ class Worker:
 
     def publish_stats(self) -> None:
         for m in self.members.values():
-            state = self.state if not m.runner.ended or self.state != "running" else "finished"
+            state = "failed" if m.runner.failed else \
+                self.state if not m.runner.ended or self.state != "running" else "finished"
             figures = self.inbox.figures({f"{m.name}/{p}" for p in m.spec.inputs})
             stats = m.runner.stats.snapshot(m.name, state, **figures)
             if m is self.source:
