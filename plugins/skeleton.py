@@ -74,4 +74,6 @@ class SkeletonPublisher(Node[SkeletonConfig]):
         not a finished node."""
         if self.frames and not self.posed:
             raise RuntimeError(f"no skeleton in {self.frames} frames: no skeleton model arrived"
-                               f"{'' if self.model is None else ' that fits these labels'}, no pose published")
+                               f"{'' if self.model is None else ' that fits these labels'}, no pose published"
+                               " (a live joint estimator needs its warmup_s of motion first; a shorter stream needs a"
+                               " calibrated skeleton, in this node's config 'skeleton')")
