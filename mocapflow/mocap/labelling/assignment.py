@@ -5,7 +5,6 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 from scipy.optimize import linear_sum_assignment
-from scipy.spatial.distance import cdist
 
 from mocapflow.mocap.labelling.config import VETO
 
@@ -133,10 +132,29 @@ def rigid_signature(points: np.ndarray, partners: np.ndarray, mean: np.ndarray, 
     circle, three to a point: this recognises a marker whose rigid body has too few markers left to fit a pose (a
     two-marker remnant), and one partner is enough to rule a point out.
     """
-    d = norm(points[:, None] - partners) if partners.ndim == 3 else cdist(points, partners)
-    error = np.abs(d[None] - mean[:, None]) / (tolerance + 3.0 * sd[:, None])
-    valid = np.isfinite(error)
-    return np.where(valid, error, 0.0).max(axis=2, initial=0.0), valid.sum(axis=2), (error > 1.0).sum(axis=2)
+    if partners.ndim == 2:
+        partners = np.broadcast_to(partners, (len(points), *partners.shape))
+    return _signature(points, partners, mean, sd, float(tolerance))
+
+
+@njit(cache=True)
+def _signature(points: np.ndarray, partners: np.ndarray, mean: np.ndarray, sd: np.ndarray,
+               tolerance: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # pragma: no cover
+    """``rigid_signature`` with one set of partners ``(B, P, 3)`` per point, compiled: the labeller asks for it
+    several times a frame."""
+    broken = np.zeros((mean.shape[0], len(points)))
+    count = np.zeros((mean.shape[0], len(points)), np.int64)
+    violated = np.zeros((mean.shape[0], len(points)), np.int64)
+    for b in range(len(points)):
+        for p in range(mean.shape[1]):
+            d = distance(points[b], partners[b, p])
+            for a in range(mean.shape[0]):
+                error = abs(d - mean[a, p]) / (tolerance + 3.0 * sd[a, p])
+                if np.isfinite(error):  # NaN: the partner is not seen, or not rigid with that marker
+                    count[a, b] += 1
+                    broken[a, b] = max(broken[a, b], error)
+                    violated[a, b] += error > 1.0
+    return broken, count, violated
 
 
 def screened(cost: np.ndarray, broken: np.ndarray, partners: np.ndarray, violated: np.ndarray) -> np.ndarray:

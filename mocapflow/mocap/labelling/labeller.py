@@ -112,10 +112,13 @@ class Labeller:
             owners = (self._owners(z[at[ready]], cur, lost[still], lost_pred[still], lost_gate[still]) if len(ready)
                       else np.empty(0, np.intp))
             young = np.flatnonzero(self._tentative.hits < cfg.confirm_frames)
-            still[still] = ~np.isin(lost[still], owners)
+            owned = np.zeros(len(self.labels), bool)
+            owned[owners[owners >= 0]] = True
+            still[still] = ~owned[lost[still]]
             sure = self._sure_owners(z[at[young]], self._tentative.hits[young], cur, lost[still])
             ready, owners = np.concatenate([ready, young]), np.concatenate([owners, sure])
-            cur = np.vstack([cur, np.full((len(self.labels) - n_tracks, 3), np.nan)])
+            if len(self.labels) > n_tracks:  # new tracks confirmed
+                cur = np.vstack([cur, np.full((len(self.labels) - n_tracks, 3), np.nan)])
             history = self._adopt(ready, owners)
             cur[owners[owners >= 0]] = z[at[ready[owners >= 0]]]
             taken[at[ready[owners >= 0]]] = owners[owners >= 0]
@@ -360,9 +363,11 @@ class Labeller:
 
     def _adopt(self, ready: np.ndarray, owners: np.ndarray) -> list[tuple[int, np.ndarray, np.ndarray]]:
         """Hand confirmed tentative tracks to their owners and return their earlier, so far unlabelled, points."""
-        history = []
+        history: list[tuple[int, np.ndarray, np.ndarray]] = []
         tent = self._tentative
         done = owners >= 0
+        if not done.any():
+            return history
         for u, track in zip(ready[done], owners[done], strict=True):
             frames = np.array([f for f, _ in tent.points[u]])
             pos = np.array([p for _, p in tent.points[u]])

@@ -93,11 +93,8 @@ class Tracks:
         """Learnt mean (NaN where the two are not one rigid body) and standard deviation of the distance between
         each of ``tracks`` and each of ``others``."""
         cfg = self.config
-        block = np.ix_(tracks, others)
-        n = self.pair_n[block]
-        sd = np.sqrt(self.pair_m2[block] / np.maximum(n - 1.0, 1.0))
-        rigid = (n >= cfg.rigid_min_s * self.rate / self.stats_every) & (sd <= cfg.rigid_sd_mm)
-        return np.where(rigid, self.pair_mean[block], np.nan), sd
+        return _rigid(self.pair_n, self.pair_mean, self.pair_m2, tracks, others,
+                      cfg.rigid_min_s * self.rate / self.stats_every, cfg.rigid_sd_mm)
 
     def observe(self, cur: np.ndarray, time: float) -> None:
         """Update the kinematic state of confirmed tracks from this frame's matches."""
@@ -175,6 +172,21 @@ class Tracks:
         the range of its distances to each neighbour."""
         _remember(seen, cur, time, self.config.pose_interval_s, self.anchors, self.poses, self.pose_count,
                   self.pose_time, self.span)
+
+
+@njit(cache=True)
+def _rigid(pair_n: np.ndarray, pair_mean: np.ndarray, pair_m2: np.ndarray, tracks: np.ndarray, others: np.ndarray,
+           least: float, most_sd: float) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover
+    """``Tracks.rigid`` on the pair statistics: rigid where seen together in ``least`` statistics samples or more
+    with a spread of ``most_sd`` or less."""
+    mean = np.empty((len(tracks), len(others)))
+    sd = np.empty((len(tracks), len(others)))
+    for i in range(len(tracks)):
+        for j in range(len(others)):
+            n = pair_n[tracks[i], others[j]]
+            sd[i, j] = np.sqrt(pair_m2[tracks[i], others[j]] / max(n - 1.0, 1.0))
+            mean[i, j] = pair_mean[tracks[i], others[j]] if n >= least and sd[i, j] <= most_sd else np.nan
+    return mean, sd
 
 
 @njit(cache=True)
