@@ -13,6 +13,9 @@ from mocapflow.mocap.labelling.config import SD_FLOOR_MM, LabellerConfig
 from mocapflow.mocap.labelling.labeller import Labeller
 from mocapflow.mocap.labelling.placement import place_marker
 
+BOUND_SLACK_MM = 20.0
+"""How far a fitted snapshot may place a marker off its learnt distance to a neighbour, beyond three spreads."""
+
 
 def merge_tracks(tracks: np.ndarray, config: LabellerConfig | None = None) -> list[list[int]]:
     """Groups of tracks ``(F, T, 3)`` that are one physical marker: the thesis's merging of *Marker Sets*, offline.
@@ -30,17 +33,10 @@ def merge_tracks(tracks: np.ndarray, config: LabellerConfig | None = None) -> li
     cfg = config or LabellerConfig()
     groups = [[i] for i in range(tracks.shape[1])]
     while groups:
-        joined = np.stack([np.fmax.reduce(tracks[:, g], axis=1) for g in groups], axis=1)
-        seen = np.isfinite(joined[..., 0])
-        overlap = seen.T.astype(np.int64) @ seen
+        state = _Round(np.stack([np.fmax.reduce(tracks[:, g], axis=1) for g in groups], axis=1), cfg)
         scored = []
-        spreads: dict[int, tuple[np.ndarray, np.ndarray]] = {}
-        for i, j in zip(*np.nonzero(np.triu(overlap == 0, 1)), strict=True):
-            for k in (i, j):
-                if k not in spreads:
-                    spreads[k] = _distance_spread(joined, seen, k, cfg.confirm_frames)
-            score = min(_set_score(joined, seen, i, j, spreads[i], cfg),
-                        _set_score(joined, seen, j, i, spreads[j], cfg))
+        for i, j in zip(*np.nonzero(np.triu(state.overlap == 0, 1)), strict=True):
+            score = min(_set_score(state, i, j, cfg), _set_score(state, j, i, cfg))
             if score < 1.0:
                 scored.append((score, i, j))
         taken: set[int] = set()
@@ -53,6 +49,27 @@ def merge_tracks(tracks: np.ndarray, config: LabellerConfig | None = None) -> li
         if not taken:
             break
     return groups
+
+
+class _Round:
+    """One round of ``merge_tracks``: the merged tracks so far and what every comparison of a pair reuses, each worked
+    out once: which frames each track is seen in (and an even sample of them), in how many frames each pair is seen
+    together, and each track's distance statistics."""
+
+    def __init__(self, tracks: np.ndarray, cfg: LabellerConfig) -> None:
+        self.tracks = tracks
+        self.seen = np.isfinite(tracks[..., 0])
+        self.overlap = self.seen.T.astype(np.int64) @ self.seen
+        self.frames = [np.flatnonzero(column) for column in self.seen.T]
+        self.sampled = [_evenly(f, cfg.poses) for f in self.frames]
+        self._least = cfg.confirm_frames
+        self._spreads: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+
+    def spread(self, i: int) -> tuple[np.ndarray, np.ndarray]:
+        """``_distance_spread`` of track ``i``."""
+        if i not in self._spreads:
+            self._spreads[i] = _distance_spread(self.tracks, self.seen, i, self._least)
+        return self._spreads[i]
 
 
 def _distance_spread(tracks: np.ndarray, seen: np.ndarray, i: int, least: int) -> tuple[np.ndarray, np.ndarray]:
@@ -68,30 +85,40 @@ def _distance_spread(tracks: np.ndarray, seen: np.ndarray, i: int, least: int) -
     return mean, sd
 
 
-def _set_score(tracks: np.ndarray, seen: np.ndarray, i: int, j: int, spread: tuple[np.ndarray, np.ndarray],
-               cfg: LabellerConfig) -> float:
+def _set_score(state: _Round, i: int, j: int, cfg: LabellerConfig) -> float:
     """How well track ``j`` fits marker ``i`` in ``j``'s frames, below 1 when it is the same marker.
 
     The median over (at most ``poses``) frames of the smaller of: the distance to where ``i``'s neighbours place it,
     in units of ``reid_gate_mm``; the worst error of its distances to ``i``'s rigid partners (two or more seen), in
     units of their tolerance (``rigid_signature``).
     """
-    fi, fj = np.flatnonzero(seen[:, i]), np.flatnonzero(seen[:, j])
-    mean, sd = spread
+    tracks, seen = state.tracks, state.seen
+    fi, b = state.frames[i], state.sampled[j]
+    mean, sd = state.spread(i)
     known = np.isfinite(sd)
     known[[i, j]] = False
-    b = _evenly(fj, cfg.poses)
     partners = np.flatnonzero(known & (sd <= cfg.rigid_sd_mm))
     broken, count, _ = rigid_signature(tracks[b, j], tracks[b][:, partners], mean[None, partners], sd[None, partners],
                                   cfg.rigid_tolerance_mm)
     signature = np.where(count[0] >= 2, broken[0], np.inf)
     score = np.where(known, sd + 0.02 * mean, np.inf)
-    score[~(sd <= cfg.neighbour_sd_mm) | (seen[fj].sum(axis=0) < 3)] = np.inf
+    score[~(sd <= cfg.neighbour_sd_mm) | (state.overlap[j] < 3)] = np.inf
     nb = np.argsort(score)[: cfg.neighbours]
     nb = nb[np.isfinite(score[nb])]
     placed = np.full(len(b), np.inf)
     a = _evenly(fi[seen[fi][:, nb].sum(axis=1) >= 3], cfg.poses)
     if len(nb) >= 3 and len(a):
+        # First a bound that needs no fit: in a frame where a snapshot shares three neighbours with it (so the marker
+        # can be placed), the placed marker keeps nearly its learnt distances to three or more of them, so it lies at
+        # least as far from track j as j's third best distance is from those. Most pairs are told apart by that alone.
+        off = np.abs(norm(tracks[b, j, None] - tracks[b][:, nb]) - mean[nb]) - 3.0 * sd[nb] - BOUND_SLACK_MM
+        third = np.sort(np.where(np.isfinite(off), off, np.inf), axis=1)[:, 2]
+        shared = seen[b][:, nb].astype(np.int64) @ seen[a][:, nb].T.astype(np.int64)
+        bound = np.where(shared.max(axis=1) >= 3, np.maximum(third, 0.0) / cfg.reid_gate_mm, np.inf)
+        lower = np.minimum(bound, signature)
+        lower = lower[np.isfinite(lower)]
+        if len(lower) and _median(lower) >= 2.0:
+            return _median(lower)
         poses = np.concatenate([tracks[a, i, None], tracks[a][:, nb]], axis=1)
         trust = np.broadcast_to(1.0 / (sd[nb] ** 2 + SD_FLOOR_MM**2), (len(b), len(nb)))
         place, _, _ = place_marker(np.broadcast_to(poses, (len(b), *poses.shape)), tracks[b][:, nb], trust,
@@ -100,7 +127,7 @@ def _set_score(tracks: np.ndarray, seen: np.ndarray, i: int, j: int, spread: tup
         placed = np.where(np.isfinite(err), err, np.inf)
     best = np.minimum(placed, signature)
     best = best[np.isfinite(best)]
-    return float(np.median(best)) if len(best) else np.inf
+    return _median(best) if len(best) else np.inf
 
 
 def _explained(tracks: np.ndarray, seen: np.ndarray, k: int, rigid_sd: float) -> bool:
@@ -119,6 +146,12 @@ def _rigid_sd(tracks: np.ndarray, seen: np.ndarray, markers: np.ndarray, cfg: La
     for row, k in enumerate(markers):
         spread[row] = _distance_spread(tracks, seen, k, cfg.confirm_frames)[1][markers]
     return max(cfg.rigid_sd_mm, 3.0 * noise_floor(spread)) if len(markers) > 1 else cfg.rigid_sd_mm
+
+
+def _median(values: np.ndarray) -> float:
+    """The median of a short array of numbers, as ``np.median`` gives it at a fraction of its cost."""
+    ordered = np.sort(values)
+    return float((ordered[(len(ordered) - 1) // 2] + ordered[len(ordered) // 2]) / 2)
 
 
 def _evenly(frames: np.ndarray, count: int) -> np.ndarray:
