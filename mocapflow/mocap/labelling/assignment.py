@@ -133,8 +133,11 @@ def rigid_signature(points: np.ndarray, partners: np.ndarray, mean: np.ndarray, 
     two-marker remnant), and one partner is enough to rule a point out.
     """
     if partners.ndim == 2:
-        partners = np.broadcast_to(partners, (len(points), *partners.shape))
-    return _signature(points, partners, mean, sd, float(tolerance))
+        partners = np.repeat(partners[None], len(points), axis=0)
+    # one layout of every array, so that one compiled form serves every caller (``compiled.compile_all`` makes it)
+    c = np.ascontiguousarray
+    return _signature(c(points, dtype=np.float64), c(partners, dtype=np.float64), c(mean, dtype=np.float64),
+                      c(sd, dtype=np.float64), float(tolerance))
 
 
 @njit(cache=True)

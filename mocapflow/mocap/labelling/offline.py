@@ -90,7 +90,8 @@ def _set_score(state: _Round, i: int, j: int, cfg: LabellerConfig) -> float:
 
     The median over (at most ``poses``) frames of the smaller of: the distance to where ``i``'s neighbours place it,
     in units of ``reid_gate_mm``; the worst error of its distances to ``i``'s rigid partners (two or more seen), in
-    units of their tolerance (``rigid_signature``).
+    units of their tolerance (``rigid_signature``). Where a bound on that distance from ``j``'s distances to the
+    neighbours alone already puts the median at 2 or more, the bound is returned and nothing is fitted.
     """
     tracks, seen = state.tracks, state.seen
     fi, b = state.frames[i], state.sampled[j]
