@@ -31,9 +31,10 @@ class Reporter:
             self.label, self.start, self.last = label, now, now - self.every_s
         if now - self.last >= self.every_s or done == total:
             self.last = now
-            rate = done / max(now - self.start, 1e-9)
+            elapsed = now - self.start
+            rate = f" {done / elapsed:,.0f}/s" if elapsed >= 0.1 else ""  # none yet on a loop's first step
             pct = 100.0 * done / total if total else 100.0
-            sys.stderr.write(f"\r{label}: {done}/{total} ({pct:5.1f} %) {rate:,.0f}/s")
+            sys.stderr.write(f"\r{label}: {done}/{total} ({pct:5.1f} %){rate}")
             if done == total:
                 sys.stderr.write("\n")
             sys.stderr.flush()

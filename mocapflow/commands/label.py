@@ -49,7 +49,7 @@ def _config(args: argparse.Namespace) -> LabellerConfig:
 def run(args: argparse.Namespace) -> int:
     from mocapflow.io.markers import MarkerData, write_markers
     from mocapflow.mocap.labelling import label_sequence
-    from mocapflow.progress import progress
+    from mocapflow.progress import Reporter, progress
     from mocapflow.runtime.kernels import compile_kernels
 
     config = _config(args)
@@ -69,7 +69,7 @@ def run(args: argparse.Namespace) -> int:
         except ValueError as exc:
             raise MocapflowError(f"{args.skeleton}: {exc}") from None
     else:
-        tracks, labels = label_sequence(progress(points, len(points), "label"), data.rate, config)
+        tracks, labels = label_sequence(progress(points, len(points), "label"), data.rate, config, Reporter())
     if not labels:
         raise MocapflowError(f"{args.input}: no point lived long enough to be a marker (see --confirm)")
     write_markers(out, MarkerData(positions=tracks, labels=labels, rate=data.rate, first_frame=data.first_frame))

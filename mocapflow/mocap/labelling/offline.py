@@ -12,12 +12,14 @@ from mocapflow.mocap.labelling.assignment import norm, rigid_signature
 from mocapflow.mocap.labelling.config import SD_FLOOR_MM, LabellerConfig
 from mocapflow.mocap.labelling.labeller import Labeller
 from mocapflow.mocap.labelling.placement import place_marker
+from mocapflow.mocap.report import Progress, steps
 
 BOUND_SLACK_MM = 20.0
 """How far a fitted snapshot may place a marker off its learnt distance to a neighbour, beyond three spreads."""
 
 
-def merge_tracks(tracks: np.ndarray, config: LabellerConfig | None = None) -> list[list[int]]:
+def merge_tracks(tracks: np.ndarray, config: LabellerConfig | None = None,
+                 progress: Progress | None = None) -> list[list[int]]:
     """Groups of tracks ``(F, T, 3)`` that are one physical marker: the thesis's merging of *Marker Sets*, offline.
 
     Online re-identification needs a lost track's neighbours to be known and seen when its marker comes back; a
@@ -28,14 +30,17 @@ def merge_tracks(tracks: np.ndarray, config: LabellerConfig | None = None) -> li
     partners; the median over frames decides (not the thesis's minimum, so that one coincidence cannot merge two
     markers). Pairs are merged greedily, best first, never joining tracks seen in the same frame, and the comparison
     is repeated on the merged tracks until nothing changes: merging the fragments of one marker gives its neighbours'
-    fragments the partners they lacked.
+    fragments the partners they lacked. ``progress`` is told of the pairs compared in each round.
     """
     cfg = config or LabellerConfig()
     groups = [[i] for i in range(tracks.shape[1])]
+    rounds = 0
     while groups:
+        rounds += 1
         state = _Round(np.stack([np.fmax.reduce(tracks[:, g], axis=1) for g in groups], axis=1), cfg)
         scored = []
-        for i, j in zip(*np.nonzero(np.triu(state.overlap == 0, 1)), strict=True):
+        pairs = np.argwhere(np.triu(state.overlap == 0, 1))
+        for i, j in steps(pairs.tolist(), len(pairs), f"merge, round {rounds} ({len(groups)} tracks)", progress):
             score = min(_set_score(state, i, j, cfg), _set_score(state, j, i, cfg))
             if score < 1.0:
                 scored.append((score, i, j))
@@ -162,14 +167,15 @@ def _evenly(frames: np.ndarray, count: int) -> np.ndarray:
     return frames[np.linspace(0, len(frames) - 1, count).round().astype(int)]
 
 
-def label_sequence(frames: Iterable[np.ndarray], rate: float,
-                   config: LabellerConfig | None = None) -> tuple[np.ndarray, list[str]]:
+def label_sequence(frames: Iterable[np.ndarray], rate: float, config: LabellerConfig | None = None,
+                   progress: Progress | None = None) -> tuple[np.ndarray, list[str]]:
     """Label a whole recording of point clouds: ``(F, T, 3)`` trajectories of the ``T`` markers found, and labels.
 
     Knowing the whole recording allows more than streaming: points a track collected while still tentative are
     filled in, tracks of one marker are merged (:func:`merge_tracks`), and tracks seen for less than ``min_track_s``
     in all are dropped unless rigid partners explain them (``_explained``, at this recording's rigidity:
-    ``_rigid_sd``). Markers are labelled ``M001``... in order of first appearance.
+    ``_rigid_sd``). Markers are labelled ``M001``... in order of first appearance. ``progress`` is told how the
+    merging goes (its cost grows with the square of the number of tracks).
     """
     cfg = config or LabellerConfig()
     labeller = Labeller(cfg, rate)
@@ -184,7 +190,8 @@ def label_sequence(frames: Iterable[np.ndarray], rate: float,
         tracks[i, : len(row)] = row
     for track, idx, pos in late:
         tracks[idx, track] = pos
-    merged = [np.fmax.reduce(tracks[:, group], axis=1) for group in merge_tracks(tracks, cfg)]  # never share a frame
+    # the tracks of a group never share a frame
+    merged = [np.fmax.reduce(tracks[:, group], axis=1) for group in merge_tracks(tracks, cfg, progress)]
     joined = np.stack(merged, axis=1) if merged else np.full((len(rows), 0, 3), np.nan)
     seen = np.isfinite(joined[..., 0])
     long = seen.sum(axis=0) >= cfg.min_track_s * rate
