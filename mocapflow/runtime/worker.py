@@ -389,11 +389,9 @@ class Worker:
 
     def _waiting(self) -> dict[tuple[str, str], str]:
         """The data inputs from outside that have not ended, as (member, port), each with the node whose output it
-        is."""
-        return {(m.name, port): key.rsplit("/", 2)[-2] for m in self.members.values()
-                for port, key in m.spec.inputs.items()
-                if port not in m.internal and port not in m.runner.ended_inputs and key.count("/") >= 2
-                and not m.runner.node.inputs[port].state}
+        is (its guard's upstream)."""
+        return {(m.name, port): guard.upstream for m in self.members.values() for port, guard in m.guards.items()
+                if port not in m.internal and port not in m.runner.ended_inputs}
 
     def _ask_ended(self) -> None:
         """Ask the launcher which nodes have finished (``keys.ended_key``), for inputs whose end of stream may have
