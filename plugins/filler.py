@@ -9,7 +9,7 @@ from mocapflow.io.skeleton import read_skeleton
 from mocapflow.messages import MarkerFrame, Skeleton
 from mocapflow.mocap.compiled import compile_all
 from mocapflow.mocap.filling import FillerConfig, GapFiller
-from mocapflow.mocap.flags import FillCase
+from mocapflow.mocap.filling.config import CASE_KALMAN, CASE_MISSING
 from mocapflow.mocap.markerset import added
 from mocapflow.mocap.model import SkeletonModel
 from mocapflow.runtime.node import Input, Node, Output
@@ -63,7 +63,7 @@ class Filler(Node[FillerNodeConfig]):
         self.publish("markers", MarkerFrame.derive(message, positions=result.positions, labels=message.labels,
                                                    flags=result.flags))
         predicted = self.filler.predict_next()
-        alone = (result.flags == FillCase.MISSING) | (result.flags == FillCase.KALMAN)
+        alone = (result.flags == CASE_MISSING) | (result.flags == CASE_KALMAN)
         predicted[alone] = np.nan  # a filter coasting alone knows no more than the labeller's own coast
         self.publish("predictions", MarkerFrame.derive(message, frame=message.frame + 1, positions=predicted,
                                                        labels=message.labels))

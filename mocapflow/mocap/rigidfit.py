@@ -1,14 +1,15 @@
 """Rigid fits: the rotation and translation that best map one set of points onto another (Aristidou 2008, 4.3).
 
 One module for every way the project fits a rigid body, all the same least-squares rotation as scipy's
-``Rotation.align_vectors`` (Kabsch):
+``Rotation.align_vectors`` (Kabsch), found one way: the eigenvector of the largest eigenvalue of Horn's 4x4 quaternion
+matrix (Aristidou 4.3, Horn 1987), by a compiled Jacobi iteration (a couple of microseconds, half the cost of an SVD
+of the 3x3 cross-covariance through LAPACK):
 
-- ``rotor``: from the eigenvector of Horn's 4x4 quaternion matrix (Aristidou 4.3, Horn 1987), for thousands of
-  frames in one batched ``eigh`` call; ``fit_pose`` builds on it: a segment's pose ``world = R @ local + t`` in every
-  frame from whichever of its markers are visible, either free (centroid alignment) or pivoting about a known point
-  such as the joint with its parent.
-- ``kabsch`` / ``RigidFit``: an SVD of each point set's cross-covariance, compiled, for a batch of point sets,
-  ``RigidFit`` keeping the local points and weights for a caller fitting the same sets to many frames.
+- ``rotor``: for a batch of vector sets already relative to their centre of rotation; ``fit_pose`` builds on it: a
+  segment's pose ``world = R @ local + t`` in every frame from whichever of its markers are visible, either free
+  (centroid alignment) or pivoting about a known point such as the joint with its parent.
+- ``kabsch`` / ``RigidFit``: weighted point sets aligned at their centroids, for a batch of point sets, ``RigidFit``
+  keeping the local points and weights for a caller fitting the same sets to many frames.
 - ``fit_one``: the same for a single point set (one frame's segment in the occlusion filler).
 """
 
@@ -69,9 +70,9 @@ def finite(v: np.ndarray) -> bool:  # pragma: no cover
 
 @njit(cache=True)
 def _horn(x: np.ndarray, y: np.ndarray, w: np.ndarray, q: np.ndarray) -> float:  # pragma: no cover
-    """Horn's rotation of one point set into ``q`` (scalar-last): the eigenvector of the largest eigenvalue of his
-    symmetric 4x4 matrix N, built from S = sum w x y^T (Schoenauer 3.7.4). Rows of zero weight are not read. Returns
-    the relative gap between the two largest eigenvalues (0 where N is 0)."""
+    """Horn's rotation of one point set into ``q`` (scalar-last), from S = sum w x y^T (Schoenauer 3.7.4; rows of
+    zero weight are not read). Returns the relative gap between the two largest eigenvalues of his matrix N (0 where
+    N is 0)."""
     xx = xy = xz = yx = yy = yz = zx = zy = zz = 0.0
     for i in range(len(x)):
         if w[i] > 0:
@@ -79,6 +80,19 @@ def _horn(x: np.ndarray, y: np.ndarray, w: np.ndarray, q: np.ndarray) -> float: 
             xx, xy, xz = xx + a0 * y[i, 0], xy + a0 * y[i, 1], xz + a0 * y[i, 2]
             yx, yy, yz = yx + a1 * y[i, 0], yy + a1 * y[i, 1], yz + a1 * y[i, 2]
             zx, zy, zz = zx + a2 * y[i, 0], zy + a2 * y[i, 1], zz + a2 * y[i, 2]
+    values = np.empty(4)
+    _quaternion(xx, xy, xz, yx, yy, yz, zx, zy, zz, q, values)
+    return (values[0] - values[1]) / max(values[3], 1e-300)
+
+
+@njit(cache=True)
+def _quaternion(xx: float, xy: float, xz: float, yx: float, yy: float, yz: float, zx: float, zy: float, zz: float,
+                q: np.ndarray, values: np.ndarray) -> None:  # pragma: no cover
+    """The eigenvector of the largest eigenvalue of Horn's symmetric 4x4 matrix N built from S (entries ``xx`` ..
+    ``zz``), as a scalar-last quaternion into ``q``; into ``values`` the largest eigenvalue, the second, and the
+    largest magnitude of any. The eigenvalues of N are the sums of S's singular values with signs (Horn 1987): the
+    largest is s1 + s2 + s3, the second s1 - s2 - s3, the third -s1 + s2 - s3 (s3 negative where det S is), so the
+    first and third give the second singular value."""
     n = np.array([[xx + yy + zz, yz - zy, zx - xz, xy - yx],
                   [yz - zy, xx - yy - zz, xy + yx, zx + xz],
                   [zx - xz, xy + yx, -xx + yy - zz, yz + zy],
@@ -93,17 +107,20 @@ def _horn(x: np.ndarray, y: np.ndarray, w: np.ndarray, q: np.ndarray) -> float: 
             first, second = i, first
         elif n[i, i] > n[second, second]:
             second = i
-    q[0], q[1], q[2], q[3] = vectors[1, first], vectors[2, first], vectors[3, first], vectors[0, first]
-    scale = 0.0
+    q[0], q[1], q[2], q[3] = vectors[1, first], vectors[2, first], vectors[3, first], vectors[0, first]  # Horn's
+    scale, third = 0.0, -np.inf  # is (w, x, y, z)
     for i in range(4):
         scale = max(scale, abs(n[i, i]))
-    return (n[first, first] - n[second, second]) / max(scale, 1e-300)  # Horn's is (w, x, y, z)
+        if i != first and i != second:
+            third = max(third, n[i, i])
+    values[0], values[1], values[2], values[3] = n[first, first], n[second, second], third, scale
 
 
 @njit(cache=True)
 def _jacobi(a: np.ndarray, v: np.ndarray) -> None:  # pragma: no cover
     """In place, the cyclic Jacobi method on a symmetric 4x4 ``a``: its diagonal becomes the eigenvalues and ``v``'s
-    columns their unit eigenvectors (accurate to rounding, and a few hundred operations: no LAPACK call)."""
+    columns their unit eigenvectors (accurate to rounding, and a few hundred operations: no LAPACK call). Each
+    rotation updates only the entries it changes, keeping ``a`` symmetric."""
     v[:] = 0.0
     scale = 0.0
     for i in range(4):
@@ -119,18 +136,21 @@ def _jacobi(a: np.ndarray, v: np.ndarray) -> None:  # pragma: no cover
             return
         for p in range(3):
             for q in range(p + 1, 4):
-                if a[p, q] == 0.0:
+                apq = a[p, q]
+                if apq == 0.0:
                     continue
-                theta = (a[q, q] - a[p, p]) / (2.0 * a[p, q])
+                theta = (a[q, q] - a[p, p]) / (2.0 * apq)
                 t = (1.0 if theta >= 0 else -1.0) / (abs(theta) + np.sqrt(theta * theta + 1.0))
                 c = 1.0 / np.sqrt(t * t + 1.0)
                 s = t * c
-                for k in range(4):
-                    kp, kq = a[k, p], a[k, q]
-                    a[k, p], a[k, q] = c * kp - s * kq, s * kp + c * kq
-                for k in range(4):
-                    pk, qk = a[p, k], a[q, k]
-                    a[p, k], a[q, k] = c * pk - s * qk, s * pk + c * qk
+                a[p, p] -= t * apq
+                a[q, q] += t * apq
+                a[p, q] = a[q, p] = 0.0
+                for r in range(4):
+                    if r != p and r != q:
+                        arp, arq = a[r, p], a[r, q]
+                        a[r, p] = a[p, r] = c * arp - s * arq
+                        a[r, q] = a[q, r] = s * arp + c * arq
                 for k in range(4):
                     kp, kq = v[k, p], v[k, q]
                     v[k, p], v[k, q] = c * kp - s * kq, s * kp + c * kq
@@ -140,9 +160,9 @@ def kabsch(local: np.ndarray, world: np.ndarray, weight: np.ndarray) -> tuple[np
     """Weighted least-squares rigid transforms ``world ~ R @ local + t`` for a batch of point sets.
 
     ``local``/``world`` (B, M, 3), ``weight`` (B, M) with zero for absent points (whose coordinates are not read).
-    Each set's 3x3 cross-covariance is decomposed (SVD) in compiled code: this runs every frame of the occlusion
-    filler. Returns R (B, 3, 3), t (B, 3) and ``ok`` (B,): False where the points do not fix a rotation (fewer than
-    three, or collinear).
+    Each set's rotation is Horn's, from its 3x3 cross-covariance, in compiled code: this runs every frame of the
+    occlusion filler. Returns R (B, 3, 3), t (B, 3) and ``ok`` (B,): False where the points do not fix a rotation
+    (fewer than three, or collinear).
     """
     return RigidFit(local, weight)(world)
 
@@ -185,8 +205,9 @@ def _kabsch_batch(local: np.ndarray, world: np.ndarray, weight: np.ndarray
 def _kabsch_one(local: np.ndarray, world: np.ndarray, w: np.ndarray, r: np.ndarray,
                 t: np.ndarray) -> bool:  # pragma: no cover
     """The least-squares ``world ~ r @ local + t`` for points (M, 3) with normalised weights ``w`` (zero for points
-    to leave out, whose coordinates may be anything, NaN too), into ``r`` and ``t``; False where the points do not fix
-    a rotation (the cross-covariance's second singular value below 1e-6 of its first)."""
+    to leave out, whose coordinates may be anything, NaN too), into ``r`` and ``t``: Horn's rotation of the
+    cross-covariance (``_quaternion``); False where the points do not fix a rotation (the cross-covariance's second
+    singular value below 1e-6 of its first)."""
     cl, cw = np.zeros(3), np.zeros(3)
     for m in range(len(w)):
         if w[m] == 0.0:
@@ -204,17 +225,14 @@ def _kabsch_one(local: np.ndarray, world: np.ndarray, w: np.ndarray, r: np.ndarr
     if not np.isfinite(h).all():
         r[:], t[:] = np.nan, np.nan
         return False
-    u, s, vt = np.linalg.svd(h)
-    for a in range(3):
-        for b in range(3):
-            r[a, b] = vt[0, a] * u[b, 0] + vt[1, a] * u[b, 1] + vt[2, a] * u[b, 2]  # V U^T
-    if det3(r) < 0:  # a reflection: V diag(1, 1, -1) U^T
-        for a in range(3):
-            for b in range(3):
-                r[a, b] -= 2.0 * vt[2, a] * u[b, 2]
+    q, values = np.empty(4), np.empty(4)
+    _quaternion(h[0, 0], h[0, 1], h[0, 2], h[1, 0], h[1, 1], h[1, 2], h[2, 0], h[2, 1], h[2, 2], q, values)
+    if not _matrix(q, r):
+        r[:], t[:] = np.nan, np.nan
+        return False
     for a in range(3):
         t[a] = cw[a] - (r[a, 0] * cl[0] + r[a, 1] * cl[1] + r[a, 2] * cl[2])
-    return s[1] > 1e-6 * s[0]
+    return values[0] + values[2] > 1e-6 * (values[0] + values[1])
 
 
 @dataclass
