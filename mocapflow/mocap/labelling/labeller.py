@@ -8,7 +8,6 @@ from numba import njit
 from scipy.spatial.distance import cdist
 
 from mocapflow.mocap.labelling.assignment import (
-    assign,
     distance,
     gated_cost,
     gated_cost_compiled,
@@ -277,30 +276,20 @@ class Labeller:
             tent.start(z[free], time, self.frame)
             return free
         dt = time - tent.time
-        pred = tent.pos + tent.vel * dt
+        zf = z[free]
         # a point seen once has no velocity yet: its first step may be as long as the fastest marker moves
-        gate = cfg.gate_mm + np.where(tent.hits == 1, cfg.max_speed_mm_s * dt, 0.0)
-        ui, pi = assign(pred, gate, z[free])
-        zu = z[free[pi]]
-        measured = (zu - tent.pos[ui]) / dt
-        smooth = tent.vel[ui] + cfg.velocity_smoothing * (measured - tent.vel[ui])
-        vel = np.where((tent.hits[ui] >= 2)[:, None], smooth, measured)
+        ui, pi = match(_tentative_costs(tent.pos, tent.vel, tent.hits, zf, dt, cfg.gate_mm, cfg.max_speed_mm_s * dt))
         kept = [tent.points[u] for u in ui]
-        for points, p in zip(kept, zu, strict=True):
+        for points, p in zip(kept, zf[pi], strict=True):
             points.append((self.frame, p))
             if len(points) > self.rate:  # only a tentative track held back by expected_markers grows this long
                 del points[0]
-        hits = tent.hits[ui] + 1
-        unclaimed = np.ones(len(free), bool)
-        unclaimed[pi] = False
-        fresh = free[unclaimed]
-        tent.start(z[fresh], time, self.frame)  # new tracks on the unclaimed points, after the carried ones:
-        rows = np.concatenate([free[pi], fresh])
-        tent.pos = z[rows]
-        tent.vel = np.concatenate([vel, tent.vel])
-        tent.hits = np.concatenate([hits, tent.hits])
-        tent.points = kept + tent.points
-        return rows
+        # the carried tracks, then new ones on the unclaimed points
+        tent.pos, tent.vel, tent.hits, order = _carry(tent.pos, tent.vel, tent.hits, zf, ui, pi, dt,
+                                                      cfg.velocity_smoothing)
+        tent.points = kept + [[(self.frame, p)] for p in tent.pos[len(ui):]]
+        tent.time = time
+        return free[order]
 
     def _owners(self, z: np.ndarray, cur: np.ndarray, lost: np.ndarray, pred: np.ndarray,
                 gate: np.ndarray) -> np.ndarray:
@@ -399,6 +388,49 @@ def _followed(pos: np.ndarray, vel: np.ndarray, last: np.ndarray, streak: np.nda
         for c in range(3):
             pred[i, 0, c] = pos[t, c] + vel[t, c] * (time - last[t])
     return live, gated_cost_compiled(pred, np.full((len(live), 1), gate), points)
+
+
+@njit(cache=True)
+def _tentative_costs(pos: np.ndarray, vel: np.ndarray, hits: np.ndarray, points: np.ndarray, dt: float, gate: float,
+                     first_step: float) -> np.ndarray:  # pragma: no cover
+    """The gated costs (``gated_cost``) of ``points`` for tentative tracks predicted ``dt`` on at constant velocity,
+    the gate of a track seen once widened by ``first_step``."""
+    pred = np.empty((len(pos), 1, 3))
+    gates = np.empty((len(pos), 1))
+    for i in range(len(pos)):
+        for c in range(3):
+            pred[i, 0, c] = pos[i, c] + vel[i, c] * dt
+        gates[i, 0] = gate + (first_step if hits[i] == 1 else 0.0)
+    return gated_cost_compiled(pred, gates, points)
+
+
+@njit(cache=True)
+def _carry(pos: np.ndarray, vel: np.ndarray, hits: np.ndarray, points: np.ndarray, ui: np.ndarray, pi: np.ndarray,
+           dt: float, smoothing: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:  # pragma: no cover
+    """Tentative tracks ``ui`` carried on to ``points[pi]`` (velocity measured over ``dt``, smoothed from their third
+    frame), then new ones on the points left: positions, velocities, frames seen, and the row in ``points`` of each."""
+    claimed = np.zeros(len(points), np.bool_)
+    for p in pi:
+        claimed[p] = True
+    order = np.empty(len(points), np.intp)
+    order[:len(pi)] = pi
+    k = len(pi)
+    for p in range(len(points)):
+        if not claimed[p]:
+            order[k] = p
+            k += 1
+    new_pos = np.empty((len(points), 3))
+    new_vel = np.zeros((len(points), 3))
+    new_hits = np.ones(len(points), np.int64)
+    for k in range(len(points)):
+        new_pos[k] = points[order[k]]
+    for k in range(len(ui)):
+        u = ui[k]
+        for c in range(3):
+            measured = (points[pi[k], c] - pos[u, c]) / dt
+            new_vel[k, c] = vel[u, c] + smoothing * (measured - vel[u, c]) if hits[u] >= 2 else measured
+        new_hits[k] = hits[u] + 1
+    return new_pos, new_vel, new_hits, order
 
 
 @njit(cache=True)
