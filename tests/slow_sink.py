@@ -1,8 +1,9 @@
 """A test node that handles frames slowly, or only some of them, and writes the frame numbers it handled, to watch
-inbox policies and sampling."""
+inbox policies and sampling; and what its process's garbage collector watches."""
 
 from __future__ import annotations
 
+import gc
 import time
 from pathlib import Path
 
@@ -19,8 +20,9 @@ class SlowSinkConfig(BaseModel):
 
 
 class SlowSink(Node[SlowSinkConfig]):
-    """Sleeps ``delay_s`` per frame it wants; writes the handled frame numbers, one a line, when the stream ends, and
-    their capture times (ns) to ``path`` + ``.capture``."""
+    """Sleeps ``delay_s`` per frame it wants; writes the handled frame numbers, one a line, when the stream ends, their
+    capture times (ns) to ``path`` + ``.capture``, and to ``path`` + ``.gc`` the objects its process's garbage collector
+    has frozen and those it still tracks."""
 
     Config = SlowSinkConfig
     inputs = {"markers": Input(MarkerFrame)}
@@ -42,3 +44,4 @@ class SlowSink(Node[SlowSinkConfig]):
     def finish(self) -> None:
         Path(self.config.path).write_text("".join(f"{f}\n" for f in self.frames))
         Path(self.config.path + ".capture").write_text("".join(f"{t}\n" for t in self.captures))
+        Path(self.config.path + ".gc").write_text(f"{gc.get_freeze_count()} {len(gc.get_objects())}\n")

@@ -125,6 +125,17 @@ def test_latest_drops_only_what_it_says(tmp_path: Path, free_endpoint: str) -> N
 
 
 @pytest.mark.integration
+def test_a_node_process_keeps_what_its_setup_made_out_of_the_collectors_full_passes(tmp_path: Path,
+                                                                                     free_endpoint: str) -> None:
+    """The interpreter's, the libraries' and the nodes' objects are frozen before the stream starts: a full pass of
+    the garbage collector, which would stop the frame loop for tens of milliseconds, sees only what the stream made."""
+    _run_slow_sink(tmp_path, free_endpoint, 100, "queue: {markers: all}", config="delay_s: 0")
+    frozen, tracked = (int(n) for n in (tmp_path / "handled.txt.gc").read_text().split())
+    assert frozen > 10_000, frozen  # numpy, pydantic, zenoh and the node: tens of thousands of objects
+    assert tracked < frozen / 10, (frozen, tracked)
+
+
+@pytest.mark.integration
 def test_a_full_inbox_drops_and_counts(tmp_path: Path, free_endpoint: str) -> None:
     frames = 200
     handled, stats = _run_slow_sink(tmp_path, free_endpoint, frames, "queue_size: 10")
