@@ -7,7 +7,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from mocapflow.mocap.cor import SequentialCoR, joint_track
-from mocapflow.mocap.rigidfit import fit_pose, quaternion_matrices, rotor
+from mocapflow.mocap.rigidfit import fit_pose, kabsch, quaternion_matrices, rotor
 
 
 def _two_segments(frames: int = 600, hinge: bool = False, noise: float = 0.5, seed: int = 0) -> dict:
@@ -44,6 +44,31 @@ def test_rotor_matches_scipy_align_vectors_frame_by_frame() -> None:
         expected, _ = Rotation.align_vectors(y[f], x[f])
         assert (Rotation.from_quat(quats[f]) * expected.inv()).magnitude() < 1e-9
     assert (gap > 0.05).all()
+
+
+def test_kabsch_matches_scipy_align_vectors_on_weighted_flat_and_mirrored_sets() -> None:
+    """The centroid fit (Horn's rotation of the cross-covariance) is scipy's least-squares rotation, whatever the
+    weights, for nearly flat point sets, and for mirror images (the best proper rotation, never the reflection); and it
+    says so where the points fix no rotation."""
+    rng = np.random.default_rng(4)
+    for k in range(300):
+        m = int(rng.integers(3, 8))
+        local = rng.normal(size=(m, 3)) * rng.uniform(1.0, 300.0)
+        if k % 5 == 0:
+            local[:, 2] *= 1e-3  # nearly flat
+        weight = rng.uniform(0.1, 1.0, m)
+        world = Rotation.random(rng=k).apply(local) + rng.normal(size=(m, 3)) * rng.uniform(0.0, 5.0) + 500.0
+        if k % 7 == 0:
+            world = -world  # a mirror image
+        r, t, ok = kabsch(local[None], world[None], weight[None])
+        centred = [x - np.average(x, axis=0, weights=weight) for x in (local, world)]
+        expected, _ = Rotation.align_vectors(centred[1], centred[0], weights=weight)
+        assert ok[0]
+        np.testing.assert_allclose(r[0], expected.as_matrix(), atol=1e-9)
+        np.testing.assert_allclose(np.average(local, axis=0, weights=weight) @ r[0].T + t[0],
+                                   np.average(world, axis=0, weights=weight), atol=1e-6)  # centroid on centroid
+    line = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [2.0, 0.0, 0.0]])
+    assert not kabsch(line[None], line[None] + 5.0, np.ones((1, 3)))[2][0]  # collinear points fix no rotation
 
 
 def test_rotor_ignores_missing_rows_and_flags_two_point_sets() -> None:

@@ -89,10 +89,10 @@ def _horn(x: np.ndarray, y: np.ndarray, w: np.ndarray, q: np.ndarray) -> float: 
 def _quaternion(xx: float, xy: float, xz: float, yx: float, yy: float, yz: float, zx: float, zy: float, zz: float,
                 q: np.ndarray, values: np.ndarray) -> None:  # pragma: no cover
     """The eigenvector of the largest eigenvalue of Horn's symmetric 4x4 matrix N built from S (entries ``xx`` ..
-    ``zz``), as a scalar-last quaternion into ``q``; into ``values`` the largest eigenvalue, the second, and the
-    largest magnitude of any. The eigenvalues of N are the sums of S's singular values with signs (Horn 1987): the
-    largest is s1 + s2 + s3, the second s1 - s2 - s3, the third -s1 + s2 - s3 (s3 negative where det S is), so the
-    first and third give the second singular value."""
+    ``zz``), as a scalar-last quaternion into ``q`` (Horn's is (w, x, y, z)); into ``values`` the three largest
+    eigenvalues, in order, and the largest magnitude of any. The eigenvalues of N are sums of S's singular values with
+    signs (Horn 1987): the largest is s1 + s2 + s3, the second s1 - s2 - s3, the third -s1 + s2 - s3 (s3 taken
+    negative where det S is), so the first two give the first singular value, the first and third the second."""
     n = np.array([[xx + yy + zz, yz - zy, zx - xz, xy - yx],
                   [yz - zy, xx - yy - zz, xy + yx, zx + xz],
                   [zx - xz, xy + yx, -xx + yy - zz, yz + zy],
@@ -107,8 +107,8 @@ def _quaternion(xx: float, xy: float, xz: float, yx: float, yy: float, yz: float
             first, second = i, first
         elif n[i, i] > n[second, second]:
             second = i
-    q[0], q[1], q[2], q[3] = vectors[1, first], vectors[2, first], vectors[3, first], vectors[0, first]  # Horn's
-    scale, third = 0.0, -np.inf  # is (w, x, y, z)
+    q[0], q[1], q[2], q[3] = vectors[1, first], vectors[2, first], vectors[3, first], vectors[0, first]
+    scale, third = 0.0, -np.inf
     for i in range(4):
         scale = max(scale, abs(n[i, i]))
         if i != first and i != second:
