@@ -217,7 +217,7 @@ def run_pipeline(args: argparse.Namespace) -> int:
 
 
 def run(args: argparse.Namespace) -> int:
-    gc.freeze()  # as the nodes do (runtime.worker): no full pass of the collector delays the callbacks that time
+    gc.freeze()  # as the nodes do (runtime.worker): no full pass of the collector delays the timing callbacks
     if args.pipeline:
         args.seconds = args.seconds or 20.0
         return run_pipeline(args)
