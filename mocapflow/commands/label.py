@@ -65,7 +65,7 @@ def run(args: argparse.Namespace) -> int:
 
         skeleton = read_skeleton(args.skeleton)
         try:
-            tracks, labels = label_with_skeleton(progress(points, len(points), "label"), data.rate, skeleton)
+            tracks, labels = label_with_skeleton(points, data.rate, skeleton, report=Reporter())
         except ValueError as exc:
             raise MocapflowError(f"{args.skeleton}: {exc}") from None
     else:

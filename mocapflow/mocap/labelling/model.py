@@ -7,8 +7,9 @@ whatever the point order and however long a marker was hidden:
 1. markers seen in the previous frame follow their points (constant-velocity prediction, gated optimal assignment);
 2. each segment's pose is fitted, surest first: to three or more of its matched markers (one batched fit for all
    such segments), else to its markers and the centres of its joints to surely posed segments (a segment reduced to
-   two markers, or one, is posed through its joints), else to two points and, with a tiny weight, its own pose of
-   the previous frame (which only settles the turn about their line). A marker far from where the fit puts it gives
+   two markers, or one, is posed through its joints), else to two points and, with a tiny weight, its pose of the
+   previous frame, carried by a neighbour's motion where it has a posture to it (which only settles the turn about
+   their line). A marker far from where the fit puts it gives
    its point back (a swap, a ghost), and so do all of a segment's markers when the fit puts a joint centre far from
    where its neighbour does;
 3. the markers of posed segments not matched yet are predicted from the pose, and the points left over are
@@ -19,7 +20,8 @@ whatever the point order and however long a marker was hidden:
 4. a segment with no pose (the first frame, or after its markers and its neighbours' were hidden) is searched for
    among the points left over, and its own markers matched so far, by its layout (``_place_layout``): points at the
    layout's distances and its joint centres where its posed neighbours put them, placed by a proper rotation, taken
-   when one placement fits clearly best.
+   when one placement fits clearly best, or, among placements of a symmetric layout that fit alike, turns the
+   segment clearly least from its last posture to its neighbours.
 
 Steps 2-4 repeat while they pose new segments, so a segment found in step 4 poses its neighbours through their
 joints. Points that fit no marker (ghosts, markers the skeleton does not know) stay unnamed. The method, its workflow
@@ -28,7 +30,7 @@ and its accuracy under stress: docs/labelling.md.
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from itertools import combinations
 
@@ -37,19 +39,24 @@ from scipy.spatial.distance import cdist
 
 from mocapflow.mocap.labelling.assignment import assign, gated_cost, match, norm
 from mocapflow.mocap.model import SkeletonModel
+from mocapflow.mocap.report import Progress, steps
 from mocapflow.mocap.rigidfit import fit_one, kabsch
 
 PRIOR_WEIGHT = 1e-3
 """Weight of a segment's previous pose in its fit, against 1 for each marker or joint centre seen now."""
 JOINT_WEIGHT = 0.1
 """Weight of a joint centre in a segment's fit: a joint is less sure than a marker."""
+POSTURE_DEG = 30.0
+"""How much farther than the best one (degrees) from the segment's last posture a rival placement must turn it."""
 
 
 @dataclass
 class ModelLabellerConfig:
     """Tolerances of the model-based labeller (mm, s)."""
 
-    gate_mm: float = 20.0  # largest distance from a marker's prediction to the point it takes
+    follow_mm: float = 40.0  # largest distance from where a marker seen in the previous frame is expected (at
+    # constant velocity) to the point it follows: a foot or a hand at 10 m/s strays 20 mm from it at 120 Hz
+    gate_mm: float = 30.0  # largest distance from a marker's place in its segment's pose to the point it takes
     fit_mm: float = 10.0  # largest distance between a fitted layout and a point it keeps
     spread_sigmas: float = 3.0  # a marker known to stray (its calibration spread) has fit_mm widened to this many
     # times its spread, and gate_mm by as much; its weight in the fits falls as the square of that widening
@@ -122,6 +129,8 @@ class ModelLabeller:
         self._level = np.full(len(self.segments), 3)
         self._last_seen = np.full((len(self.segments), 3), np.nan)  # where each segment was last posed
         self._last_time = np.full(len(self.segments), -np.inf)
+        # each segment's rotation relative to each neighbour, when both were last surely posed: its posture there
+        self._posture: dict[tuple[int, int], np.ndarray] = {}
         self._time = -np.inf
 
     def update(self, points: np.ndarray, time: float) -> tuple[np.ndarray, np.ndarray]:
@@ -142,7 +151,7 @@ class ModelLabeller:
         # 1. markers seen in the previous frame follow their points
         live = np.flatnonzero(self.streak > 0)
         dt = time - self.last[live]
-        ti, pi = assign(self.pos[live] + self.vel[live] * dt[:, None], np.full(len(live), cfg.gate_mm), z)
+        ti, pi = assign(self.pos[live] + self.vel[live] * dt[:, None], np.full(len(live), cfg.follow_mm), z)
         cur[live[ti]], taken[pi] = z[pi], live[ti]
         poses: list[tuple[np.ndarray, np.ndarray] | None] = [None] * len(self.segments)
         searched: dict[int, int] = {}
@@ -158,6 +167,10 @@ class ModelLabeller:
         for s, pose in enumerate(poses):
             if pose is not None and self._level[s] < 2:
                 self._last_seen[s], self._last_time[s] = pose[1], time
+                for other, _, _ in self.segments[s].joints:
+                    there = poses[other]
+                    if there is not None and self._level[other] < 2:
+                        self._posture[s, other] = there[0].T @ pose[0]
         point_marker = np.full(len(pts), -1, np.intp)
         point_marker[rows] = taken
         return cur, point_marker
@@ -238,21 +251,35 @@ class ModelLabeller:
                     weight.append(np.array([JOINT_WEIGHT]))
             count = sum(len(w) for w in weight)
             before = self.pose[s]
+            if before is not None:  # carried by its neighbour where it has a posture to it
+                before = self._carried(s, seg, poses) or before
             if count < 2 or (count < 3 and (level < 2 or before is None)):
                 return None
             if before is not None:
                 local.append(seg.local)
                 world.append(seg.local @ before[0].T + before[1])
                 weight.append(np.full(len(seg.local), PRIOR_WEIGHT))
+        else:
+            before = None
         fitted = fit_one(np.concatenate(local), np.concatenate(world), np.concatenate(weight))
         if fitted is None:
             return None
         rot, shift = fitted
-        joints = len(local) - 1 - (n_seen < 3 and self.pose[s] is not None)
+        joints = len(local) - 1 - (n_seen < 3 and before is not None)
         if n_seen >= 3 or joints <= 0:
             return rot, shift, 0.0
         here, there = np.concatenate(local[1:1 + joints]), np.concatenate(world[1:1 + joints])
         return rot, shift, float(np.linalg.norm(here @ rot.T + shift - there, axis=1).max())
+
+    def _carried(self, s: int, seg: _Segment, poses: list) -> tuple[np.ndarray, np.ndarray] | None:
+        """Segment ``s``'s pose if it kept its last posture to a surely posed neighbour, hinged at their joint: the
+        neighbour carries it as the limb moves. None when no such neighbour has a posture known."""
+        for other, here, there in seg.joints:
+            if poses[other] is not None and self._level[other] < 2 and (s, other) in self._posture:
+                rot_o, shift_o = poses[other]
+                rot = rot_o @ self._posture[s, other]
+                return rot, rot_o @ there + shift_o - rot @ here
+        return None
 
     def _take_predicted(self, poses: list, cur: np.ndarray, taken: np.ndarray, z: np.ndarray, time: float) -> None:
         """Give the points left over to the unmatched markers predicted by their segment's pose, or, for a segment
@@ -312,8 +339,11 @@ class ModelLabeller:
         for s, seg in enumerate(self.segments):
             if poses[s] is not None:
                 continue
-            anchors = [(here, poses[other][0] @ there + poses[other][1]) for other, here, there in seg.joints
-                       if poses[other] is not None and self._level[other] < 2]
+            sure = [(other, here, there) for other, here, there in seg.joints
+                    if poses[other] is not None and self._level[other] < 2]
+            anchors = [(here, poses[other][0] @ there + poses[other][1]) for other, here, there in sure]
+            posture = [poses[other][0] @ self._posture[s, other] for other, _, _ in sure
+                       if (s, other) in self._posture and self._time - self._last_time[s] <= cfg.recent_s]
             if searched.get(s, -1) >= len(anchors):
                 continue
             searched[s] = len(anchors)
@@ -323,7 +353,8 @@ class ModelLabeller:
                 continue
             dt = self._time - self._last_time[s]
             around = (self._last_seen[s], 100.0 + cfg.max_speed_mm_s * dt) if dt <= cfg.recent_s else None
-            best = _place_layout(seg.local, z[free], seg.tol, self._weight[seg.markers], anchors, cfg.joint_mm, around)
+            best = _place_layout(seg.local, z[free], seg.tol, self._weight[seg.markers], anchors, cfg.joint_mm, around,
+                                 posture)
             if best is None:
                 continue
             hits, rot, shift = best
@@ -352,7 +383,7 @@ class ModelLabeller:
 
 def _place_layout(layout: np.ndarray, cloud: np.ndarray, tol: np.ndarray, weight: np.ndarray,
                   anchors: list[tuple[np.ndarray, np.ndarray]], joint_tol: float,
-                  around: tuple[np.ndarray, float] | None = None,
+                  around: tuple[np.ndarray, float] | None = None, posture: list[np.ndarray] | None = None,
                   ) -> tuple[dict[int, int], np.ndarray, np.ndarray] | None:
     """The placement of a segment's layout ``(n, 3)`` on ``cloud`` that fits clearly better than any other (more
     points, or a third of the misfit): the points it lands on by layout row, its rotation and translation; None when
@@ -364,6 +395,12 @@ def _place_layout(layout: np.ndarray, cloud: np.ndarray, tol: np.ndarray, weight
     four or more: any three points form a triangle that also fits the mirror-image segment of the other side of the
     body, whose own markers may be the ones hidden now; three are enough when the segment's centre must lie ``around``
     (centre, radius) where it was lately.
+
+    Placements that fit equally well (a symmetric layout: two markers at the same distances from the third and from
+    the joint, each hidden in turn) are told apart by ``posture``: the rotations the segment would have if it kept,
+    to each anchoring neighbour, the relative rotation it last had. The placement turned least from them is taken
+    when every rival is turned at least ``POSTURE_DEG`` more; a joint does not flip a segment over between two
+    sightings.
     """
     found: dict[frozenset, tuple[int, float, dict[int, int], np.ndarray, np.ndarray]] = {}
     local_a = np.array([here for here, _ in anchors]).reshape(-1, 3)
@@ -399,9 +436,20 @@ def _place_layout(layout: np.ndarray, cloud: np.ndarray, tol: np.ndarray, weight
         return None
     ranked = sorted(found.values(), key=lambda f: (-f[0], f[1]))
     top = ranked[0]
-    if len(ranked) > 1 and ranked[1][0] == top[0] and ranked[1][1] < 3.0 * top[1] + 1.0:
-        return None
+    rivals = [f for f in ranked if f[0] == top[0] and f[1] < 3.0 * top[1] + 1.0]
+    if len(rivals) > 1:
+        if not posture:
+            return None
+        turn = sorted((np.mean([_angle(f[3], expected) for expected in posture]), i) for i, f in enumerate(rivals))
+        if turn[1][0] - turn[0][0] < POSTURE_DEG:
+            return None
+        top = rivals[turn[0][1]]
     return top[2], top[3], top[4]
+
+
+def _angle(rot: np.ndarray, other: np.ndarray) -> float:
+    """The angle between two rotations, in degrees."""
+    return float(np.degrees(np.arccos(np.clip((np.trace(rot.T @ other) - 1.0) / 2.0, -1.0, 1.0))))
 
 
 def _triples(layout: np.ndarray, cloud: np.ndarray, d_cloud: np.ndarray, d_anchor: np.ndarray, d_local: np.ndarray,
@@ -435,11 +483,41 @@ def _triples(layout: np.ndarray, cloud: np.ndarray, d_cloud: np.ndarray, d_ancho
                 yield (a, b, c), (int(i), int(j), int(k))
 
 
-def label_with_skeleton(frames: Iterable[np.ndarray], rate: float, skeleton: SkeletonModel,
-                        config: ModelLabellerConfig | None = None) -> tuple[np.ndarray, list[str]]:
+def label_with_skeleton(frames: Sequence[np.ndarray] | np.ndarray, rate: float, skeleton: SkeletonModel,
+                        config: ModelLabellerConfig | None = None,
+                        report: Progress | None = None) -> tuple[np.ndarray, list[str]]:
     """Label a whole recording of point clouds with a skeleton's marker names: ``(F, N, 3)`` trajectories of its
-    ``N`` markers (NaN where not found) and their names."""
-    labeller = ModelLabeller(skeleton, rate, config)
-    rows = [labeller.update(points, i / rate)[0] for i, points in enumerate(frames)]
-    out = np.stack(rows) if rows else np.full((0, len(labeller.labels), 3), np.nan)
-    return out, list(labeller.labels)
+    ``N`` markers (NaN where not found) and their names.
+
+    The recording is labelled twice, forward and backward in time. A marker that comes back while its segment has no
+    pose (a foot whose mates and shank are hidden) is left unnamed by the forward pass until the segment is found,
+    and named by the backward pass, which met the segment posed first. The forward pass's names stand; the backward
+    pass names a point the forward pass left unnamed with a name the forward pass gave no point of that frame.
+    ``report`` is told each pass's progress.
+    """
+    forward = ModelLabeller(skeleton, rate, config)
+    backward = ModelLabeller(skeleton, rate, config)
+    n = len(frames)
+    ahead = [forward.update(points, i / rate)[1] for i, points in enumerate(steps(frames, n, "label forward", report))]
+    behind = [backward.update(frames[i], (n - 1 - i) / rate)[1]
+              for i in steps(range(n - 1, -1, -1), n, "label backward", report)][::-1]
+    out = np.full((n, len(forward.labels), 3), np.nan)
+    for f, (one, other) in enumerate(zip(ahead, behind, strict=True)):
+        at = _merged(one, other, len(forward.labels))
+        found = at >= 0
+        out[f, found] = np.asarray(frames[f], dtype=float).reshape(-1, 3)[at[found]]
+    return out, list(forward.labels)
+
+
+def _merged(one: np.ndarray, other: np.ndarray, markers: int) -> np.ndarray:
+    """The row of each of ``markers`` markers (-1 for none) from two passes' marker of each row (-1 for none): the
+    row the first pass gives it, else the row the second gives it if the first named that row nothing."""
+    at = []
+    for name in (one, other):
+        rows = np.flatnonzero(name >= 0)
+        place = np.full(markers, -1, np.intp)
+        place[name[rows]] = rows
+        at.append(place)
+    a, b = at
+    keep_b = (a < 0) & (b >= 0) & (one[np.maximum(b, 0)] < 0)
+    return np.where(keep_b, b, a)
