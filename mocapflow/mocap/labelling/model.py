@@ -113,7 +113,9 @@ class ModelLabeller:
         self._layouts = np.zeros((len(self.segments), width, 3))
         n = len(self.labels)
         self._tol = np.full(n, self.config.fit_mm)  # per marker: see _Segment.tol
+        self._segment_of = np.empty(n, np.intp)  # per marker: its segment
         for s, one in enumerate(self.segments):
+            self._segment_of[one.markers] = s
             self._slots[s, : len(one.markers)] = one.markers
             self._layouts[s, : len(one.markers)] = one.local
             self._tol[one.markers] = one.tol
@@ -184,8 +186,10 @@ class ModelLabeller:
             progress = True
             while progress:
                 progress = False
+                # markers matched per segment: only a segment's own fit changes its count
+                count = np.bincount(self._segment_of[np.isfinite(cur[:, 0])], minlength=len(self.segments))
                 for s, seg in enumerate(self.segments):
-                    if poses[s] is not None:
+                    if poses[s] is not None or count[s] < (3 if level == 0 else 1):
                         continue
                     fitted = self._fit(s, seg, poses, cur, level)
                     if fitted is None:
@@ -237,12 +241,12 @@ class ModelLabeller:
         far the fit puts the farthest joint centre from where its neighbour does."""
         seen = np.isfinite(cur[seg.markers, 0])
         n_seen = int(seen.sum())
+        if n_seen == 0 or (n_seen < 3 and level == 0):
+            return None
         local = [seg.local[seen]]
         world = [cur[seg.markers[seen]]]
         weight = [self._weight[seg.markers[seen]]]
         if n_seen < 3:
-            if level == 0 or n_seen == 0:
-                return None
             for other, here, there in seg.joints:
                 if poses[other] is not None and self._level[other] < 2:
                     rot, shift = poses[other]
@@ -298,16 +302,20 @@ class ModelLabeller:
         pred = np.full((len(missing), 3), np.nan)
         gate = np.full(len(missing), cfg.gate_mm)
         allowed = np.ones((len(missing), len(free)), bool)
-        for s, seg in enumerate(self.segments):
+        owner = self._segment_of[missing]
+        for s in np.unique(owner).tolist():
             if poses[s] is None:
                 continue
+            seg = self.segments[s]
             rot, shift = poses[s]
-            slot = np.flatnonzero(np.isin(missing, seg.markers))
-            rows = np.searchsorted(seg.markers, missing[slot])
+            slot = np.flatnonzero(owner == s)
+            rows = missing[slot] - seg.markers[0]
             pred[slot] = seg.local[rows] @ rot.T + shift
             gate[slot] += seg.tol[rows] - cfg.fit_mm
             if self._level[s] > 0:
                 gate[slot] = cfg.weak_gate_mm
+                if not (cdist(pred[slot], z[free]) < cfg.weak_gate_mm).any():
+                    continue  # no point to take: what could be is not worked out
                 seen = np.flatnonzero(np.isfinite(cur[seg.markers, 0]))
                 sure = [(h, poses[o][0] @ t + poses[o][1]) for o, h, t in seg.joints
                         if poses[o] is not None and self._level[o] < 2]
@@ -347,7 +355,8 @@ class ModelLabeller:
             if searched.get(s, -1) >= len(anchors):
                 continue
             searched[s] = len(anchors)
-            own = np.isin(taken, seg.markers)  # its markers matched so far (too few to pose it) may move
+            own = (taken >= 0) & (self._segment_of[taken] == s)  # its markers matched so far (too few to pose it)
+            # may move
             free = np.flatnonzero((taken < 0) | own)
             if not len(free):
                 continue
