@@ -144,3 +144,49 @@ def test_label_command_with_a_skeleton(tmp_path: Path, capsys: pytest.CaptureFix
     assert main(["label", str(source), "-o", str(target), "--skeleton", str(tmp_path / "absent.json")]) == 2
     (tmp_path / "bad.json").write_text("{}")
     assert main(["label", str(source), "-o", str(target), "--skeleton", str(tmp_path / "bad.json")]) == 2
+
+
+@pytest.mark.integration
+def test_the_skeleton_labeller_node_names_a_live_stream_as_the_streaming_labeller_does(
+        tmp_path: Path, free_endpoint: str) -> None:
+    """A simulated tracker's unlabelled stream, with gaps and ghosts, through the `labeller-skeleton` node over real
+    Zenoh: the recording holds the skeleton's own names, and every frame equals what ``ModelLabeller`` gives offline
+    on the same points. A skeleton file that is not one fails the run with a one-line reason."""
+    from conftest import graph_file, run_cli
+
+    from mocapflow.io.markers import read_markers
+    from mocapflow.io.skeleton import write_skeleton
+
+    calibration = simulate(SimulatorConfig(rig="human", rate=RATE, noise_mm=0.5, seed=3), 720)
+    skeleton = calibrate(calibration.positions, calibration.labels, RATE)
+    skeleton_path = tmp_path / "subject.json"
+    write_skeleton(skeleton_path, skeleton)
+    frames = 4 * int(RATE)
+    tracker = {"rig": "human", "rate": RATE, "seed": 7, "noise_mm": 0.5, "unlabelled": True, "ghosts": 1,
+               "dropout_rate": 0.2, "long_gaps": 0.5}
+    path, _ = graph_file(tmp_path, "named", free_endpoint, f"""
+  tracker: {{plugin: simulator, config: {{{', '.join(f'{k}: {v}' for k, v in tracker.items())}, frames: {frames}}}}}
+  labeller: {{plugin: labeller-skeleton, inputs: {{markers: tracker/markers}}, config: {{skeleton: {skeleton_path}}}}}
+  recorder: {{plugin: recorder, inputs: {{markers: labeller/markers}}, config: {{path: {tmp_path / 'named.c3d'}}}}}
+""")
+    done = run_cli("run", path, "--duration", "60")
+    assert done.returncode == 0, done.stdout + done.stderr
+    live = read_markers(tmp_path / "named.c3d")
+    sim = Simulator(SimulatorConfig(**tracker))  # type: ignore[arg-type]
+    labeller = ModelLabeller(skeleton, RATE)
+    assert live.labels == labeller.labels and len(live.positions) == frames
+    column = np.array([labeller.labels.index(label) for label in sim.rig.marker_labels])
+    right = total = 0
+    for f in range(frames):
+        frame = sim.frame(f)
+        points = frame.points.astype(np.float32).astype(np.float64)  # as the wire carries them
+        named, _ = labeller.update(points, f / RATE)
+        np.testing.assert_array_equal(live.positions[f], named.astype(np.float32))
+        real = np.flatnonzero(frame.identity >= 0)
+        total += len(real)
+        right += int((named[column[frame.identity[real]]] == points[real]).all(axis=1).sum())
+    print(f"\n{right}/{total} true points named right live ({100 * right / total:.2f} %)")
+    assert right >= 0.95 * total
+    skeleton_path.write_text("{}")
+    failed = run_cli("run", path, "--duration", "60")
+    assert failed.returncode != 0 and "subject.json: not a skeleton file" in failed.stdout + failed.stderr

@@ -35,6 +35,7 @@ from dataclasses import dataclass
 from itertools import combinations
 
 import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
 from scipy.spatial.distance import cdist
 
 from mocapflow.mocap.labelling.assignment import assign, gated_cost, match, norm
@@ -50,22 +51,30 @@ POSTURE_DEG = 30.0
 """How much farther than the best one (degrees) from the segment's last posture a rival placement must turn it."""
 
 
-@dataclass
-class ModelLabellerConfig:
-    """Tolerances of the model-based labeller (mm, s)."""
+class ModelLabellerConfig(BaseModel):
+    """Tolerances of the labeller that names points from a skeleton (mm, s)."""
 
-    follow_mm: float = 40.0  # largest distance from where a marker seen in the previous frame is expected (at
-    # constant velocity) to the point it follows: a foot or a hand at 10 m/s strays 20 mm from it at 120 Hz
-    gate_mm: float = 30.0  # largest distance from a marker's place in its segment's pose to the point it takes
-    fit_mm: float = 10.0  # largest distance between a fitted layout and a point it keeps
-    spread_sigmas: float = 3.0  # a marker known to stray (its calibration spread) has fit_mm widened to this many
-    # times its spread, and gate_mm by as much; its weight in the fits falls as the square of that widening
-    weak_gate_mm: float = 150.0  # the same for a segment posed through joints or its previous pose
-    joint_mm: float = 40.0  # largest distance between a joint centre placed by each of its two segments
-    max_coast_s: float = 0.1  # a marker whose segment has no pose is coasted at constant velocity this long
-    recent_s: float = 2.0  # a segment posed this recently is looked for near where it was (see _place_layout)
-    max_speed_mm_s: float = 3000.0  # fastest a segment moves, bounding where to look for it
-    velocity_smoothing: float = 0.7
+    model_config = ConfigDict(extra="forbid")
+
+    follow_mm: float = Field(40.0, gt=0, description="largest distance from where a marker seen in the previous frame "
+                             "is expected (at constant velocity) to the point it follows: a foot or a hand at 10 m/s "
+                             "strays 20 mm from it at 120 Hz")
+    gate_mm: float = Field(30.0, gt=0, description="largest distance from a marker's place in its segment's pose to "
+                           "the point it takes")
+    fit_mm: float = Field(10.0, gt=0, description="largest distance between a fitted layout and a point it keeps")
+    spread_sigmas: float = Field(3.0, ge=0, description="a marker known to stray (its calibration spread) has fit_mm "
+                                 "widened to this many times its spread, and gate_mm by as much; its weight in the "
+                                 "fits falls as the square of that widening")
+    weak_gate_mm: float = Field(150.0, gt=0, description="gate_mm for a segment posed through joints or its previous "
+                                "pose")
+    joint_mm: float = Field(40.0, gt=0, description="largest distance between a joint centre placed by each of its "
+                            "two segments")
+    max_coast_s: float = Field(0.1, ge=0, description="a marker whose segment has no pose is coasted at constant "
+                               "velocity this long")
+    recent_s: float = Field(2.0, ge=0, description="a segment posed this recently is looked for near where it was")
+    max_speed_mm_s: float = Field(3000.0, gt=0, description="fastest a segment moves, bounding where to look for it")
+    velocity_smoothing: float = Field(0.7, gt=0, le=1, description="weight of the newest velocity in a marker's "
+                                      "smoothed velocity")
 
 
 @dataclass
@@ -134,6 +143,11 @@ class ModelLabeller:
         # each segment's rotation relative to each neighbour, when both were last surely posed: its posture there
         self._posture: dict[tuple[int, int], np.ndarray] = {}
         self._time = -np.inf
+
+    @property
+    def time(self) -> float:
+        """Capture time of the last frame named (s; -inf before the first)."""
+        return self._time
 
     def update(self, points: np.ndarray, time: float) -> tuple[np.ndarray, np.ndarray]:
         """Name one frame of points ``(M, 3)`` (NaN rows ignored) captured at ``time`` seconds (increasing).
