@@ -515,3 +515,25 @@ def test_older_skeleton_files_still_read(tmp_path: Path) -> None:
     (tmp_path / "old.json").write_text(json.dumps(old))
     joint = read_skeleton(tmp_path / "old.json").joints[0]
     assert joint.located is None and joint.uncertainty_mm is None and joint.motion_sd_deg is None
+
+
+@pytest.mark.integration
+def test_calibrating_fragmented_labels_of_a_harsh_capture_gives_a_skeleton() -> None:
+    """The offline labels of a simulated quadruped hidden a third of the time in 0.2-2 s gaps, with ghosts: many
+    markers come in several fragments, and some segments are posed together in fewer than two frames. Calibration
+    gives a skeleton (such segments get no centre of rotation between them) and warns of nothing."""
+    import math
+    import warnings
+
+    from mocapflow.mocap.evaluation import unlabel
+    from mocapflow.mocap.labelling import label_sequence
+
+    rec = simulate(SimulatorConfig(rig="quadruped", rate=120, noise_mm=0.5, seed=7), 1500)
+    points, _ = unlabel(rec.positions, 120, seed=1, gaps_per_s=math.log(1.5) / 1.1, long_fraction=1.0,
+                        long_s=(0.2, 2.0), ghosts=0.2, ghost_frames=1)
+    tracks, labels = label_sequence(points, 120)
+    assert len(labels) > 1.5 * len(rec.labels)  # fragments
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        skeleton = calibrate(tracks, labels, 120)
+    assert len(skeleton.segments) >= 10 and len(skeleton.joints) == len(skeleton.segments) - 1

@@ -283,8 +283,10 @@ def closest_spreads(spread: np.ndarray, groups: Sequence[Sequence[int]]) -> np.n
 def _closest_track(positions: np.ndarray, a: Sequence[int], b: Sequence[int]) -> np.ndarray:
     """(F, 3) midpoint of the two markers, one of each segment, that are closest on average."""
     ma, mb = positions[:, list(a)], positions[:, list(b)]
-    gap = np.nanmean(np.linalg.norm(ma[:, :, None] - mb[:, None], axis=-1), axis=0)
-    i, j = np.unravel_index(np.nanargmin(gap), gap.shape)
+    d = np.linalg.norm(ma[:, :, None] - mb[:, None], axis=-1)
+    count = np.isfinite(d).sum(axis=0)  # pairs never seen together are not chosen (unless no pair ever is)
+    gap = np.where(count > 0, np.nansum(d, axis=0) / np.maximum(count, 1), np.inf)
+    i, j = np.unravel_index(np.argmin(gap), gap.shape)
     return (ma[:, i] + mb[:, j]) / 2
 
 
@@ -387,7 +389,8 @@ def _relative_motion(parent: PoseFit, child: PoseFit) -> tuple[float, np.ndarray
     principal axes (largest first), and the closed-form centre of rotation with its hinge test (none without two
     frames where both poses are known)."""
     rp, rc = parent.rotation_matrices, child.rotation_matrices
-    known = np.isfinite(rp).all((1, 2)) & np.isfinite(rc).all((1, 2))
+    known = (np.isfinite(rp).all((1, 2)) & np.isfinite(rc).all((1, 2)) & np.isfinite(parent.translations).all(1)
+             & np.isfinite(child.translations).all(1))
     if known.sum() < 2:
         return 0.0, np.zeros(3), None
     rel = Rotation.from_matrix(np.einsum("fba,fbc->fac", rp[known], rc[known]))
