@@ -14,9 +14,10 @@ wall time: a busy machine inflates them), then for the streaming labels (which l
 ``confirm_frames`` frames unlabelled) and the offline ``label_sequence`` (those frames filled in, fragments merged,
 short tracks dropped): right identity (share of true points on the track that stands for their marker), swaps,
 output tracks per true marker and the share of true points left unlabelled. Stress cases are also labelled from a
-skeleton (``label_with_skeleton``) calibrated on an undamaged trial of the same subject (the simulated rigs: another
-trial; a real capture: its first half, the second half being labelled): the share of true points named with their own
-marker's name.
+skeleton calibrated on an undamaged trial of the same subject (the simulated rigs: another trial; a real capture: its
+first half, the second half being labelled), streaming (``ModelLabeller``, as the ``labeller-skeleton`` node) and
+offline (``label_with_skeleton``, forward and backward): the share of true points named with their own marker's
+name.
 
     python benchmarks/labelling.py [--cases mild|stress|all] [--quick] [--data DIR]
 """
@@ -36,7 +37,7 @@ from scipy.spatial.distance import cdist
 from mocapflow.mocap.calibration import CalibrationError, calibrate
 from mocapflow.mocap.evaluation import LabellingScore, score_labelling, unlabel
 from mocapflow.mocap.labelling import Labeller, LabellerConfig, label_sequence
-from mocapflow.mocap.labelling.model import label_with_skeleton
+from mocapflow.mocap.labelling.model import ModelLabeller, label_with_skeleton
 from mocapflow.mocap.model import SkeletonModel
 from mocapflow.mocap.simulator import SimulatorConfig, simulate
 
@@ -131,11 +132,16 @@ def _stress(frames: int, data: Path) -> list[tuple[Case, SkeletonModel | None, l
 
 
 def _named(skeleton: SkeletonModel, points: list[np.ndarray], identity: list[np.ndarray], rate: float,
-           labels: list[str]) -> tuple[float, float, float]:
-    """Shares of true points that ``label_with_skeleton`` names with their own marker's name, with another's, and
-    not at all; and its cost per frame (us, wall time)."""
+           labels: list[str], streaming: bool = False) -> tuple[float, float, float]:
+    """Shares of true points that ``label_with_skeleton`` (or, ``streaming``, ``ModelLabeller`` frame by frame, as
+    the ``labeller-skeleton`` node runs it) names with their own marker's name, with another's, and not at all; and
+    its cost per frame (us, wall time)."""
     start = time.perf_counter()
-    named, names = label_with_skeleton(points, rate, skeleton)
+    if streaming:
+        labeller = ModelLabeller(skeleton, rate)
+        named, names = np.stack([labeller.update(p, i / rate)[0] for i, p in enumerate(points)]), labeller.labels
+    else:
+        named, names = label_with_skeleton(points, rate, skeleton)
     cost = (time.perf_counter() - start) / len(points) * 1e6
     index = np.array([labels.index(n) if n in labels else -2 for n in names])
     right = wrong = total = 0
@@ -197,10 +203,11 @@ def main() -> None:
               "per frame")
         print(f"  streaming: {_line(score_labelling(tracks, points, identity, markers))}")
         print(f"  offline:   {_line(score_labelling(offline, points, identity, markers))}", flush=True)
-        if skeleton is not None:
-            right, wrong, named_us = _named(skeleton, points, identity, rate, labels)
-            print(f"  skeleton:  {100 * right:.3f} % of true points carry their own marker's name, {100 * wrong:.3f} % "
-                  f"another's, {100 * (1 - right - wrong):.3f} % none ({named_us:.0f} us per frame)", flush=True)
+        for streaming in (True, False) if skeleton is not None else ():
+            right, wrong, named_us = _named(skeleton, points, identity, rate, labels, streaming)
+            print(f"  skeleton, {'streaming' if streaming else 'offline'}: {100 * right:.3f} % of true points carry "
+                  f"their own marker's name, {100 * wrong:.3f} % another's, {100 * (1 - right - wrong):.3f} % none "
+                  f"({named_us:.0f} us per frame)", flush=True)
 
 
 if __name__ == "__main__":
