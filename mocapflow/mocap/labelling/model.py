@@ -9,9 +9,8 @@ whatever the point order and however long a marker was hidden:
    such segments), else to its markers and the centres of its joints to surely posed segments (a segment reduced to
    two markers, or one, is posed through its joints), else to two points and, with a tiny weight, its pose of the
    previous frame, carried by a neighbour's motion where it has a posture to it (which only settles the turn about
-   their line). A marker far from where the fit puts it gives
-   its point back (a swap, a ghost), and so do all of a segment's markers when the fit puts a joint centre far from
-   where its neighbour does;
+   their line). A marker far from where the fit puts it gives its point back (a swap, a ghost), and so do all of a
+   segment's markers when the fit puts a joint centre far from where its neighbour does;
 3. the markers of posed segments not matched yet are predicted from the pose, and the points left over are
    assigned to these predictions by cost (distance, inside ``gate_mm``): a returning marker takes its own slot in
    the layout, whatever marker happens to lie near it. A segment posed through joints or its previous pose gives a
@@ -364,13 +363,11 @@ class ModelLabeller:
             sure = [(other, here, there) for other, here, there in seg.joints
                     if poses[other] is not None and self._level[other] < 2]
             anchors = [(here, poses[other][0] @ there + poses[other][1]) for other, here, there in sure]
-            posture = [poses[other][0] @ self._posture[s, other] for other, _, _ in sure
-                       if (s, other) in self._posture and self._time - self._last_time[s] <= cfg.recent_s]
+            posture = [poses[other][0] @ self._posture[s, other] for other, _, _ in sure if (s, other) in self._posture]
             if searched.get(s, -1) >= len(anchors):
                 continue
             searched[s] = len(anchors)
-            own = (taken >= 0) & (self._segment_of[taken] == s)  # its markers matched so far (too few to pose it)
-            # may move
+            own = (taken >= 0) & (self._segment_of[taken] == s)  # its markers matched so far may move
             free = np.flatnonzero((taken < 0) | own)
             if not len(free):
                 continue
