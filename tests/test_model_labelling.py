@@ -188,5 +188,9 @@ def test_the_skeleton_labeller_node_names_a_live_stream_as_the_streaming_labelle
     print(f"\n{right}/{total} true points named right live ({100 * right / total:.2f} %)")
     assert right >= 0.95 * total
     skeleton_path.write_text("{}")
-    failed = run_cli("run", path, "--duration", "60")
+    broken, _ = graph_file(tmp_path, "broken", free_endpoint, f"""
+  tracker: {{plugin: simulator, config: {{rig: human, rate: {RATE}, frames: {frames}, unlabelled: true}}}}
+  labeller: {{plugin: labeller-skeleton, inputs: {{markers: tracker/markers}}, config: {{skeleton: {skeleton_path}}}}}
+""")
+    failed = run_cli("run", broken, "--duration", "60")
     assert failed.returncode != 0 and "subject.json: not a skeleton file" in failed.stdout + failed.stderr
