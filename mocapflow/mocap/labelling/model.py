@@ -266,13 +266,12 @@ class ModelLabeller:
                     local.append(here[None])
                     world.append((rot @ there + shift)[None])
                     weight.append(np.array([JOINT_WEIGHT]))
-            count = sum(len(w) for w in weight)
+            count = n_seen + len(weight) - 1
             before = self.pose[s]
-            if before is not None:  # carried by its neighbour where it has a posture to it
-                before = self._carried(s, seg, poses) or before
             if count < 2 or (count < 3 and (level < 2 or before is None)):
                 return None
-            if before is not None:
+            if before is not None:  # carried by its neighbour where it has a posture to it
+                before = self._carried(s, seg, poses) or before
                 local.append(seg.local)
                 world.append(seg.local @ before[0].T + before[1])
                 weight.append(np.full(len(seg.local), PRIOR_WEIGHT))
@@ -285,8 +284,8 @@ class ModelLabeller:
         joints = len(local) - 1 - (n_seen < 3 and before is not None)
         if n_seen >= 3 or joints <= 0:
             return rot, shift, 0.0
-        here, there = np.concatenate(local[1:1 + joints]), np.concatenate(world[1:1 + joints])
-        return rot, shift, float(np.linalg.norm(here @ rot.T + shift - there, axis=1).max())
+        off = np.concatenate(local[1:1 + joints]) @ rot.T + shift - np.concatenate(world[1:1 + joints])
+        return rot, shift, float(np.sqrt((off * off).sum(axis=1).max()))
 
     def _carried(self, s: int, seg: _Segment, poses: list) -> tuple[np.ndarray, np.ndarray] | None:
         """Segment ``s``'s pose if it kept its last posture to a surely posed neighbour, hinged at their joint: the
