@@ -151,7 +151,8 @@ def test_the_skeleton_labeller_node_names_a_live_stream_as_the_streaming_labelle
         tmp_path: Path, free_endpoint: str) -> None:
     """A simulated tracker's unlabelled stream, with gaps and ghosts, through the `labeller-skeleton` node over real
     Zenoh: the recording holds the skeleton's own names, and every frame equals what ``ModelLabeller`` gives offline
-    on the same points. A skeleton file that is not one fails the run with a one-line reason."""
+    on the same points. A skeleton file that is not one fails the run with a one-line reason, and the recorder after
+    it, whose input can no longer end, is stopped at once rather than waited for."""
     from conftest import graph_file, run_cli
 
     from mocapflow.io.markers import read_markers
@@ -191,6 +192,8 @@ def test_the_skeleton_labeller_node_names_a_live_stream_as_the_streaming_labelle
     broken, _ = graph_file(tmp_path, "broken", free_endpoint, f"""
   tracker: {{plugin: simulator, config: {{rig: human, rate: {RATE}, frames: {frames}, unlabelled: true}}}}
   labeller: {{plugin: labeller-skeleton, inputs: {{markers: tracker/markers}}, config: {{skeleton: {skeleton_path}}}}}
+  recorder: {{plugin: recorder, inputs: {{markers: labeller/markers}}, config: {{path: {tmp_path / 'none.c3d'}}}}}
 """)
     failed = run_cli("run", broken, "--duration", "60")
     assert failed.returncode != 0 and "subject.json: not a skeleton file" in failed.stdout + failed.stderr
+    assert "[recorder] stopped without the end of its input: labeller failed" in failed.stdout

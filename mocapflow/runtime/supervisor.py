@@ -127,6 +127,24 @@ class Supervisor:
                 proc.restarts += 1
                 self.lines.put(f"[{proc.name}] stopped ({why}); restart {proc.restarts} in {delay:.1f} s")
 
+    def _cut_off(self) -> dict[str, set[str]]:
+        """The processes that failed or are restarting, and those that wait (``end_inputs``) for a stream of one,
+        directly or not: for each, the failed ones it waits for."""
+        owner = {node.node: p.name for p in self.procs.values() for node in p.spec.nodes()}
+        waits = {p.name: {owner[up] for node in p.spec.nodes() for port in node.end_inputs or []
+                          if (up := node.inputs[port].rsplit("/", 2)[-2]) in owner and owner[up] != p.name}
+                 for p in self.procs.values()}
+        cut = {p.name: {p.name} for p in self.procs.values() if p.state in ("failed", "restarting")}
+        grew = True
+        while grew:
+            grew = False
+            for name, ups in waits.items():
+                failed = set().union(*(cut[up] for up in ups if up in cut))
+                if failed and not failed <= cut.get(name, set()):
+                    cut[name] = cut.get(name, set()) | failed
+                    grew = True
+        return cut
+
     def alive(self) -> list[Proc]:
         return [p for p in self.procs.values() if p.popen is not None and p.popen.poll() is None]
 
@@ -143,17 +161,28 @@ class Supervisor:
 
     def shutdown(self, tick: Callable[[], None] = lambda: None) -> None:
         """Sources first, then let end-of-stream drain the graph, then terminate, then kill. ``tick`` runs while
-        waiting (the launcher prints logs from it)."""
+        waiting (the launcher prints logs from it).
+
+        A node that failed, or was restarting, sends no end of stream: the processes that wait for its stream, directly
+        or not, would never drain. The drain waits for the others only, and says which are stopped without it."""
         self.stopping = True
         sources = [p for p in self.procs.values() if p.source]
         self._signal(sources, signal.SIGTERM)
-        # A source that failed sent no end of stream: nothing downstream of it would drain, so do not wait for it.
-        drain = DRAIN_S if not any(p.state in ("failed", "restarting") for p in sources) else 0.0
-        for grace, sig in ((drain, signal.SIGTERM), (TERM_S, signal.SIGKILL), (TERM_S, None)):
+        told: set[str] = set()
+        for grace, sig in ((DRAIN_S, signal.SIGTERM), (TERM_S, signal.SIGKILL), (TERM_S, None)):
             deadline = time.monotonic() + grace
             while self.alive() and time.monotonic() < deadline:
                 self.poll()
                 tick()
+                if sig == signal.SIGTERM:  # the drain
+                    stuck = self._cut_off()
+                    for proc in self.alive():
+                        if proc.name in stuck and proc.name not in told:
+                            told.add(proc.name)
+                            self.lines.put(f"[{proc.name}] stopped without the end of its input: "
+                                           f"{', '.join(sorted(stuck[proc.name]))} failed")
+                    if all(p.name in stuck for p in self.alive()):
+                        break
                 time.sleep(0.05)
             if sig is not None:
                 self._signal(self.alive(), sig)
