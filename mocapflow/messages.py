@@ -28,11 +28,10 @@ from pydantic import (
 )
 from pydantic.functional_validators import BeforeValidator
 
-from mocapflow.mocap.flags import FillCase
+from mocapflow.mocap.flags import CASE_OBSERVED
 from mocapflow.mocap.model import Segment, SkeletonModel
 
 SCHEMA_PREFIX = "mocapflow/"
-_OBSERVED = int(FillCase.OBSERVED)  # compared as a plain int: numpy compares an IntEnum member several times slower
 
 
 class DecodeError(ValueError):
@@ -149,7 +148,7 @@ class MarkerFrame(Message):
         markers: flags other than 1): what a stage that learns a model from the data may use."""
         if self.flags is None:
             return self.positions
-        return np.where((self.flags == _OBSERVED)[:, None], self.positions, np.nan)
+        return np.where((self.flags == CASE_OBSERVED)[:, None], self.positions, np.nan)
 
 
 class Segments(Message):

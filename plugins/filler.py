@@ -9,7 +9,7 @@ from mocapflow.io.skeleton import read_skeleton
 from mocapflow.messages import MarkerFrame, Skeleton
 from mocapflow.mocap.compiled import compile_all
 from mocapflow.mocap.filling import FillerConfig, GapFiller
-from mocapflow.mocap.filling.config import CASE_KALMAN, CASE_MISSING
+from mocapflow.mocap.flags import CASE_KALMAN, CASE_MISSING
 from mocapflow.mocap.markerset import added
 from mocapflow.mocap.model import SkeletonModel
 from mocapflow.runtime.node import Input, Node, Output

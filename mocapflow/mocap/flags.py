@@ -24,3 +24,7 @@ class FillCase(IntEnum):
 
 SampleFlag = FillCase
 """The same enum under the name the file formats use."""
+
+# The codes as plain ints, for per-frame array comparisons: numpy compares an IntEnum member several times slower
+CASE_MISSING, CASE_OBSERVED, CASE_KALMAN = int(FillCase.MISSING), int(FillCase.OBSERVED), int(FillCase.KALMAN)
+CASE_ONE_MISSING = int(FillCase.ONE_MISSING)

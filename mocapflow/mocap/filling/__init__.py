@@ -48,11 +48,12 @@ postures (``posture``; code 9, ``FillCase.POSTURE``) by their errors on trial ga
 """
 
 
-from mocapflow.mocap.filling.config import FillCase, FillerConfig, FillResult
+from mocapflow.mocap.filling.config import FillerConfig, FillResult
 from mocapflow.mocap.filling.filter import GapFiller
 from mocapflow.mocap.filling.geometry import nearest_on_circle, project_on_rays
 from mocapflow.mocap.filling.learner import is_complete
 from mocapflow.mocap.filling.offline import FilledRecording, fill_both_ways, fill_recording, fill_sequence
+from mocapflow.mocap.flags import FillCase
 
 __all__ = ["FillCase", "FillResult", "FilledRecording", "FillerConfig", "GapFiller", "fill_both_ways", "fill_recording",
            "fill_sequence", "is_complete", "nearest_on_circle", "project_on_rays"]

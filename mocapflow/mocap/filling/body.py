@@ -9,7 +9,7 @@ from typing import NamedTuple, TypeVar
 
 import numpy as np
 
-from mocapflow.mocap.filling.config import CASE_OBSERVED
+from mocapflow.mocap.flags import CASE_OBSERVED
 from mocapflow.mocap.model import SkeletonModel
 from mocapflow.mocap.rigidfit import RigidFit
 

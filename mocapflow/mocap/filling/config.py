@@ -9,11 +9,6 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from mocapflow.mocap.flags import FillCase
-
-CASE_MISSING, CASE_OBSERVED, CASE_KALMAN = int(FillCase.MISSING), int(FillCase.OBSERVED), int(FillCase.KALMAN)
-CASE_ONE_MISSING = int(FillCase.ONE_MISSING)
-
 
 class FillerConfig(BaseModel):
     """Noise levels, constraint choices and online-learning settings of the filler."""

@@ -10,18 +10,11 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from mocapflow.mocap.filling.body import Body, joint_centres
-from mocapflow.mocap.filling.config import (
-    CASE_KALMAN,
-    CASE_MISSING,
-    CASE_OBSERVED,
-    CASE_ONE_MISSING,
-    FillCase,
-    FillerConfig,
-    FillResult,
-)
+from mocapflow.mocap.filling.config import FillerConfig, FillResult
 from mocapflow.mocap.filling.geometry import nearest_on_circle, project_on_rays, slide_on_rays, swing, unit
 from mocapflow.mocap.filling.learner import SkeletonLearner, is_complete
 from mocapflow.mocap.filling.memory import MotionMemory
+from mocapflow.mocap.flags import CASE_KALMAN, CASE_MISSING, CASE_OBSERVED, CASE_ONE_MISSING, FillCase
 from mocapflow.mocap.kalman import ConstantVelocityBank
 from mocapflow.mocap.markerset import added
 from mocapflow.mocap.model import SkeletonModel

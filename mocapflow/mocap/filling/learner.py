@@ -11,7 +11,8 @@ from scipy.sparse.csgraph import minimum_spanning_tree
 from mocapflow.mocap.clustering import SegmentTracker, segment_names
 from mocapflow.mocap.cor import SequentialCoR
 from mocapflow.mocap.filling.body import Body
-from mocapflow.mocap.filling.config import CASE_OBSERVED, FillerConfig
+from mocapflow.mocap.filling.config import FillerConfig
+from mocapflow.mocap.flags import CASE_OBSERVED
 from mocapflow.mocap.model import Joint, Segment, SkeletonModel
 from mocapflow.mocap.rigidfit import fit_one
 

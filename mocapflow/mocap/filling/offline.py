@@ -8,9 +8,10 @@ from typing import NamedTuple
 
 import numpy as np
 
-from mocapflow.mocap.filling.config import FillCase, FillerConfig
+from mocapflow.mocap.filling.config import FillerConfig
 from mocapflow.mocap.filling.filter import GapFiller
 from mocapflow.mocap.filling.posture import gaps, posture_fill
+from mocapflow.mocap.flags import FillCase
 from mocapflow.mocap.model import SkeletonModel
 from mocapflow.mocap.report import Progress, steps
 
