@@ -46,7 +46,7 @@ class SkeletonLabeller(Node[SkeletonLabellerConfig]):
                                  message.frame)
             return
         positions, _ = self.labeller.update(message.positions, time)
-        self.publish("markers", MarkerFrame.derive(message, positions=positions, labels=list(self.labeller.labels)))
+        self.publish("markers", MarkerFrame.derive(message, positions=positions, labels=self.labeller.labels))
 
     def finish(self) -> None:
         if self.late:

@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+from functools import cache
 from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import graph_file, run_cli
 
 from mocapflow.mocap.calibration import calibrate
 from mocapflow.mocap.evaluation import unlabel
@@ -14,6 +16,13 @@ from mocapflow.mocap.model import SkeletonModel
 from mocapflow.mocap.simulator import Simulator, SimulatorConfig, simulate, truth_skeleton
 
 RATE = 120.0
+
+
+@cache
+def subject() -> SkeletonModel:
+    """The simulated human's skeleton, calibrated on a trial of its own (6 s); the tests label other trials."""
+    calibration = simulate(SimulatorConfig(rig="human", rate=RATE, noise_mm=0.5, seed=3), 720)
+    return calibrate(calibration.positions, calibration.labels, RATE)
 
 
 def _named(named: np.ndarray, names: list[str], points: np.ndarray, identity: np.ndarray,
@@ -34,8 +43,7 @@ def _named(named: np.ndarray, names: list[str], points: np.ndarray, identity: np
 def test_new_trial_of_the_same_subject_is_named_from_its_skeleton() -> None:
     """Calibrated on one trial, the skeleton names the shuffled points of another, hidden in 0.2-1 s gaps and with
     one-frame ghosts, from its first frame: no point gets another marker's name."""
-    calibration = simulate(SimulatorConfig(rig="human", rate=RATE, noise_mm=0.5, seed=3), 720)
-    skeleton = calibrate(calibration.positions, calibration.labels, RATE)
+    skeleton = subject()
     trial = simulate(SimulatorConfig(rig="human", rate=RATE, noise_mm=0.5, seed=7), 240)
     points, identity = unlabel(trial.positions, RATE, seed=2, gaps_per_s=0.3, long_fraction=1.0, long_s=(0.2, 1.0),
                                ghosts=0.2, ghost_frames=1)
@@ -54,8 +62,7 @@ def test_a_marker_seen_alone_before_its_segment_is_found_is_named_from_later_fra
     """The left foot shows only its toe marker for the first half second, then all three: no frame of that half
     second poses the foot, so only the frames after it can tell which point is the toe. The backward pass names it
     from the first frame."""
-    calibration = simulate(SimulatorConfig(rig="human", rate=RATE, noise_mm=0.5, seed=3), 720)
-    skeleton = calibrate(calibration.positions, calibration.labels, RATE)
+    skeleton = subject()
     trial = simulate(SimulatorConfig(rig="human", rate=RATE, noise_mm=0.5, seed=7), 180)
     positions = trial.positions.copy()
     for name in ("LHEE", "LMT5"):
@@ -73,14 +80,12 @@ def test_a_marker_seen_alone_before_its_segment_is_found_is_named_from_later_fra
                    for f, marker in enumerate(alone)), "the forward pass alone cannot name it"
 
 
-
 def test_a_marker_known_to_stray_keeps_its_name() -> None:
     """A pelvis marker on soft tissue circles 35 mm about its place once a second, farther from the rigid layout than
     ``fit_mm`` (10 mm) and ``gate_mm`` (30 mm). A skeleton that says the marker strays (14 mm RMS, as calibration
     measures such a marker) names it in every frame; one that takes it for as rigid as the others (0.6 mm) loses it
     in many."""
-    calibration = simulate(SimulatorConfig(rig="human", rate=RATE, noise_mm=0.5, seed=3), 720)
-    skeleton = calibrate(calibration.positions, calibration.labels, RATE)
+    skeleton = subject()
     trial = simulate(SimulatorConfig(rig="human", rate=RATE, noise_mm=0.5, seed=7), 240)
     column = trial.labels.index("LASI")
     turn = 2 * np.pi * np.arange(240) / RATE
@@ -153,13 +158,10 @@ def test_the_skeleton_labeller_node_names_a_live_stream_as_the_streaming_labelle
     Zenoh: the recording holds the skeleton's own names, and every frame equals what ``ModelLabeller`` gives offline
     on the same points. A skeleton file that is not one fails the run with a one-line reason, and the recorder after
     it, whose input can no longer end, is stopped at once rather than waited for."""
-    from conftest import graph_file, run_cli
-
     from mocapflow.io.markers import read_markers
     from mocapflow.io.skeleton import write_skeleton
 
-    calibration = simulate(SimulatorConfig(rig="human", rate=RATE, noise_mm=0.5, seed=3), 720)
-    skeleton = calibrate(calibration.positions, calibration.labels, RATE)
+    skeleton = subject()
     skeleton_path = tmp_path / "subject.json"
     write_skeleton(skeleton_path, skeleton)
     frames = 4 * int(RATE)

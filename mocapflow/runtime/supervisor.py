@@ -127,13 +127,16 @@ class Supervisor:
                 proc.restarts += 1
                 self.lines.put(f"[{proc.name}] stopped ({why}); restart {proc.restarts} in {delay:.1f} s")
 
-    def _cut_off(self) -> dict[str, set[str]]:
-        """The processes that failed or are restarting, and those that wait (``end_inputs``) for a stream of one,
-        directly or not: for each, the failed ones it waits for."""
+    def _waits(self) -> dict[str, set[str]]:
+        """For each process, the others whose streams it waits for to end (its nodes' ``end_inputs``)."""
         owner = {node.node: p.name for p in self.procs.values() for node in p.spec.nodes()}
-        waits = {p.name: {owner[up] for node in p.spec.nodes() for port in node.end_inputs or []
-                          if (up := node.inputs[port].rsplit("/", 2)[-2]) in owner and owner[up] != p.name}
-                 for p in self.procs.values()}
+        return {p.name: {owner[up] for node in p.spec.nodes() for port in node.end_inputs or []
+                         if (up := node.inputs[port].rsplit("/", 2)[-2]) in owner and owner[up] != p.name}
+                for p in self.procs.values()}
+
+    def _cut_off(self, waits: dict[str, set[str]]) -> dict[str, set[str]]:
+        """The processes that failed or are restarting, and those that wait for a stream of one, directly or not
+        (``waits``: ``_waits``): for each, the failed ones it waits for."""
         cut = {p.name: {p.name} for p in self.procs.values() if p.state in ("failed", "restarting")}
         grew = True
         while grew:
@@ -169,13 +172,14 @@ class Supervisor:
         sources = [p for p in self.procs.values() if p.source]
         self._signal(sources, signal.SIGTERM)
         told: set[str] = set()
+        waits = self._waits()
         for grace, sig in ((DRAIN_S, signal.SIGTERM), (TERM_S, signal.SIGKILL), (TERM_S, None)):
             deadline = time.monotonic() + grace
             while self.alive() and time.monotonic() < deadline:
                 self.poll()
                 tick()
                 if sig == signal.SIGTERM:  # the drain
-                    stuck = self._cut_off()
+                    stuck = self._cut_off(waits)
                     for proc in self.alive():
                         if proc.name in stuck and proc.name not in told:
                             told.add(proc.name)
