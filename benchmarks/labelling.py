@@ -13,11 +13,12 @@ For each case it prints the cost of ``Labeller.update`` per frame (mean, median,
 wall time: a busy machine inflates them), then for the streaming labels (which leave a new track's first
 ``confirm_frames`` frames unlabelled) and the offline ``label_sequence`` (those frames filled in, fragments merged,
 short tracks dropped): right identity (share of true points on the track that stands for their marker), swaps,
-output tracks per true marker and the share of true points left unlabelled. Stress cases are also labelled from a
-skeleton calibrated on an undamaged trial of the same subject (the simulated rigs: another trial; a real capture: its
-first half, the second half being labelled), streaming (``ModelLabeller``, as the ``labeller-skeleton`` node) and
-offline (``label_with_skeleton``, forward and backward): the share of true points named with their own marker's
-name.
+output tracks per true marker and the share of true points left unlabelled, and of it the share from before their
+marker was first labelled at all (a streaming labeller that tells a marker from a ghost by how long it lives cannot
+name a marker's first frames). Stress cases are also labelled from a skeleton calibrated on an undamaged trial of the
+same subject (the simulated rigs: another trial; a real capture: its first half, the second half being labelled),
+streaming (``ModelLabeller``, as the ``labeller-skeleton`` node) and offline (``label_with_skeleton``, forward and
+backward): the share of true points named with their own marker's name.
 
     python benchmarks/labelling.py [--cases mild|stress|all] [--quick] [--data DIR]
 """
@@ -174,7 +175,8 @@ def _stream(points: list[np.ndarray], rate: float) -> tuple[np.ndarray, np.ndarr
 def _line(score: LabellingScore) -> str:
     return (f"right identity {100 * score.accuracy:7.3f} %, swaps {score.swaps:3d}, "
             f"{score.tracks / score.markers_true:.2f} tracks per marker ({score.ghost_tracks} ghost tracks), "
-            f"{100 * (1 - score.assigned):.2f} % of true points unlabelled")
+            f"{100 * (1 - score.assigned):.2f} % of true points unlabelled "
+            f"({100 * score.unlabelled_at_first:.2f} % before their marker's first label)")
 
 
 def main() -> None:

@@ -58,6 +58,18 @@ def _stream(labeller: Labeller, truth: np.ndarray, hidden: np.ndarray, start: in
     return got
 
 
+def test_score_tells_a_marker_not_yet_labelled_from_one_lost_later() -> None:
+    """Two markers over six frames: the first labelled throughout; the second first labelled in frame 3 and missed
+    again in frame 4. Three of its points come before its first label, one after."""
+    truth = np.stack([np.arange(6.0)[:, None] * [1.0, 0.0, 0.0], np.arange(6.0)[:, None] * [1.0, 0.0, 0.0] + 100.0],
+                     axis=1)
+    tracks = truth.copy()
+    tracks[[0, 1, 2, 4], 1] = np.nan
+    score = score_labelling(tracks, list(truth), [np.arange(2)] * 6, 2)
+    assert score.assigned == pytest.approx(8 / 12) and score.accuracy == pytest.approx(8 / 12)
+    assert score.unlabelled_at_first == pytest.approx(3 / 12)
+
+
 def test_api_shapes_and_validation() -> None:
     truth = _clusters(1.0)
     labeller = Labeller(LabellerConfig(), RATE)

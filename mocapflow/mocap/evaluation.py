@@ -16,7 +16,9 @@ class LabellingScore:
 
     Each track stands for the true marker it most often holds (majority vote). ``accuracy`` is the share of real
     points given the track that stands for their marker (so unlabelled points count as wrong); ``swaps`` counts the
-    times a track moves from one true marker to another; ``fragments`` the tracks beyond one per true marker.
+    times a track moves from one true marker to another; ``fragments`` the tracks beyond one per true marker;
+    ``unlabelled_at_first`` the share of real points left unlabelled because their marker had not yet been labelled
+    in any frame (a labeller that tells markers from ghosts by how long they live cannot name those).
     """
 
     accuracy: float
@@ -28,6 +30,7 @@ class LabellingScore:
     fragments: int
     markers_found: int
     markers_true: int
+    unlabelled_at_first: float
 
     def summary(self) -> str:
         """One line for reports and benchmarks."""
@@ -47,12 +50,14 @@ def score_labelling(tracks: np.ndarray, points: Sequence[np.ndarray], identity: 
     n_frames, n_tracks, _ = tracks.shape
     held = np.full((n_frames, n_tracks), -2)  # true marker held by each track; -1 ghost, -2 nothing
     real = ghosts = 0
+    seen = np.zeros((n_frames, markers), np.intp)  # real points of each true marker in each frame
     for f in range(n_frames):
         rows = np.asarray(points[f], dtype=float).reshape(-1, 3)
         ids = np.asarray(identity[f])
         present = np.isfinite(rows).all(axis=1)
         real += int((present & (ids >= 0)).sum())
         ghosts += int((present & (ids < 0)).sum())
+        np.add.at(seen[f], ids[present & (ids >= 0)], 1)
         on = np.flatnonzero(np.isfinite(tracks[f, :, 0]))
         if len(on) == 0:
             continue
@@ -66,11 +71,16 @@ def score_labelling(tracks: np.ndarray, points: Sequence[np.ndarray], identity: 
     right = int(((held >= 0) & (held == majority[None])).sum())
     swaps = sum(int(np.count_nonzero(np.diff(h[h >= 0]))) for h in held.T)
     found = majority[majority >= 0]
+    labelled = np.zeros((n_frames, markers), bool)
+    frames, owned = np.nonzero(held >= 0)
+    labelled[frames, held[frames, owned]] = True
+    first = np.where(labelled.any(axis=0), labelled.argmax(axis=0), n_frames)
+    before = int(seen[np.arange(n_frames)[:, None] < first[None]].sum())
     return LabellingScore(
         accuracy=right / max(real, 1), assigned=int((held >= 0).sum()) / max(real, 1), swaps=swaps,
         ghosts_rejected=1.0 - int((held == -1).sum()) / max(ghosts, 1), tracks=n_tracks,
         ghost_tracks=int((majority < 0).sum()), fragments=len(found) - len(set(found.tolist())),
-        markers_found=len(set(found.tolist())), markers_true=markers,
+        markers_found=len(set(found.tolist())), markers_true=markers, unlabelled_at_first=before / max(real, 1),
     )
 
 
