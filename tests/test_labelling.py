@@ -163,6 +163,28 @@ def test_markers_that_first_appear_at_sprinting_speed_are_labelled_from_their_fi
     assert score.accuracy == 1.0 and score.swaps == 0 and score.tracks == 4
 
 
+def test_a_point_two_lost_markers_fit_by_one_rigid_partner_is_not_given_to_either_by_looser_cues() -> None:
+    """The simulated quadruped's right foreleg carries three markers, the first and third at one distance from the
+    second. Under stress damage both are hidden; the first comes back with the second its only rigid partner in view,
+    so it fits both lost tracks, and the looser neighbours (across the knee) happened to allow only the third's. The
+    labeller now leaves the point to a new track: no track of the 420 frames holds two markers."""
+    rec = simulate(SimulatorConfig(rig="quadruped", rate=120.0, noise_mm=0.5, seed=7), 1500)
+    points, identity = unlabel(rec.positions, rec.rate, seed=1, gaps_per_s=np.log(1.5) / 1.1, long_fraction=1.0,
+                               long_s=(0.2, 2.0), ghosts=0.2, ghost_frames=1)
+    first, third = rec.labels.index("RFL1"), rec.labels.index("RFL3")
+    assert not np.isin([first, third], identity[330]).any()  # both hidden
+    assert first in identity[410] and third not in identity[410]  # the first back alone
+    labeller = Labeller(LabellerConfig(), rec.rate)
+    tracks = np.full((420, 60, 3), np.nan)
+    for f in range(420):
+        row = labeller.update(points[f], f / rec.rate).positions
+        tracks[f, : len(row)] = row
+    score = score_labelling(tracks[:, : len(labeller.labels)], list(points[:420]), list(identity[:420]),
+                            len(rec.labels))
+    assert score.swaps == 0
+    assert score.accuracy > 0.97
+
+
 def test_hidden_marker_without_neighbours_is_a_new_track() -> None:
     """Control for the test above: with no rigid neighbour and no segment the lost marker cannot be found."""
     truth = _clusters(5.0)

@@ -21,8 +21,9 @@ marker is expected); positions predicted outside (a gap filler).
 
 Body occlusions often hide several markers of one segment at once, which then come back a few frames apart. A
 returning point keeps the distances to its lost partners that come back beside it, so rigid partners seen and lost
-ones count together, and where none is seen the looser neighbours must at least allow the point; a point that fits
-more than one lost marker so (a mirror-symmetric segment) is left to a new track rather than risk a swap.
+ones count together, and where none is seen the looser neighbours must at least allow the point. A point that more
+than one lost marker fits so, or that another lost marker fits by its distance to a rigid partner alone (two markers
+of one segment at one distance from a third), is left to a new track rather than risk a swap.
 
 A placement from a rigid neighbourhood re-identifies at once; a looser one (neighbours across a joint) only takes a
 point that has lived ``confirm_frames`` frames, so that a passing ghost cannot steal the track. Points that match no

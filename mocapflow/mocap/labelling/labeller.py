@@ -322,7 +322,10 @@ class Labeller:
             worst = np.where(partners >= 2, broken, np.fmax(broken, lost_broken))
             # partners seen and lost, and the looser neighbours, for a point that fits no other lost track so
             pooled = (worst < 1.0) & np.where(partners >= 1, partners + helpers + near >= 2, near & (helpers >= 1))
-            fits = ((partners >= 2) & (broken < 1.0)) | (pooled & (pooled.sum(axis=0) == 1))
+            # another lost track that keeps its distance to a rigid partner as well makes the evidence ambiguous, the
+            # looser cues notwithstanding: two markers of one segment often lie at one distance from a third
+            rival = pooled | ((worst < 1.0) & (partners >= 1))
+            fits = ((partners >= 2) & (broken < 1.0)) | (pooled & (rival.sum(axis=0) == 1))
             cost = np.where(fits, np.minimum(cost, worst - 1.0), cost)
             cost = screened(cost, broken, partners, violated)
             li, ri = match(cost)
