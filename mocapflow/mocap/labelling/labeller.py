@@ -299,9 +299,9 @@ class Labeller:
         hypotheses (``pred``, ``gate`` from ``_lost_predictions``; where its neighbours place nothing, the last
         position, for ``last_position_s`` only: a marker moves far in a few seconds) is within the gate, or when the
         point keeps its distances to two of the track's rigid partners seen now. With fewer seen, its lost partners
-        placed on other tentative points (``_lost_partners``) and its looser neighbours (``_plausible``) complete the
-        evidence: one partner seen and one more cue, or without any the neighbours and a lost partner, as long as no
-        other lost track fits the point that way. Once
+        placed on other tentative points (``_lost_partners``) and its looser neighbours (``Tracks.plausible``)
+        complete the evidence: one partner seen and one more cue, or without any the neighbours and a lost partner,
+        as long as no other lost track fits the point that way, nor by its distance to a rigid partner seen now. Once
         ``expected_markers`` tracks exist, the lost tracks are the only possible owners and the nearest wins without a
         gate; points left over stay tentative.
         """
