@@ -185,6 +185,19 @@ def test_a_point_two_lost_markers_fit_by_one_rigid_partner_is_not_given_to_eithe
     assert score.accuracy > 0.97
 
 
+def test_reflections_that_stand_still_for_up_to_20_frames_are_not_kept_as_markers() -> None:
+    """Ghosts that live longer than ``confirm_frames`` become tracks; offline, a track too short to be a marker is
+    kept only when rigid partners explain it. A still reflection keeps its distances to other still reflections and,
+    over a few frames, to any slow marker, so that alone explained almost every one of them: it must also move."""
+    truth = _clusters(6.0)
+    points, identity = unlabel(truth, RATE, seed=2, gaps_per_s=0.3, long_fraction=0.5, ghosts=0.3, ghost_frames=20)
+    assert sum(int((ids < 0).sum()) for ids in identity) > 500
+    tracks, _ = label_sequence(points, RATE)
+    score = score_labelling(tracks, points, identity, truth.shape[1])
+    assert score.ghost_tracks == 0 and score.ghosts_rejected > 0.9
+    assert score.accuracy > 0.999 and score.swaps == 0
+
+
 def test_hidden_marker_without_neighbours_is_a_new_track() -> None:
     """Control for the test above: with no rigid neighbour and no segment the lost marker cannot be found."""
     truth = _clusters(5.0)

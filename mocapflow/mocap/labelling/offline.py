@@ -137,9 +137,15 @@ def _set_score(state: _Round, i: int, j: int, cfg: LabellerConfig) -> float:
 
 
 def _explained(tracks: np.ndarray, seen: np.ndarray, k: int, rigid_sd: float) -> bool:
-    """Whether track ``k`` keeps its distances to two or more other tracks, seen in every one of its frames, within
-    ``rigid_sd`` (mm, SD): a real marker on a rigid body, however briefly seen, not a ghost."""
-    _, sd = _distance_spread(tracks, seen, k, int(seen[:, k].sum()))
+    """Whether track ``k`` moves (its positions spread by more than ``rigid_sd`` mm, RMS) and keeps its distances to
+    two or more other tracks, seen in every one of its frames, within ``rigid_sd`` (mm, SD): a real marker on a rigid
+    body, however briefly seen, not a ghost. Distances that hold while nothing moves more than they may vary prove
+    nothing: a reflection that stands still keeps its distances to other still reflections, and over a few frames to
+    any slow marker."""
+    own = tracks[seen[:, k], k]
+    if np.sqrt(((own - own.mean(axis=0)) ** 2).sum(axis=1).mean()) <= rigid_sd:
+        return False
+    _, sd = _distance_spread(tracks, seen, k, len(own))
     sd[k] = np.nan
     return int((sd <= rigid_sd).sum()) >= 2
 
