@@ -7,7 +7,9 @@ Two sets of cases, identities stripped, occlusions and ghosts added, rows shuffl
   and three real captures;
 - stress: ordinary but harsh capture conditions, on every labelled real capture of the shared data folder and on the
   simulated human and quadruped: each marker hidden in independent gaps of 0.2-2 s, a third of the time in all, and a
-  one-frame ghost in about a fifth of the frames.
+  one-frame ghost in about a fifth of the frames;
+- ghosts: the stress captures (600 frames) with still ghosts that live up to 20 frames, longer than a new track
+  needs to be believed (0.3 new a frame).
 
 For each case it prints the cost of ``Labeller.update`` per frame (mean, median, 99th percentile, in microseconds of
 wall time: a busy machine inflates them), then for the streaming labels (which leave a new track's first
@@ -20,7 +22,7 @@ same subject (the simulated rigs: another trial; a real capture: its first half,
 streaming (``ModelLabeller``, as the ``labeller-skeleton`` node) and offline (``label_with_skeleton``, forward and
 backward): the share of true points named with their own marker's name.
 
-    python benchmarks/labelling.py [--cases mild|stress|all] [--quick] [--data DIR]
+    python benchmarks/labelling.py [--cases mild|stress|ghosts|all] [--quick] [--data DIR]
 """
 
 from __future__ import annotations
@@ -53,6 +55,10 @@ CAMERAS = (4, 8)  # camera counts of the camera-model cases
 STRESS = {"gaps_per_s": math.log(1.5) / 1.1, "long_fraction": 1.0, "long_s": (0.2, 2.0), "ghosts": 0.2,
           "ghost_frames": 1}
 STRESS_RIGS = (("human", 120.0), ("quadruped", 120.0))
+# still ghosts (a reflection, a lamp) living up to 20 frames, longer than a new track needs to be believed, 0.3 new a
+# frame, with gaps as the mild damage's; 600 frames of each stress capture
+GHOSTS = {"gaps_per_s": 0.3, "long_fraction": 0.5, "ghosts": 0.3, "ghost_frames": 20}
+GHOST_FRAMES = 600
 
 Case = tuple[str, list[np.ndarray], list[np.ndarray], float, int]  # name, points, identity, rate, true marker count
 
@@ -132,6 +138,16 @@ def _stress(frames: int, data: Path) -> list[tuple[Case, SkeletonModel | None, l
     return cases
 
 
+def _ghosts(data: Path) -> list[Case]:
+    """The stress captures under still, long-lived ghosts (``GHOSTS``)."""
+    cases = []
+    for name, positions, labels, rate in stress_captures(GHOST_FRAMES, data):
+        points, identity = unlabel(positions, rate, seed=2, **GHOSTS)  # type: ignore[arg-type]
+        cases.append((f"{name}, ghosts up to {GHOSTS['ghost_frames']} frames", list(points), list(identity), rate,
+                      len(labels)))
+    return cases
+
+
 def _named(skeleton: SkeletonModel, points: list[np.ndarray], identity: list[np.ndarray], rate: float,
            labels: list[str], streaming: bool = False) -> tuple[float, float, float]:
     """Shares of true points that ``label_with_skeleton`` (or, ``streaming``, ``ModelLabeller`` frame by frame, as
@@ -181,7 +197,8 @@ def _line(score: LabellingScore) -> str:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--cases", choices=("mild", "stress", "all"), default="all", help="which cases (default all)")
+    parser.add_argument("--cases", choices=("mild", "stress", "ghosts", "all"), default="all",
+                        help="which cases (default all)")
     parser.add_argument("--quick", action="store_true", help="at most 1500 frames per case (default 4800 simulated, "
                         "real captures whole)")
     parser.add_argument("--data", type=Path, default=_common.DATA, help="folder of the real captures")
@@ -192,6 +209,8 @@ def main() -> None:
         cases += [(case, None, []) for case in _mild(frames, args.data)]
     if args.cases in ("stress", "all"):
         cases += _stress(frames, args.data)
+    if args.cases in ("ghosts", "all"):
+        cases += [(case, None, []) for case in _ghosts(args.data)]
     for (name, points, identity, rate, markers), skeleton, labels in cases:
         seen = np.mean([np.isfinite(np.asarray(p)).all(axis=1).sum() for p in points])
         tracks, cost = _stream(points, rate)
