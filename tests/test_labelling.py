@@ -198,6 +198,21 @@ def test_reflections_that_stand_still_for_up_to_20_frames_are_not_kept_as_marker
     assert score.accuracy > 0.999 and score.swaps == 0
 
 
+def test_a_marker_seen_briefly_beside_one_rigid_mate_is_kept() -> None:
+    """A cluster whose two other markers are never seen: one marker throughout, the other only for 0.3 s (shorter
+    than ``min_track_s``) in one unbroken run. It moves with its mate at a fixed distance, a real marker's evidence:
+    one partner vouches for an unbroken track (fragments merged across gaps need two)."""
+    truth = _clusters(5.0)
+    hidden = np.zeros(truth.shape[:2], bool)
+    hidden[:, 2:4] = True
+    hidden[:200, 0] = hidden[231:, 0] = True
+    points = [frame[~h] for frame, h in zip(truth, hidden, strict=True)]
+    identity = [np.flatnonzero(~h) for h in hidden]
+    tracks, _ = label_sequence(points, RATE)
+    score = score_labelling(tracks, points, identity, truth.shape[1])
+    assert score.accuracy == 1.0 and score.swaps == 0 and score.tracks == 10
+
+
 def test_hidden_marker_without_neighbours_is_a_new_track() -> None:
     """Control for the test above: with no rigid neighbour and no segment the lost marker cannot be found."""
     truth = _clusters(5.0)

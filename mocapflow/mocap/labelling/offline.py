@@ -138,16 +138,19 @@ def _set_score(state: _Round, i: int, j: int, cfg: LabellerConfig) -> float:
 
 def _explained(tracks: np.ndarray, seen: np.ndarray, k: int, rigid_sd: float) -> bool:
     """Whether track ``k`` moves (its positions spread by more than ``rigid_sd`` mm, RMS) and keeps its distances to
-    two or more other tracks, seen in every one of its frames, within ``rigid_sd`` (mm, SD): a real marker on a rigid
-    body, however briefly seen, not a ghost. Distances that hold while nothing moves more than they may vary prove
-    nothing: a reflection that stands still keeps its distances to other still reflections, and over a few frames to
-    any slow marker."""
-    own = tracks[seen[:, k], k]
+    other tracks, seen in every one of its frames, within ``rigid_sd`` (mm, SD): a real marker on a rigid body,
+    however briefly seen, not a ghost. One such partner vouches for a track seen in one unbroken run; a track merged
+    from fragments across gaps needs two, since fragments of ghosts merge too. Distances that hold while nothing
+    moves more than they may vary prove nothing: a reflection that stands still keeps its distances to other still
+    reflections, and over a few frames to any slow marker."""
+    frames = np.flatnonzero(seen[:, k])
+    own = tracks[frames, k]
     if np.sqrt(((own - own.mean(axis=0)) ** 2).sum(axis=1).mean()) <= rigid_sd:
         return False
     _, sd = _distance_spread(tracks, seen, k, len(own))
     sd[k] = np.nan
-    return int((sd <= rigid_sd).sum()) >= 2
+    whole = frames[-1] - frames[0] + 1 == len(frames)
+    return int((sd <= rigid_sd).sum()) >= (1 if whole else 2)
 
 
 def _rigid_sd(tracks: np.ndarray, seen: np.ndarray, markers: np.ndarray, cfg: LabellerConfig) -> float:
