@@ -1,6 +1,6 @@
-"""Labelling benchmark: accuracy against truth under mild and under stress damage, and the streaming labeller's cost.
+"""Labelling benchmark: accuracy against truth under mild damage, stress and still ghosts, and the labeller's cost.
 
-Two sets of cases, identities stripped, occlusions and ghosts added, rows shuffled every frame (``unlabel``):
+Three sets of cases, identities stripped, occlusions and ghosts added, rows shuffled every frame (``unlabel``):
 
 - mild: the quickstart graph's simulated stream (deployments/quickstart.yaml), the simulator's human rig at 240 Hz at
   a moderate and a heavy level of damage, seen directly and through the simulator's camera model (4 and 8 cameras),

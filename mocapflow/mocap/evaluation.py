@@ -49,15 +49,14 @@ def score_labelling(tracks: np.ndarray, points: Sequence[np.ndarray], identity: 
     """
     n_frames, n_tracks, _ = tracks.shape
     held = np.full((n_frames, n_tracks), -2)  # true marker held by each track; -1 ghost, -2 nothing
-    real = ghosts = 0
-    seen = np.zeros((n_frames, markers), np.intp)  # real points of each true marker in each frame
+    ghosts = 0
+    seen = np.zeros((n_frames, markers), bool)  # true markers seen in each frame
     for f in range(n_frames):
         rows = np.asarray(points[f], dtype=float).reshape(-1, 3)
         ids = np.asarray(identity[f])
         present = np.isfinite(rows).all(axis=1)
-        real += int((present & (ids >= 0)).sum())
+        seen[f, ids[present & (ids >= 0)]] = True
         ghosts += int((present & (ids < 0)).sum())
-        np.add.at(seen[f], ids[present & (ids >= 0)], 1)
         on = np.flatnonzero(np.isfinite(tracks[f, :, 0]))
         if len(on) == 0:
             continue
@@ -68,6 +67,7 @@ def score_labelling(tracks: np.ndarray, points: Sequence[np.ndarray], identity: 
         held[f, on] = ids[source]
     majority = np.array([np.bincount(h[h >= 0], minlength=markers).argmax() if (h >= 0).any() else -1
                          for h in held.T], dtype=int)
+    real = int(seen.sum())
     right = int(((held >= 0) & (held == majority[None])).sum())
     swaps = sum(int(np.count_nonzero(np.diff(h[h >= 0]))) for h in held.T)
     found = majority[majority >= 0]
