@@ -111,6 +111,49 @@ def test_a_marker_known_to_stray_keeps_its_name() -> None:
     assert named_lasi(0.6) < 0.8 * seen
 
 
+def _gaping(trial_seed: int, frames: int) -> tuple[np.ndarray, list[str]]:
+    """A trial of the simulated human whose left forearm and hand shift 45 mm about their place once a second, as
+    a whole: the elbow is no ball joint there (a shoulder girdle, a bending spine), the wrist still is."""
+    trial = simulate(SimulatorConfig(rig="human", rate=RATE, noise_mm=0.5, seed=trial_seed), frames)
+    turn = 2 * np.pi * np.arange(frames) / RATE
+    shift = 45.0 * np.stack([np.sin(turn), np.cos(turn), np.zeros(frames)], axis=1)
+    positions = trial.positions.copy()
+    for c, name in enumerate(trial.labels):
+        if name.startswith(("LFA", "LHN")):
+            positions[:, c] += shift
+    return positions, trial.labels
+
+
+def test_a_joint_known_to_gape_still_poses_its_segment() -> None:
+    """Calibration measures how far apart a joint's two segments put its centre (``gap_mm``): about 1.5 mm at the
+    simulated human's ball joints, tens of mm at an elbow whose forearm shifts 45 mm about it. Labelling a trial with
+    one forearm marker hidden and the others in and out of view, the forearm is posed from its other two markers and
+    its joints: a skeleton that knows the elbow gapes names them in every frame, one that takes the elbow for as
+    tight as the others loses them in many."""
+    calibration, labels = _gaping(3, 720)
+    skeleton = calibrate(calibration, labels, RATE)
+    gaps = {j.name: j.gap_mm for j in skeleton.joints}
+    elbow = next(name for name in gaps if "LUA" in name and "LFA" in name)
+    assert gaps[elbow] is not None and gaps[elbow] > 20.0
+    assert all(gap is not None and gap < 5.0 for name, gap in gaps.items() if name != elbow)
+    positions, _ = _gaping(7, 240)
+    positions[:, labels.index("LFA1")] = np.nan
+    points, identity = unlabel(positions, RATE, seed=2, gaps_per_s=1.0)
+    forearm = [labels.index(name) for name in ("LFA2", "LFA3")]
+
+    def named_forearm(model: SkeletonModel) -> int:
+        named, names = label_with_skeleton(list(points), RATE, model)
+        right, wrong, _ = _named(named, names, points, identity, labels)
+        assert wrong == 0
+        return sum(bool(np.linalg.norm(named[f, names.index(labels[c])] - points[f, identity[f] == c][0]) < 1e-9)
+                   for f in range(240) for c in forearm if (identity[f] == c).any())
+
+    seen = sum(int((identity[f] == c).any()) for f in range(240) for c in forearm)
+    tight = skeleton.model_copy(update={"joints": [j.model_copy(update={"gap_mm": None}) for j in skeleton.joints]})
+    assert named_forearm(skeleton) == seen
+    assert named_forearm(tight) < 0.9 * seen  # 83 %
+
+
 def test_skeleton_validation() -> None:
     empty = SkeletonModel(segments=[], joints=[], root="none")
     with pytest.raises(ValueError, match="no segment"):

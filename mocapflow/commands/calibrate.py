@@ -37,20 +37,23 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def summary(skeleton: SkeletonModel) -> str:
-    """The segments (with how rigid their markers were), joints (with the motion that located them and how sure
-    their centres are) and root of a skeleton as aligned text tables, then one line per joint the data did not
-    locate, naming the motion it lacked."""
+    """The segments (with how rigid their markers were), joints (with the motion that located them, how far apart
+    their two segments put them and how sure their centres are) and root of a skeleton as aligned text tables, then
+    one line per joint the data did not locate, naming the motion it lacked."""
     lines = [f"{'segment':<16} {'markers':>7} {'rigid mm':>8}  labels"]
     for s in skeleton.segments:
         rigid = f"{s.rigidity_mm:>8.2f}" if s.rigidity_mm is not None else f"{'-':>8}"
         lines.append(f"{s.name:<16} {len(s.markers):>7} {rigid}  {' '.join(s.markers)}")
     lines.append("")
-    lines.append(f"{'joint':<32} {'kind':<5} {'motion deg':>10} {'dist mm':>8} {'sd mm':>6} {'uncert mm':>9}")
+    lines.append(f"{'joint':<32} {'kind':<5} {'motion deg':>10} {'dist mm':>8} {'sd mm':>6} {'gap mm':>6} "
+                 f"{'uncert mm':>9}")
     for j in skeleton.joints:
         motion = f"{j.rotation_deg:>10.1f}" if j.rotation_deg is not None else f"{'-':>10}"
+        gap = f"{j.gap_mm:>6.1f}" if j.gap_mm is not None else f"{'-':>6}"
         sure = f"{j.uncertainty_mm:>9.0f}" if j.uncertainty_mm is not None else f"{'-':>9}"
         note = "  not located" if j.located is False else ""
-        lines.append(f"{j.name:<32} {j.kind:<5} {motion} {j.distance_mean:>8.1f} {j.distance_sd:>6.2f} {sure}{note}")
+        lines.append(f"{j.name:<32} {j.kind:<5} {motion} {j.distance_mean:>8.1f} {j.distance_sd:>6.2f} {gap} "
+                     f"{sure}{note}")
     lines.append("")
     lines.append(f"root: {skeleton.root}")
     lines.extend(not_located(j) for j in skeleton.joints if j.located is False)

@@ -251,6 +251,8 @@ def build_skeleton(positions: np.ndarray, labels: Sequence[str], rate: float, gr
                                          [offsets[child, e] for e in c_near])
         pp, pc = shapes[parent].pose, shapes[child].pose
         track = joint_track(pp.rotation_matrices, pp.translations, pc.rotation_matrices, pc.translations, p_off, c_off)
+        apart = np.linalg.norm(np.einsum("fab,b->fa", pp.rotation_matrices, p_off) + pp.translations
+                               - np.einsum("fab,b->fa", pc.rotation_matrices, c_off) - pc.translations, axis=1)
         _, mean, sd = distance_stats(track, positions[chosen][:, list(groups[parent]) + list(groups[child])], ALPHA)
         uncertainty = UNBOUNDED_MM if est is None or (parent, child) in fixed else min(
             float(est.axial_uncertainty), UNBOUNDED_MM)
@@ -258,8 +260,9 @@ def build_skeleton(positions: np.ndarray, labels: Sequence[str], rate: float, gr
             name=f"{names[parent]}-{names[child]}", parent=names[parent], child=names[child],
             kind="hinge" if hinge else "ball", parent_offset=_vec(p_off), child_offset=_vec(c_off),
             axis=_vec(axis) if axis is not None else None, cost=float(costs[parent, child]), distance_mean=mean,
-            distance_sd=sd, rotation_deg=float(motion[parent, child][0]), uncertainty_mm=uncertainty,
-            located=uncertainty <= LOCATED_MM, motion_sd_deg=_vec(motion[parent, child][1])))
+            distance_sd=sd, gap_mm=_rms(apart), rotation_deg=float(motion[parent, child][0]),
+            uncertainty_mm=uncertainty, located=uncertainty <= LOCATED_MM,
+            motion_sd_deg=_vec(motion[parent, child][1])))
     spread = distance_spread(positions, pair_frames(rate))
     segments_out = [Segment(name=names[s], markers=[labels[m] for m in g],
                             marker_offsets=[_vec(o) for o in shapes[s].marker_offsets],
@@ -267,6 +270,12 @@ def build_skeleton(positions: np.ndarray, labels: Sequence[str], rate: float, gr
                             rigidity_mm=float(np.nanmean(spread[np.ix_(g, g)][np.triu_indices(len(g), 1)])))
                     for s, g in enumerate(groups)]
     return SkeletonModel(name=name, segments=segments_out, joints=joints, root=names[root])
+
+
+def _rms(values: np.ndarray) -> float | None:
+    """Root mean square of the finite values (2 decimals), None when there are none."""
+    finite = values[np.isfinite(values)]
+    return round(float(np.sqrt(np.mean(finite**2))), 2) if len(finite) else None
 
 
 def closest_spreads(spread: np.ndarray, groups: Sequence[Sequence[int]]) -> np.ndarray:

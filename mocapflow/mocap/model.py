@@ -50,6 +50,11 @@ class Joint(BaseModel):
     distance_mean: float | None = Field(default=None, description="mean marker-to-joint distance (mm)")
     distance_sd: float | None = Field(
         default=None, description="mean standard deviation of marker-to-joint distance (mm)")
+    gap_mm: float | None = Field(
+        default=None, description="how well the two segments agree on the centre: RMS distance between where the "
+                                  "parent's pose and where the child's put it over the calibration data (mm); large "
+                                  "where the body is no ball joint (a bending spine, a shoulder girdle) or skin "
+                                  "moves the markers")
     rotation_deg: float | None = Field(
         default=None, description="range of motion seen: RMS rotation of the child relative to the parent about "
                                   "its mean (deg); under 2 the joint could not be located and sits between the "

@@ -67,7 +67,8 @@ class ModelLabellerConfig(BaseModel):
     weak_gate_mm: float = Field(150.0, gt=0, description="gate_mm for a segment posed through joints or its previous "
                                 "pose")
     joint_mm: float = Field(40.0, gt=0, description="largest distance between a joint centre placed by each of its "
-                            "two segments")
+                            "two segments; a joint whose segments disagreed more in calibration (its gap_mm) has it "
+                            "widened to spread_sigmas times that, and its weight in the fits falls as for a marker")
     max_coast_s: float = Field(0.1, ge=0, description="a marker whose segment has no pose is coasted at constant "
                                "velocity this long")
     recent_s: float = Field(2.0, ge=0, description="a segment posed this recently is looked for near where it was")
@@ -81,7 +82,8 @@ class _Segment:
     markers: np.ndarray  # indices into the model's marker list
     local: np.ndarray  # (n, 3) layout in the segment's frame
     tol: np.ndarray  # (n,) largest distance between the fitted layout and a point each marker keeps (mm)
-    joints: list[tuple[int, np.ndarray, np.ndarray]]  # (other segment, centre in this frame, centre in the other's)
+    # (other segment, centre in this frame, centre in the other's, largest distance between the centres the two put)
+    joints: list[tuple[int, np.ndarray, np.ndarray, float]]
 
 
 class ModelLabeller:
@@ -114,8 +116,9 @@ class ModelLabeller:
             if joint.parent in index and joint.child in index and joint.parent_offset and joint.child_offset:
                 p, c = index[joint.parent], index[joint.child]
                 po, co = np.array(joint.parent_offset), np.array(joint.child_offset)
-                self.segments[p].joints.append((c, po, co))
-                self.segments[c].joints.append((p, co, po))
+                held = max(self.config.joint_mm, self.config.spread_sigmas * (joint.gap_mm or 0.0))
+                self.segments[p].joints.append((c, po, co, held))
+                self.segments[c].joints.append((p, co, po, held))
         width = max(len(one.markers) for one in self.segments)
         self._slots = np.full((len(self.segments), width), -1, np.intp)  # markers of each segment, -1 padding
         self._layouts = np.zeros((len(self.segments), width, 3))
@@ -182,7 +185,7 @@ class ModelLabeller:
         for s, pose in enumerate(poses):
             if pose is not None and self._level[s] < 2:
                 self._last_seen[s], self._last_time[s] = pose[1], time
-                for other, _, _ in self.segments[s].joints:
+                for other, *_ in self.segments[s].joints:
                     there = poses[other]
                     if there is not None and self._level[other] < 2:
                         self._posture[s, other] = there[0].T @ pose[0]
@@ -207,10 +210,10 @@ class ModelLabeller:
                     fitted = self._fit(s, seg, poses, cur, level)
                     if fitted is None:
                         continue
-                    rot, shift, joint_error = fitted
+                    rot, shift, joint_excess = fitted
                     seen = np.isfinite(cur[seg.markers, 0])
                     error = np.where(seen, np.linalg.norm(seg.local @ rot.T + shift - cur[seg.markers], axis=1), 0.0)
-                    if joint_error > self.config.joint_mm:  # markers swapped, or taken by ghosts: the search decides
+                    if joint_excess > 1.0:  # markers swapped, or taken by ghosts: the search decides
                         taken[np.isin(taken, seg.markers)] = -1
                         cur[seg.markers] = np.nan
                         self.streak[seg.markers] = 0
@@ -251,7 +254,8 @@ class ModelLabeller:
              level: int) -> tuple[np.ndarray, np.ndarray, float] | None:
         """Segment ``s``'s pose from its matched markers alone (``level`` 0: three or more), with the centres of its
         joints to surely posed segments (1: three points or more; 2: two, with its previous pose), or None; and how
-        far the fit puts the farthest joint centre from where its neighbour does."""
+        far the fit puts the farthest joint centre from where its neighbour does, in units of that joint's
+        tolerance."""
         seen = np.isfinite(cur[seg.markers, 0])
         n_seen = int(seen.sum())
         if n_seen == 0 or (n_seen < 3 and level == 0):
@@ -259,14 +263,16 @@ class ModelLabeller:
         local = [seg.local[seen]]
         world = [cur[seg.markers[seen]]]
         weight = [self._weight[seg.markers[seen]]]
+        tols = []
         if n_seen < 3:
-            for other, here, there in seg.joints:
+            for other, here, there, tol in seg.joints:
                 if poses[other] is not None and self._level[other] < 2:
                     rot, shift = poses[other]
                     local.append(here[None])
                     world.append((rot @ there + shift)[None])
-                    weight.append(np.array([JOINT_WEIGHT]))
-            count = n_seen + len(weight) - 1
+                    weight.append(np.array([self._joint_weight(tol)]))
+                    tols.append(tol)
+            count = n_seen + len(tols)
             before = self.pose[s]
             if count < 2 or (count < 3 and (level < 2 or before is None)):
                 return None
@@ -281,16 +287,20 @@ class ModelLabeller:
         if fitted is None:
             return None
         rot, shift = fitted
-        joints = len(local) - 1 - (n_seen < 3 and before is not None)
-        if n_seen >= 3 or joints <= 0:
+        if not tols:
             return rot, shift, 0.0
+        joints = len(tols)
         off = np.concatenate(local[1:1 + joints]) @ rot.T + shift - np.concatenate(world[1:1 + joints])
-        return rot, shift, float(np.sqrt((off * off).sum(axis=1).max()))
+        return rot, shift, float((np.linalg.norm(off, axis=1) / tols).max())
+
+    def _joint_weight(self, tol: float) -> float:
+        """A joint centre's weight in a fit: ``JOINT_WEIGHT``, less for a joint known to gape (as for a marker)."""
+        return JOINT_WEIGHT * (self.config.joint_mm / tol) ** 2
 
     def _carried(self, s: int, seg: _Segment, poses: list) -> tuple[np.ndarray, np.ndarray] | None:
         """Segment ``s``'s pose if it kept its last posture to a surely posed neighbour, hinged at their joint: the
         neighbour carries it as the limb moves. None when no such neighbour has a posture known."""
-        for other, here, there in seg.joints:
+        for other, here, there, _ in seg.joints:
             if poses[other] is not None and self._level[other] < 2 and (s, other) in self._posture:
                 rot_o, shift_o = poses[other]
                 rot = rot_o @ self._posture[s, other]
@@ -304,7 +314,8 @@ class ModelLabeller:
         A segment posed through its joints, or from two points and its previous pose, may be turned some way from
         the fit: its markers take a point within ``weak_gate_mm`` of the prediction, but only one keeping the
         layout's distances to the segment's markers seen now (within ``fit_mm``) and to its joint centres (within
-        ``joint_mm``), and only where neither the point nor the marker has another such candidate.
+        each joint's tolerance, ``joint_mm`` or wider), and only where neither the point nor the marker has another
+        such candidate.
         """
         cfg = self.config
         missing = np.flatnonzero(np.isnan(cur[:, 0]))
@@ -329,11 +340,11 @@ class ModelLabeller:
                 if not (cdist(pred[slot], z[free]) < cfg.weak_gate_mm).any():
                     continue  # no point to take: what could be is not worked out
                 seen = np.flatnonzero(np.isfinite(cur[seg.markers, 0]))
-                sure = [(h, poses[o][0] @ t + poses[o][1]) for o, h, t in seg.joints
+                sure = [(h, poses[o][0] @ t + poses[o][1], tol) for o, h, t, tol in seg.joints
                         if poses[o] is not None and self._level[o] < 2]
-                here = [seg.local[seen]] + [h[None] for h, _ in sure]
-                there = [cur[seg.markers[seen]]] + [t[None] for _, t in sure]
-                tol = np.maximum(seg.tol[rows, None], np.concatenate([seg.tol[seen], [cfg.joint_mm] * len(sure)]))
+                here = [seg.local[seen]] + [h[None] for h, _, _ in sure]
+                there = [cur[seg.markers[seen]]] + [t[None] for _, t, _ in sure]
+                tol = np.maximum(seg.tol[rows, None], np.concatenate([seg.tol[seen], [t for _, _, t in sure]]))
                 want = cdist(seg.local[rows], np.concatenate(here))  # (slots, references)
                 have = cdist(z[free], np.concatenate(there))  # (free, references)
                 fits = (np.abs(have[None] - want[:, None]) < tol[:, None]).all(axis=2)
@@ -352,17 +363,18 @@ class ModelLabeller:
 
     def _search(self, poses: list, cur: np.ndarray, taken: np.ndarray, z: np.ndarray, searched: dict) -> bool:
         """Look for each segment with no pose among the points left over and those of its own markers matched so far
-        by its layout (``_place_layout``), its joint centres to surely posed segments kept within ``joint_mm``; True
-        when one was placed. A segment is searched again in a frame only when more of its neighbours got posed."""
+        by its layout (``_place_layout``), its joint centres to surely posed segments kept within their tolerance;
+        True when one was placed. A segment is searched again in a frame only when more of its neighbours got posed."""
         cfg = self.config
         placed = False
         for s, seg in enumerate(self.segments):
             if poses[s] is not None:
                 continue
-            sure = [(other, here, there) for other, here, there in seg.joints
+            sure = [(other, here, there, tol) for other, here, there, tol in seg.joints
                     if poses[other] is not None and self._level[other] < 2]
-            anchors = [(here, poses[other][0] @ there + poses[other][1]) for other, here, there in sure]
-            posture = [poses[other][0] @ self._posture[s, other] for other, _, _ in sure if (s, other) in self._posture]
+            anchors = [(here, poses[other][0] @ there + poses[other][1], tol, self._joint_weight(tol))
+                       for other, here, there, tol in sure]
+            posture = [poses[other][0] @ self._posture[s, other] for other, *_ in sure if (s, other) in self._posture]
             if searched.get(s, -1) >= len(anchors):
                 continue
             searched[s] = len(anchors)
@@ -372,8 +384,7 @@ class ModelLabeller:
                 continue
             dt = self._time - self._last_time[s]
             around = (self._last_seen[s], 100.0 + cfg.max_speed_mm_s * dt) if dt <= cfg.recent_s else None
-            best = _place_layout(seg.local, z[free], seg.tol, self._weight[seg.markers], anchors, cfg.joint_mm, around,
-                                 posture)
+            best = _place_layout(seg.local, z[free], seg.tol, self._weight[seg.markers], anchors, around, posture)
             if best is None:
                 continue
             hits, rot, shift = best
@@ -401,7 +412,7 @@ class ModelLabeller:
 
 
 def _place_layout(layout: np.ndarray, cloud: np.ndarray, tol: np.ndarray, weight: np.ndarray,
-                  anchors: list[tuple[np.ndarray, np.ndarray]], joint_tol: float,
+                  anchors: list[tuple[np.ndarray, np.ndarray, float, float]],
                   around: tuple[np.ndarray, float] | None = None, posture: list[np.ndarray] | None = None,
                   ) -> tuple[dict[int, int], np.ndarray, np.ndarray] | None:
     """The placement of a segment's layout ``(n, 3)`` on ``cloud`` that fits clearly better than any other (more
@@ -409,8 +420,9 @@ def _place_layout(layout: np.ndarray, cloud: np.ndarray, tol: np.ndarray, weight
     no placement is that sure. ``tol`` and ``weight`` (n,) are each layout point's tolerance (mm) and weight in the
     fit; two layout points keep their distance within the larger of their tolerances.
 
-    With ``anchors`` (joint centres to posed segments: local, world), a placement lands two or more layout points on
-    cloud points (within ``tol``) and every anchor within ``joint_tol`` of its world position. Without, it must land
+    With ``anchors`` (joint centres to posed segments: local, world, tolerance, weight in the fit), a placement lands
+    two or more layout points on cloud points (within ``tol``) and every anchor within its tolerance of its world
+    position. Without, it must land
     four or more: any three points form a triangle that also fits the mirror-image segment of the other side of the
     body, whose own markers may be the ones hidden now; three are enough when the segment's centre must lie ``around``
     (centre, radius) where it was lately.
@@ -422,18 +434,20 @@ def _place_layout(layout: np.ndarray, cloud: np.ndarray, tol: np.ndarray, weight
     sightings.
     """
     found: dict[frozenset, tuple[int, float, dict[int, int], np.ndarray, np.ndarray]] = {}
-    local_a = np.array([here for here, _ in anchors]).reshape(-1, 3)
-    world_a = np.array([there for _, there in anchors]).reshape(-1, 3)
+    local_a = np.array([a[0] for a in anchors]).reshape(-1, 3)
+    world_a = np.array([a[1] for a in anchors]).reshape(-1, 3)
+    joint_tol = np.array([a[2] for a in anchors])
+    joint_weight = np.array([a[3] for a in anchors])
     least = (4 if around is None else 3) if not anchors else 2 if len(anchors) == 1 else 1
     if len(layout) < least:
         return None
     d_cloud = cdist(cloud, cloud)
     d_anchor = cdist(cloud, world_a)
     d_local = cdist(layout, local_a)
-    for target_rows, target in _triples(layout, cloud, d_cloud, d_anchor, d_local, len(anchors), tol, joint_tol):
+    for target_rows, target in _triples(layout, cloud, d_cloud, d_anchor, d_local, tol, joint_tol):
         fitted = fit_one(np.concatenate([layout[list(target_rows)], local_a]),
                          np.concatenate([cloud[list(target)], world_a]),
-                         np.concatenate([weight[list(target_rows)], np.full(len(anchors), JOINT_WEIGHT)]))
+                         np.concatenate([weight[list(target_rows)], joint_weight]))
         if fitted is None:
             continue
         rot, shift = fitted
@@ -448,7 +462,9 @@ def _place_layout(layout: np.ndarray, cloud: np.ndarray, tol: np.ndarray, weight
             continue
         hits = {int(r): int(point[r]) for r in np.flatnonzero(inside)}
         key = frozenset(hits.items())
-        misfit = float(np.sqrt((np.sum(fit[inside] ** 2) + np.sum(anchor_err**2)) / (inside.sum() + len(anchor_err))))
+        # a joint known to gape counts its misfit as a marker counts a straying marker's: scaled down with its weight
+        anchor_misfit = np.sum(anchor_err**2 * joint_weight / JOINT_WEIGHT)
+        misfit = float(np.sqrt((np.sum(fit[inside] ** 2) + anchor_misfit) / (inside.sum() + len(anchor_err))))
         if key not in found or misfit < found[key][1]:
             found[key] = (int(inside.sum()), misfit, hits, rot, shift)
     if not found:
@@ -472,11 +488,11 @@ def _angle(rot: np.ndarray, other: np.ndarray) -> float:
 
 
 def _triples(layout: np.ndarray, cloud: np.ndarray, d_cloud: np.ndarray, d_anchor: np.ndarray, d_local: np.ndarray,
-             anchors: int, tol: np.ndarray, joint_tol: float) -> Iterable[tuple[tuple[int, ...], tuple[int, ...]]]:
+             tol: np.ndarray, joint_tol: np.ndarray) -> Iterable[tuple[tuple[int, ...], tuple[int, ...]]]:
     """Layout rows and cloud points that, with the anchors, make three points at the layout's distances (within the
-    larger of the two rows' tolerances): a marker with two anchors or more, two markers with one, three markers
-    without."""
-    width = 3 - min(anchors, 2)
+    larger of the two rows' tolerances; to an anchor, within its ``joint_tol``): a marker with two anchors or more, two
+    markers with one, three markers without."""
+    width = 3 - min(len(joint_tol), 2)
     d_layout = cdist(layout, layout)
     pair_tol = np.maximum(tol[:, None], tol[None, :])
 
