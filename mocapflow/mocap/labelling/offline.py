@@ -16,6 +16,13 @@ from mocapflow.mocap.report import Progress, steps
 
 BOUND_SLACK_MM = 20.0
 """How far a fitted snapshot may place a marker off its learnt distance to a neighbour, beyond three spreads."""
+ARTICULATION = 5.0
+"""Rigidity tells where the body moves: a track's distances to the others must spread (median SD) by this many times
+``rigid_sd_mm`` for its rigid partners to say which marker it is. Over a stretch where the body only stands or walks
+on, every marker is 'rigid' with dozens of others."""
+LOOSE = 4.0
+"""A pair of tracks whose rigid triangles match is merged unless its neighbours place one this many gates or more
+from the other (a like triangle on the other side of the body)."""
 
 
 def merge_tracks(tracks: np.ndarray, config: LabellerConfig | None = None,
@@ -28,9 +35,12 @@ def merge_tracks(tracks: np.ndarray, config: LabellerConfig | None = None,
     snapshots of one track with its neighbours are fitted to those neighbours in the other track's frames, and the
     other track must lie within ``reid_gate_mm`` of the placed marker, or keep the distances to the first one's rigid
     partners; the median over frames decides (not the thesis's minimum, so that one coincidence cannot merge two
-    markers). Pairs are merged greedily, best first, never joining tracks seen in the same frame, and the comparison
-    is repeated on the merged tracks until nothing changes: merging the fragments of one marker gives its neighbours'
-    fragments the partners they lacked. ``progress`` is told of the pairs compared in each round.
+    markers). A pair that this leaves in doubt (under ``LOOSE`` gates) is also compared by shape: two tracks that
+    stand in one rigid triangle with two partners each (``_triangle_score``) are one marker, as when a foot hidden
+    whole comes back as new tracks that its neighbours across the ankle place too loosely to tell. Pairs are merged
+    greedily, best first, never joining tracks seen in the same frame, and the comparison is repeated on the merged
+    tracks until nothing changes: merging the fragments of one marker gives its neighbours' fragments the partners
+    they lacked. ``progress`` is told of the pairs compared in each round.
     """
     cfg = config or LabellerConfig()
     groups = [[i] for i in range(tracks.shape[1])]
@@ -42,6 +52,8 @@ def merge_tracks(tracks: np.ndarray, config: LabellerConfig | None = None,
         pairs = np.argwhere(np.triu(state.overlap == 0, 1))
         for i, j in steps(pairs.tolist(), len(pairs), f"merge, round {rounds} ({len(groups)} tracks)", progress):
             score = min(_set_score(state, i, j, cfg), _set_score(state, j, i, cfg))
+            if 1.0 <= score < LOOSE:
+                score = min(score, _triangle_score(state, i, j, cfg))
             if score < 1.0:
                 scored.append((score, i, j))
         taken: set[int] = set()
@@ -69,6 +81,28 @@ class _Round:
         self.sampled = [_evenly(f, cfg.poses) for f in self.frames]
         self._least = cfg.confirm_frames
         self._spreads: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        self._rigid_sd = cfg.rigid_sd_mm
+        self._neighbours = cfg.neighbours
+
+    def handedness(self, a: int, b: int, c: int) -> int:
+        """On which side of the triangle of tracks ``a``, ``b``, ``c`` the markers across its joints lie, seen from
+        ``a`` (the centre of ``a``'s steadiest neighbours that are not rigid with it): +1 or -1 when that side holds
+        in 90 % of the frames all three and a neighbour are seen, else 0. A triangle and its mirror image on the other
+        side of the body (a left shank's cluster and a right one's) have opposite handedness, and so has a triangle
+        matched to the wrong three markers of a symmetric layout."""
+        _, sd = self.spread(a)
+        steady = np.where(np.isfinite(sd) & (sd > self._rigid_sd), sd, np.inf)
+        steady[[a, b, c]] = np.inf
+        nb = np.argsort(steady)[: self._neighbours]
+        nb = nb[np.isfinite(steady[nb])]
+        frames = np.flatnonzero(self.seen[:, a] & self.seen[:, b] & self.seen[:, c] & self.seen[:, nb].any(axis=1))
+        if not len(frames):
+            return 0
+        x = self.tracks[frames]
+        near = np.nanmean(x[:, nb], axis=1)
+        normal = np.cross(x[:, b] - x[:, a], x[:, c] - x[:, a])
+        share = (np.einsum("fi,fi->f", normal, near - x[:, a]) > 0).mean()
+        return 1 if share >= 0.9 else -1 if share <= 0.1 else 0
 
     def spread(self, i: int) -> tuple[np.ndarray, np.ndarray]:
         """``_distance_spread`` of track ``i``."""
@@ -134,6 +168,50 @@ def _set_score(state: _Round, i: int, j: int, cfg: LabellerConfig) -> float:
     best = np.minimum(placed, signature)
     best = best[np.isfinite(best)]
     return _median(best) if len(best) else np.inf
+
+
+def _triangle_score(state: _Round, i: int, j: int, cfg: LabellerConfig) -> float:
+    """How well two tracks never seen together stand in one rigid triangle with two partners each: below 1 when
+    ``i`` with two of its rigid partners and ``j`` with two of its own keep the same three distances (within
+    ``rigid_tolerance_mm`` plus three spreads), each partner of ``i`` being the matching partner of ``j`` or a track
+    never seen with it, and both tracks seen while the body moved (``ARTICULATION``). A body part whose markers all
+    came back as new tracks (a foot hidden whole) is known again by its shape, where its neighbours across the joints
+    place a marker too loosely to say.
+
+    Only a triangle whose three sides differ counts: in one with two like sides the markers could be matched the
+    other way round, and its mirror image is the same triangle with two partners swapped. And the markers across
+    their joints must lie on the same side of both triangles (``_Round.handedness``): the other leg's cluster may
+    have the same shape, mirrored. A pair with no partner in common must show that side plainly; one with a partner
+    in common is held by that partner where the side changes with the pose (a hand turning over)."""
+    mean_i, sd_i = state.spread(i)
+    mean_j, sd_j = state.spread(j)
+    if not min(np.nanmedian(sd_i), np.nanmedian(sd_j)) >= ARTICULATION * cfg.rigid_sd_mm:
+        return np.inf
+    rigid_i = [p for p in np.flatnonzero(sd_i <= cfg.rigid_sd_mm).tolist() if p not in (i, j)]
+    rigid_j = [q for q in np.flatnonzero(sd_j <= cfg.rigid_sd_mm).tolist() if q not in (i, j)]
+    matched = []
+    for p in rigid_i:
+        for q in rigid_j:
+            tol = cfg.rigid_tolerance_mm + 3.0 * max(sd_i[p], sd_j[q])
+            if (p == q or state.overlap[p, q] == 0) and abs(mean_i[p] - mean_j[q]) <= tol:
+                matched.append((p, q, abs(mean_i[p] - mean_j[q]) / tol, tol))
+    best = np.inf
+    for a, (p1, q1, e1, t1) in enumerate(matched):
+        for p2, q2, e2, t2 in matched[a + 1:]:
+            if p1 == p2 or q1 == q2:
+                continue
+            mean_p, sd_p = state.spread(p1)
+            mean_q, sd_q = state.spread(q1)
+            t3 = cfg.rigid_tolerance_mm + 3.0 * max(sd_p[p2], sd_q[q2])
+            e3 = abs(mean_p[p2] - mean_q[q2]) / t3
+            sides = np.sort([mean_i[p1], mean_i[p2], mean_p[p2]])
+            if not e3 <= 1.0 or np.diff(sides).min() <= 2.0 * max(t1, t2, t3):
+                continue
+            hand_i, hand_j = state.handedness(i, p1, p2), state.handedness(j, q1, q2)
+            if hand_i * hand_j < 0 or (p1 != q1 and p2 != q2 and hand_i * hand_j == 0):
+                continue
+            best = min(best, max(e1, e2, e3))
+    return best
 
 
 def _explained(tracks: np.ndarray, seen: np.ndarray, k: int, rigid_sd: float) -> bool:
