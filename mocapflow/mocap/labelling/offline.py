@@ -84,25 +84,42 @@ class _Round:
         self._rigid_sd = cfg.rigid_sd_mm
         self._neighbours = cfg.neighbours
 
-    def handedness(self, a: int, b: int, c: int) -> int:
-        """On which side of the triangle of tracks ``a``, ``b``, ``c`` the markers across its joints lie, seen from
-        ``a`` (the centre of ``a``'s steadiest neighbours that are not rigid with it): +1 or -1 when that side holds
-        in 90 % of the frames all three and a neighbour are seen, else 0. A triangle and its mirror image on the other
-        side of the body (a left shank's cluster and a right one's) have opposite handedness, and so has a triangle
-        matched to the wrong three markers of a symmetric layout."""
-        _, sd = self.spread(a)
+    def same_side(self, first: tuple[int, int, int], second: tuple[int, int, int]) -> int:
+        """Whether two triangles of tracks (``a``, ``b``, ``c``) are alike or mirror images, seen from their first
+        corner: +1 when some track near them (one of either first corner's steadiest neighbours that are not rigid
+        with it: the markers across its joints) lies on one side of each in 90 % of the frames it is seen with it,
+        -1 when one lies on opposite sides so, 0 when none tells (a neighbour in the triangle's plane, or a hand
+        turning over). A triangle and its mirror image on the other side of the body (a left shank's cluster and a
+        right one's) have a marker between them on opposite sides."""
+        near = np.union1d(self._steadiest(first), self._steadiest(second))
+        near = near[~np.isin(near, first + second)]
+        sides = np.array([self._side(first, near), self._side(second, near)])  # (2, N): +1, -1, 0
+        votes = sides[0] * sides[1]
+        return -1 if (votes < 0).any() else 1 if (votes > 0).any() else 0
+
+    def _steadiest(self, triangle: tuple[int, int, int]) -> np.ndarray:
+        """The first corner's steadiest neighbours that are not rigid with it."""
+        _, sd = self.spread(triangle[0])
         steady = np.where(np.isfinite(sd) & (sd > self._rigid_sd), sd, np.inf)
-        steady[[a, b, c]] = np.inf
+        steady[list(triangle)] = np.inf
         nb = np.argsort(steady)[: self._neighbours]
-        nb = nb[np.isfinite(steady[nb])]
-        frames = np.flatnonzero(self.seen[:, a] & self.seen[:, b] & self.seen[:, c] & self.seen[:, nb].any(axis=1))
-        if not len(frames):
-            return 0
+        return nb[np.isfinite(steady[nb])]
+
+    def _side(self, triangle: tuple[int, int, int], near: np.ndarray) -> np.ndarray:
+        """On which side of the triangle each of the ``near`` tracks lies: +1 or -1 where it holds in 90 % of the
+        frames (at least ``confirm_frames``) they are seen together, else 0."""
+        a, b, c = triangle
+        frames = self.seen[:, a] & self.seen[:, b] & self.seen[:, c]
         x = self.tracks[frames]
-        near = np.nanmean(x[:, nb], axis=1)
         normal = np.cross(x[:, b] - x[:, a], x[:, c] - x[:, a])
-        share = (np.einsum("fi,fi->f", normal, near - x[:, a]) > 0).mean()
-        return 1 if share >= 0.9 else -1 if share <= 0.1 else 0
+        out = np.zeros(len(near), np.int64)
+        for k, n in enumerate(near.tolist()):
+            shown = self.seen[frames, n]
+            if shown.sum() < self._least:
+                continue
+            share = (np.einsum("fi,fi->f", normal[shown], x[shown, n] - x[shown, a]) > 0).mean()
+            out[k] = 1 if share >= 0.9 else -1 if share <= 0.1 else 0
+        return out
 
     def spread(self, i: int) -> tuple[np.ndarray, np.ndarray]:
         """``_distance_spread`` of track ``i``."""
@@ -180,7 +197,7 @@ def _triangle_score(state: _Round, i: int, j: int, cfg: LabellerConfig) -> float
 
     Only a triangle whose three sides differ counts: in one with two like sides the markers could be matched the
     other way round, and its mirror image is the same triangle with two partners swapped. And the markers across
-    their joints must lie on the same side of both triangles (``_Round.handedness``): the other leg's cluster may
+    their joints must lie on the same side of both triangles (``_Round.same_side``): the other leg's cluster may
     have the same shape, mirrored. A pair with no partner in common must show that side plainly; one with a partner
     in common is held by that partner where the side changes with the pose (a hand turning over)."""
     mean_i, sd_i = state.spread(i)
@@ -207,8 +224,8 @@ def _triangle_score(state: _Round, i: int, j: int, cfg: LabellerConfig) -> float
             sides = np.sort([mean_i[p1], mean_i[p2], mean_p[p2]])
             if not e3 <= 1.0 or np.diff(sides).min() <= 2.0 * max(t1, t2, t3):
                 continue
-            hand_i, hand_j = state.handedness(i, p1, p2), state.handedness(j, q1, q2)
-            if hand_i * hand_j < 0 or (p1 != q1 and p2 != q2 and hand_i * hand_j == 0):
+            side = state.same_side((i, p1, p2), (j, q1, q2))
+            if side < 0 or (side == 0 and p1 != q1 and p2 != q2):
                 continue
             best = min(best, max(e1, e2, e3))
     return best
