@@ -86,23 +86,23 @@ class _Round:
 
     def same_side(self, first: tuple[int, int, int], second: tuple[int, int, int]) -> int:
         """Whether two triangles of tracks (``a``, ``b``, ``c``) are alike or mirror images, seen from their first
-        corner: +1 when some track near them (one of either first corner's steadiest neighbours that are not rigid
-        with it: the markers across its joints) lies on one side of each in 90 % of the frames it is seen with it,
-        -1 when one lies on opposite sides so, 0 when none tells (a neighbour in the triangle's plane, or a hand
-        turning over). A triangle and its mirror image on the other side of the body (a left shank's cluster and a
-        right one's) have a marker between them on opposite sides."""
-        near = np.union1d(self._steadiest(first), self._steadiest(second))
+        corner: +1 when a track near both (one of both first corners' steadiest neighbours that are not rigid with
+        them: the markers across the joints) lies on one side of each in 90 % of the frames it is seen with it, -1
+        when one lies on opposite sides so, 0 when none tells (no such neighbour in common, as for the two legs' like
+        clusters; a neighbour in the triangle's plane; a hand turning over)."""
+        near = np.intersect1d(self._steadiest(first), self._steadiest(second))
         near = near[~np.isin(near, first + second)]
         sides = np.array([self._side(first, near), self._side(second, near)])  # (2, N): +1, -1, 0
         votes = sides[0] * sides[1]
         return -1 if (votes < 0).any() else 1 if (votes > 0).any() else 0
 
     def _steadiest(self, triangle: tuple[int, int, int]) -> np.ndarray:
-        """The first corner's steadiest neighbours that are not rigid with it."""
+        """The first corner's steadiest neighbours that are not rigid with it (twice as many as place a marker, so
+        that two tracks of one marker have some in common)."""
         _, sd = self.spread(triangle[0])
         steady = np.where(np.isfinite(sd) & (sd > self._rigid_sd), sd, np.inf)
         steady[list(triangle)] = np.inf
-        nb = np.argsort(steady)[: self._neighbours]
+        nb = np.argsort(steady)[: 2 * self._neighbours]
         return nb[np.isfinite(steady[nb])]
 
     def _side(self, triangle: tuple[int, int, int], near: np.ndarray) -> np.ndarray:
