@@ -25,9 +25,10 @@ LOOSE = 4.0
 from the other (a like triangle on the other side of the body)."""
 
 
-def merge_tracks(tracks: np.ndarray, config: LabellerConfig | None = None,
+def merge_tracks(tracks: np.ndarray, rate: float, config: LabellerConfig | None = None,
                  progress: Progress | None = None) -> list[list[int]]:
-    """Groups of tracks ``(F, T, 3)`` that are one physical marker: the thesis's merging of *Marker Sets*, offline.
+    """Groups of tracks ``(F, T, 3)`` at ``rate`` Hz that are one physical marker: the thesis's merging of *Marker
+    Sets*, offline.
 
     Online re-identification needs a lost track's neighbours to be known and seen when its marker comes back; a
     track lost before that, or whose neighbours were lost with it, comes back as a new track. Here every pair of
@@ -35,7 +36,10 @@ def merge_tracks(tracks: np.ndarray, config: LabellerConfig | None = None,
     snapshots of one track with its neighbours are fitted to those neighbours in the other track's frames, and the
     other track must lie within ``reid_gate_mm`` of the placed marker, or keep the distances to the first one's rigid
     partners; the median over frames decides (not the thesis's minimum, so that one coincidence cannot merge two
-    markers). A pair that this leaves in doubt (under ``LOOSE`` gates) is also compared by shape: two tracks that
+    markers). A track that takes up where another left off, within ``max_coast_s`` and on the other's
+    constant-velocity course both ways, keeping its rigid distances (``_junctions``), is that marker too: a fast foot
+    the stream lost for a few frames, which its neighbours place too loosely at that speed. A pair that this leaves
+    in doubt (under ``LOOSE`` gates) is also compared by shape: two tracks that
     stand in one rigid triangle with two partners each (``_triangle_score``) are one marker, as when a foot hidden
     whole comes back as new tracks that its neighbours across the ankle place too loosely to tell. Pairs are merged
     greedily, best first, never joining tracks seen in the same frame, and the comparison is repeated on the merged
@@ -48,10 +52,14 @@ def merge_tracks(tracks: np.ndarray, config: LabellerConfig | None = None,
     while groups:
         rounds += 1
         state = _Round(np.stack([np.fmax.reduce(tracks[:, g], axis=1) for g in groups], axis=1), cfg)
+        joins = _junctions(state, rate, cfg)
         scored = []
         pairs = np.argwhere(np.triu(state.overlap == 0, 1))
         for i, j in steps(pairs.tolist(), len(pairs), f"merge, round {rounds} ({len(groups)} tracks)", progress):
             score = min(_set_score(state, i, j, cfg), _set_score(state, j, i, cfg))
+            if score >= 1.0 and joins.get((i, j), np.inf) < 1.0:
+                kept = max(_kept_distances(state, i, j, cfg), _kept_distances(state, j, i, cfg))
+                score = min(score, max(joins[i, j], kept))
             if 1.0 <= score < LOOSE:
                 score = min(score, _triangle_score(state, i, j, cfg))
             if score < 1.0:
@@ -187,6 +195,51 @@ def _set_score(state: _Round, i: int, j: int, cfg: LabellerConfig) -> float:
     return _median(best) if len(best) else np.inf
 
 
+def _junctions(state: _Round, rate: float, cfg: LabellerConfig) -> dict[tuple[int, int], float]:
+    """Pairs of tracks (``i < j``) one of which takes up where the other left off within ``max_coast_s``: the worst,
+    over their junctions, of how far each end's constant-velocity step across the gap lands from the other end,
+    forward and backward, in units of the gate (``gate_mm``, widened by ``max_accel_mm_s2`` over the gap). Below 1 a
+    fast marker the streaming follow lost for a frame or two (a foot at 10 m/s) is the same marker; both must fit,
+    and every junction between the two."""
+    seen, tracks = state.seen, state.tracks
+    longest = max(1, round(cfg.max_coast_s * rate))
+    worst: dict[tuple[int, int], float] = {}
+    starts = np.argwhere(seen[1:] & ~seen[:-1]) + [1, 0]  # (frame, track) where a run begins
+    for s, y in starts.tolist():
+        if s + 1 >= len(seen) or not seen[s + 1, y]:
+            continue
+        first = max(0, s - longest)
+        before = seen[first:s]  # who was seen in the frames just before
+        for x in np.flatnonzero(before.any(axis=0) & ~seen[s]).tolist():
+            if x == y or state.overlap[x, y]:
+                continue
+            a = first + int(np.flatnonzero(before[:, x])[-1])  # x's last frame before y's run
+            gap = s - a
+            if a < 1 or not seen[a - 1, x]:
+                continue
+            forward = tracks[a, x] + (tracks[a, x] - tracks[a - 1, x]) * gap
+            backward = tracks[s, y] - (tracks[s + 1, y] - tracks[s, y]) * gap
+            gate = cfg.gate_mm + 0.5 * cfg.max_accel_mm_s2 * (gap / rate) ** 2
+            error = max(float(np.linalg.norm(forward - tracks[s, y])), float(np.linalg.norm(backward - tracks[a, x])))
+            key = (min(x, y), max(x, y))
+            worst[key] = max(worst.get(key, 0.0), error / gate)
+    return worst
+
+
+def _kept_distances(state: _Round, i: int, j: int, cfg: LabellerConfig) -> float:
+    """How well track ``j`` keeps track ``i``'s distances to its rigid partners: the median, over ``j``'s frames
+    where two or more of them are seen, of the worst error in units of their tolerance (``rigid_signature``); 0 where
+    no such frame tells."""
+    mean, sd = state.spread(i)
+    partners = np.flatnonzero(np.isfinite(sd) & (sd <= cfg.rigid_sd_mm))
+    partners = partners[(partners != i) & (partners != j)]
+    b = state.sampled[j]
+    broken, count, _ = rigid_signature(state.tracks[b, j], state.tracks[b][:, partners], mean[None, partners],
+                                       sd[None, partners], cfg.rigid_tolerance_mm)
+    told = broken[0][count[0] >= 2]
+    return _median(told) if len(told) else 0.0
+
+
 def _triangle_score(state: _Round, i: int, j: int, cfg: LabellerConfig) -> float:
     """How well two tracks never seen together stand in one rigid triangle with two partners each: below 1 when
     ``i`` with two of its rigid partners and ``j`` with two of its own keep the same three distances (within
@@ -295,7 +348,7 @@ def label_sequence(frames: Iterable[np.ndarray], rate: float, config: LabellerCo
     for track, idx, pos in late:
         tracks[idx, track] = pos
     # the tracks of a group never share a frame
-    merged = [np.fmax.reduce(tracks[:, group], axis=1) for group in merge_tracks(tracks, cfg, progress)]
+    merged = [np.fmax.reduce(tracks[:, group], axis=1) for group in merge_tracks(tracks, rate, cfg, progress)]
     joined = np.stack(merged, axis=1) if merged else np.full((len(rows), 0, 3), np.nan)
     seen = np.isfinite(joined[..., 0])
     long = seen.sum(axis=0) >= cfg.min_track_s * rate
