@@ -422,10 +422,9 @@ def _place_layout(layout: np.ndarray, cloud: np.ndarray, tol: np.ndarray, weight
 
     With ``anchors`` (joint centres to posed segments: local, world, tolerance, weight in the fit), a placement lands
     two or more layout points on cloud points (within ``tol``) and every anchor within its tolerance of its world
-    position. Without, it must land
-    four or more: any three points form a triangle that also fits the mirror-image segment of the other side of the
-    body, whose own markers may be the ones hidden now; three are enough when the segment's centre must lie ``around``
-    (centre, radius) where it was lately.
+    position. Without, it must land four or more: any three points form a triangle that also fits the mirror-image
+    segment of the other side of the body, whose own markers may be the ones hidden now; three are enough when the
+    segment's centre must lie ``around`` (centre, radius) where it was lately.
 
     Placements that fit equally well (a symmetric layout: two markers at the same distances from the third and from
     the joint, each hidden in turn) are told apart by ``posture``: the rotations the segment would have if it kept,

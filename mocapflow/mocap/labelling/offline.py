@@ -36,15 +36,18 @@ def merge_tracks(tracks: np.ndarray, rate: float, config: LabellerConfig | None 
     snapshots of one track with its neighbours are fitted to those neighbours in the other track's frames, and the
     other track must lie within ``reid_gate_mm`` of the placed marker, or keep the distances to the first one's rigid
     partners; the median over frames decides (not the thesis's minimum, so that one coincidence cannot merge two
-    markers). A track that takes up where another left off, within ``max_coast_s`` and on the other's
-    constant-velocity course both ways, keeping its rigid distances (``_junctions``), is that marker too: a fast foot
-    the stream lost for a few frames, which its neighbours place too loosely at that speed. A pair that this leaves
-    in doubt (under ``LOOSE`` gates) is also compared by shape: two tracks that
-    stand in one rigid triangle with two partners each (``_triangle_score``) are one marker, as when a foot hidden
-    whole comes back as new tracks that its neighbours across the ankle place too loosely to tell. Pairs are merged
-    greedily, best first, never joining tracks seen in the same frame, and the comparison is repeated on the merged
-    tracks until nothing changes: merging the fragments of one marker gives its neighbours' fragments the partners
-    they lacked. ``progress`` is told of the pairs compared in each round.
+    markers).
+
+    A track that takes up where another left off, within ``max_coast_s`` and on the other's constant-velocity course
+    both ways, keeping its rigid distances (``_junctions``, ``_kept_distances``), is that marker too: a fast foot the
+    stream lost for a few frames, which its neighbours place too loosely at that speed. A pair left in doubt (under
+    ``LOOSE`` gates) is also compared by shape: two tracks that stand in one rigid triangle with two partners each
+    (``_triangle_score``) are one marker, as when a foot hidden whole comes back as new tracks that its neighbours
+    across the ankle place too loosely to tell.
+
+    Pairs are merged greedily, best first, never joining tracks seen in the same frame, and the comparison is
+    repeated on the merged tracks until nothing changes: merging the fragments of one marker gives its neighbours'
+    fragments the partners they lacked. ``progress`` is told of the pairs compared in each round.
     """
     cfg = config or LabellerConfig()
     groups = [[i] for i in range(tracks.shape[1])]
