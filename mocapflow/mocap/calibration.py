@@ -40,7 +40,7 @@ from scipy.spatial.transform import Rotation
 
 from mocapflow.errors import CalibrationError
 from mocapflow.mocap.clustering import PARTITIONERS, distance_spread, noise_floor, segment_names
-from mocapflow.mocap.cor import CoREstimate, joint_track
+from mocapflow.mocap.cor import CoREstimate, joint_sides, joint_track, side_mean
 from mocapflow.mocap.joints import (
     ALPHA,
     distance_stats,
@@ -250,9 +250,9 @@ def build_skeleton(positions: np.ndarray, labels: Sequence[str], rate: float, gr
             p_off, c_off = place_on_axis(p_off, c_off, est.axis, est.child_axis, [offsets[parent, e] for e in p_near],
                                          [offsets[child, e] for e in c_near])
         pp, pc = shapes[parent].pose, shapes[child].pose
-        track = joint_track(pp.rotation_matrices, pp.translations, pc.rotation_matrices, pc.translations, p_off, c_off)
-        apart = np.linalg.norm(np.einsum("fab,b->fa", pp.rotation_matrices, p_off) + pp.translations
-                               - np.einsum("fab,b->fa", pc.rotation_matrices, c_off) - pc.translations, axis=1)
+        sides = joint_sides(pp.rotation_matrices, pp.translations, pc.rotation_matrices, pc.translations, p_off, c_off)
+        track = side_mean(sides)
+        apart = np.linalg.norm(sides[0] - sides[1], axis=1)
         _, mean, sd = distance_stats(track, positions[chosen][:, list(groups[parent]) + list(groups[child])], ALPHA)
         uncertainty = UNBOUNDED_MM if est is None or (parent, child) in fixed else min(
             float(est.axial_uncertainty), UNBOUNDED_MM)

@@ -8,7 +8,7 @@ rest on are in ``rigidfit``):
   length; the 6x6 normal equations are solved through the 3x3 Schur complement. Feeding it a whole recording at once
   is the batch version.
 - ``joint_track``: the joint centre in every frame from the two segments' poses, from one side when the other is
-  occluded (Aristidou eq. 4.35).
+  occluded (Aristidou eq. 4.35); ``joint_sides`` gives where each segment puts it.
 
 Poses are (R, t) with R as (..., 3, 3) matrices or scipy ``Rotation``; NaN marks an unknown pose.
 """
@@ -146,9 +146,20 @@ def joint_track(parent_r: np.ndarray, parent_t: np.ndarray, child_r: np.ndarray,
                 parent_offset: np.ndarray, child_offset: np.ndarray) -> np.ndarray:
     """Joint centre per frame (F, 3): the mean of where each segment puts it (Aristidou eq. 4.29), or the one side
     whose pose is known when the other is occluded (eq. 4.35); NaN when neither is."""
+    return side_mean(joint_sides(parent_r, parent_t, child_r, child_t, parent_offset, child_offset))
+
+
+def joint_sides(parent_r: np.ndarray, parent_t: np.ndarray, child_r: np.ndarray, child_t: np.ndarray,
+                parent_offset: np.ndarray, child_offset: np.ndarray) -> np.ndarray:
+    """(2, F, 3): where the parent's pose and where the child's put the joint centre in each frame (NaN where that
+    pose is unknown)."""
     a = np.einsum("fab,b->fa", _as_matrices(parent_r), np.asarray(parent_offset, float)) + parent_t
     b = np.einsum("fab,b->fa", _as_matrices(child_r), np.asarray(child_offset, float)) + child_t
-    both = np.stack([a, b])
+    return np.stack([a, b])
+
+
+def side_mean(both: np.ndarray) -> np.ndarray:
+    """``joint_track`` from ``joint_sides``: the mean of the sides known in each frame."""
     known = np.isfinite(both).all(-1)
     total = np.where(known[..., None], both, 0.0).sum(0)
     count = known.sum(0)[:, None]

@@ -90,10 +90,8 @@ class _Round:
         self.overlap = self.seen.T.astype(np.int64) @ self.seen
         self.frames = [np.flatnonzero(column) for column in self.seen.T]
         self.sampled = [_evenly(f, cfg.poses) for f in self.frames]
-        self._least = cfg.confirm_frames
+        self._cfg = cfg
         self._spreads: dict[int, tuple[np.ndarray, np.ndarray]] = {}
-        self._rigid_sd = cfg.rigid_sd_mm
-        self._neighbours = cfg.neighbours
 
     def same_side(self, first: tuple[int, int, int], second: tuple[int, int, int]) -> int:
         """Whether two triangles of tracks (``a``, ``b``, ``c``) are alike or mirror images, seen from their first
@@ -111,9 +109,9 @@ class _Round:
         """The first corner's steadiest neighbours that are not rigid with it (twice as many as place a marker, so
         that two tracks of one marker have some in common)."""
         _, sd = self.spread(triangle[0])
-        steady = np.where(np.isfinite(sd) & (sd > self._rigid_sd), sd, np.inf)
+        steady = np.where(np.isfinite(sd) & (sd > self._cfg.rigid_sd_mm), sd, np.inf)
         steady[list(triangle)] = np.inf
-        nb = np.argsort(steady)[: 2 * self._neighbours]
+        nb = np.argsort(steady)[: 2 * self._cfg.neighbours]
         return nb[np.isfinite(steady[nb])]
 
     def _side(self, triangle: tuple[int, int, int], near: np.ndarray) -> np.ndarray:
@@ -126,7 +124,7 @@ class _Round:
         out = np.zeros(len(near), np.int64)
         for k, n in enumerate(near.tolist()):
             shown = self.seen[frames, n]
-            if shown.sum() < self._least:
+            if shown.sum() < self._cfg.confirm_frames:
                 continue
             share = (np.einsum("fi,fi->f", normal[shown], x[shown, n] - x[shown, a]) > 0).mean()
             out[k] = 1 if share >= 0.9 else -1 if share <= 0.1 else 0
@@ -135,7 +133,7 @@ class _Round:
     def spread(self, i: int) -> tuple[np.ndarray, np.ndarray]:
         """``_distance_spread`` of track ``i``."""
         if i not in self._spreads:
-            self._spreads[i] = _distance_spread(self.tracks, self.seen, i, self._least)
+            self._spreads[i] = _distance_spread(self.tracks, self.seen, i, self._cfg.confirm_frames)
         return self._spreads[i]
 
 
@@ -165,10 +163,7 @@ def _set_score(state: _Round, i: int, j: int, cfg: LabellerConfig) -> float:
     mean, sd = state.spread(i)
     known = np.isfinite(sd)
     known[[i, j]] = False
-    partners = np.flatnonzero(known & (sd <= cfg.rigid_sd_mm))
-    broken, count, _ = rigid_signature(tracks[b, j], tracks[b][:, partners], mean[None, partners], sd[None, partners],
-                                  cfg.rigid_tolerance_mm)
-    signature = np.where(count[0] >= 2, broken[0], np.inf)
+    signature = _signature(state, i, j, cfg)
     score = np.where(known, sd + 0.02 * mean, np.inf)
     score[~(sd <= cfg.neighbour_sd_mm) | (state.overlap[j] < 3)] = np.inf
     nb = np.argsort(score)[: cfg.neighbours]
@@ -229,17 +224,28 @@ def _junctions(state: _Round, rate: float, cfg: LabellerConfig) -> dict[tuple[in
     return worst
 
 
-def _kept_distances(state: _Round, i: int, j: int, cfg: LabellerConfig) -> float:
-    """How well track ``j`` keeps track ``i``'s distances to its rigid partners: the median, over ``j``'s frames
-    where two or more of them are seen, of the worst error in units of their tolerance (``rigid_signature``); 0 where
-    no such frame tells."""
+def _rigid_partners(sd: np.ndarray, cfg: LabellerConfig, *others: int) -> np.ndarray:
+    """The tracks rigid with one whose distance spreads to every track are ``sd``, ``others`` left out."""
+    partners = np.flatnonzero(sd <= cfg.rigid_sd_mm)  # NaN (too few frames shared) is no partner
+    return partners[~np.isin(partners, others)]
+
+
+def _signature(state: _Round, i: int, j: int, cfg: LabellerConfig) -> np.ndarray:
+    """In each of track ``j``'s sampled frames, the worst error of its distances to track ``i``'s rigid partners, in
+    units of their tolerance (``rigid_signature``); inf where fewer than two of them are seen."""
     mean, sd = state.spread(i)
-    partners = np.flatnonzero(np.isfinite(sd) & (sd <= cfg.rigid_sd_mm))
-    partners = partners[(partners != i) & (partners != j)]
+    partners = _rigid_partners(sd, cfg, i, j)
     b = state.sampled[j]
     broken, count, _ = rigid_signature(state.tracks[b, j], state.tracks[b][:, partners], mean[None, partners],
                                        sd[None, partners], cfg.rigid_tolerance_mm)
-    told = broken[0][count[0] >= 2]
+    return np.where(count[0] >= 2, broken[0], np.inf)
+
+
+def _kept_distances(state: _Round, i: int, j: int, cfg: LabellerConfig) -> float:
+    """How well track ``j`` keeps track ``i``'s distances to its rigid partners: the median of ``_signature`` over
+    the frames where it tells, 0 where none does."""
+    told = _signature(state, i, j, cfg)
+    told = told[np.isfinite(told)]
     return _median(told) if len(told) else 0.0
 
 
@@ -260,8 +266,8 @@ def _triangle_score(state: _Round, i: int, j: int, cfg: LabellerConfig) -> float
     mean_j, sd_j = state.spread(j)
     if not min(np.nanmedian(sd_i), np.nanmedian(sd_j)) >= ARTICULATION * cfg.rigid_sd_mm:
         return np.inf
-    rigid_i = [p for p in np.flatnonzero(sd_i <= cfg.rigid_sd_mm).tolist() if p not in (i, j)]
-    rigid_j = [q for q in np.flatnonzero(sd_j <= cfg.rigid_sd_mm).tolist() if q not in (i, j)]
+    rigid_i = _rigid_partners(sd_i, cfg, i, j).tolist()
+    rigid_j = _rigid_partners(sd_j, cfg, i, j).tolist()
     matched = []
     for p in rigid_i:
         for q in rigid_j:
