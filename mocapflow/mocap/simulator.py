@@ -148,7 +148,7 @@ class _Gaps:
         self.seed, self.stream, self.units, self.per_frame = seed, stream, units, per_frame
         self.lengths, self.block = lengths, block
         self.lookback = -(-lengths[1] // block)
-        self.cache: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+        self.cache: dict[int, np.ndarray] = {}
 
     def _starting(self, b: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         rng = np.random.default_rng([self.seed, self.stream, b])
@@ -157,21 +157,24 @@ class _Gaps:
         start = b * self.block + rng.integers(0, self.block, len(unit))
         return unit, start, start + rng.integers(self.lengths[0], self.lengths[1] + 1, len(unit))
 
-    def _overlapping(self, b: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def _hidden_in(self, b: int) -> np.ndarray:
+        """(block, N) True for markers occluded in each frame of block b, by the events of that block and of those
+        before it that last into it (worked out once a block: a frame then costs one row)."""
         if b not in self.cache:
-            if len(self.cache) > 8:
+            if len(self.cache) > 1:
                 self.cache.clear()
-            parts = [self._starting(k) for k in range(max(b - self.lookback, 0), b + 1)]
-            unit, start, stop = (np.concatenate(x) for x in zip(*parts, strict=True))
-            keep = stop > b * self.block
-            self.cache[b] = unit[keep], start[keep], stop[keep]
+            first = b * self.block
+            mask = np.zeros((self.block, self.units.shape[1]), bool)
+            for k in range(max(b - self.lookback, 0), b + 1):
+                for unit, start, stop in zip(*self._starting(k), strict=True):
+                    if stop > first:
+                        mask[max(start - first, 0):stop - first] |= self.units[unit]
+            self.cache[b] = mask
         return self.cache[b]
 
     def hidden(self, i: int) -> np.ndarray:
         """(N,) True for markers occluded at frame i."""
-        unit, start, stop = self._overlapping(i // self.block)
-        active = unit[(start <= i) & (i < stop)]
-        return self.units[active].any(0)
+        return self._hidden_in(i // self.block)[i % self.block]
 
 
 class Simulator:
@@ -259,7 +262,7 @@ class Simulator:
         if cfg.unlabelled:
             count = rng.poisson(cfg.ghosts) if cfg.ghosts > 0 else 0
             direction = rng.standard_normal((count, 3))
-            direction /= np.linalg.norm(direction, axis=1, keepdims=True)
+            direction /= np.sqrt((direction * direction).sum(1, keepdims=True))  # np.linalg.norm's sum, less overhead
             radius = rng.uniform(*_GHOST_MM, (count, 1))
             ghosts = true[rng.integers(0, len(true), count)] + direction * radius
             identity = np.concatenate([np.flatnonzero(visible), np.full(count, -1)])

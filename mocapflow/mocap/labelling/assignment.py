@@ -60,6 +60,8 @@ def gated_cost_compiled(pred: np.ndarray, gate: np.ndarray, points: np.ndarray) 
         for b in range(len(points)):
             best = np.inf
             for h in range(pred.shape[1]):
+                if abs(pred[a, h, 0] - points[b, 0]) >= gate[a, h]:  # as far along x alone: outside the gate
+                    continue
                 ratio = distance(pred[a, h], points[b]) / gate[a, h]
                 if ratio < best:  # NaN (no hypothesis) never is
                     best = ratio
@@ -136,15 +138,16 @@ def rigid_signature(points: np.ndarray, partners: np.ndarray, mean: np.ndarray, 
         partners = np.repeat(partners[None], len(points), axis=0)
     # one layout of every array, so that one compiled form serves every caller (``compiled.compile_all`` makes it)
     c = np.ascontiguousarray
-    return _signature(c(points, dtype=np.float64), c(partners, dtype=np.float64), c(mean, dtype=np.float64),
+    return rigid_signature_compiled(c(points, dtype=np.float64), c(partners, dtype=np.float64),
+                                    c(mean, dtype=np.float64),
                       c(sd, dtype=np.float64), float(tolerance))
 
 
 @njit(cache=True)
-def _signature(points: np.ndarray, partners: np.ndarray, mean: np.ndarray, sd: np.ndarray,
-               tolerance: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # pragma: no cover
-    """``rigid_signature`` with one set of partners ``(B, P, 3)`` per point, compiled: the labeller asks for it
-    several times a frame."""
+def rigid_signature_compiled(points: np.ndarray, partners: np.ndarray, mean: np.ndarray, sd: np.ndarray,
+                             tolerance: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # pragma: no cover
+    """``rigid_signature`` with one set of partners ``(B, P, 3)`` per point, for compiled callers: the labeller
+    asks for it several times a frame."""
     broken = np.zeros((mean.shape[0], len(points)))
     count = np.zeros((mean.shape[0], len(points)), np.int64)
     violated = np.zeros((mean.shape[0], len(points)), np.int64)

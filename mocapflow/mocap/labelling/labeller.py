@@ -13,7 +13,6 @@ from mocapflow.mocap.labelling.assignment import (
     gated_cost_compiled,
     match,
     norm,
-    rigid_signature,
     screened,
 )
 from mocapflow.mocap.labelling.config import UNGATED_MM, LabellerConfig, LabelResult
@@ -138,15 +137,10 @@ class Labeller:
         """Give the ``free`` points of ``z`` to the ``lost`` tracks whose hypotheses (``_lost_predictions``; the
         placement by neighbours only where ``instant``) they fit, screened by their rigid partners; in place in
         ``cur`` and ``taken``. The screening only ever raises a cost, so it is skipped when no point is in a gate."""
-        now_pred = pred.copy()
-        now_pred[~instant, 0] = np.nan
-        has = np.flatnonzero(np.isfinite(now_pred[..., 0]).any(axis=1))
-        if len(has) == 0:
-            return
-        cost = gated_cost(now_pred[has], gate[has], z[free])
+        has, cost = _instant_costs(pred, gate, instant, z[free])
         if not (cost < 0.0).any():
             return
-        broken, partners, violated = self._signature(lost[has], cur, z[free])
+        broken, partners, violated = self._tracks.signature(lost[has], cur, z[free])
         ti, pi = match(screened(cost, broken, partners, violated))
         cur[lost[has[ti]]] = z[free[pi]]
         taken[free[pi]] = lost[has[ti]]
@@ -203,46 +197,30 @@ class Labeller:
         shown (give or take ``reid_gate_mm``) are placed: no other can be found, and most frames need no fit at all.
         """
         cfg = self.config
-        pred = np.full((len(lost), 2, 3), np.nan)
-        gate = np.full((len(lost), 2), cfg.reid_gate_mm)
-        instant = np.zeros(len(lost), bool)
-        if len(lost) == 0:
-            return pred, gate, instant
+        tracks = self._tracks
         # an outside prediction replaces the placement, so only the others are placed
-        given = np.zeros(len(lost), bool) if outside is None else np.isfinite(outside[lost]).all(axis=1)
+        pred, gate, given = _hypotheses(lost, np.empty((0, 3)) if outside is None else outside, tracks.pos, tracks.vel,
+                                        tracks.last, time, cfg.max_coast_s, cfg.gate_mm, cfg.max_accel_mm_s2,
+                                        cfg.reid_gate_mm)
+        instant = given.copy()
         unknown = np.flatnonzero(~given)
         if len(free) and len(unknown):
             # each snapshot fitted to the neighbours matched in this frame; the best-fitting pose places the marker
-            near = unknown[self._tracks.plausible(lost[unknown], cur, free).any(axis=1)]
+            near = unknown[tracks.plausible(lost[unknown], cur, free).any(axis=1)]
             if len(near):
-                anchors = self._tracks.anchors[lost[near]]
+                anchors = tracks.anchors[lost[near]]
                 now = np.where((anchors >= 0)[..., None], cur[anchors], np.nan)
-                place, misfit, spread = place_marker(self._tracks.poses[lost[near]], now,
-                                                     self._tracks.anchor_w[lost[near]], cfg.instant_fit_mm)
+                place, misfit, spread = place_marker(tracks.poses[lost[near]], now, tracks.anchor_w[lost[near]],
+                                                     cfg.instant_fit_mm)
                 doubt = np.fmax(misfit, spread)
                 usable = doubt <= cfg.reid_gate_mm
                 pred[near[usable], 0] = place[usable]
                 gate[near, 0] += np.where(np.isnan(doubt), 0.0, doubt)
                 instant[near] = doubt <= cfg.instant_fit_mm
-        if outside is not None:
-            pred[given, 0] = outside[lost[given]]
-            instant |= given
-        dt = time - self._tracks.last[lost]
-        coast = dt <= cfg.max_coast_s
-        pred[coast, 1] = self._tracks.pos[lost[coast]] + self._tracks.vel[lost[coast]] * dt[coast, None]
-        gate[:, 1] = cfg.gate_mm + 0.5 * cfg.max_accel_mm_s2 * dt**2
         # a prediction on top of a marker already matched points at that marker, seen under another track: what lies
         # near it is a ghost or that marker, never this one
         _drop_near(pred, cur, cfg.gate_mm / 2)
         return pred, gate, instant
-
-    def _signature(self, tracks: np.ndarray, cur: np.ndarray,
-                   z: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """``rigid_signature`` of points ``z`` against ``tracks`` and their rigid partners among this frame's
-        matches."""
-        seen = np.flatnonzero(np.isfinite(cur[:, 0]))
-        mean, sd = self._tracks.rigid(tracks, seen)
-        return rigid_signature(z, cur[seen], mean, sd, self.config.rigid_tolerance_mm)
 
     def _lost_partners(self, lost: np.ndarray, cur: np.ndarray, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``rigid_signature`` of points ``z`` against ``lost`` tracks and their lost rigid partners, each placed on a
@@ -256,7 +234,7 @@ class Labeller:
         tol = self.config.rigid_tolerance_mm
         mean, sd = self._tracks.rigid(lost, lost)
         np.fill_diagonal(mean, np.nan)
-        broken, partners, _ = self._signature(lost, cur, self._tentative.pos)
+        broken, partners, _ = self._tracks.signature(lost, cur, self._tentative.pos)
         possible = (partners == 0) | (broken < 1.0)
         d = cdist(z, self._tentative.pos)
         error = np.abs(d[None, None] - mean[..., None, None]) / (tol + 3.0 * sd[..., None, None])
@@ -316,7 +294,7 @@ class Labeller:
         li, ri = np.empty(0, np.intp), np.empty(0, np.intp)
         if len(lost):
             cost = gated_cost(pred, np.full(gate.shape, UNGATED_MM) if full else gate, z)
-            broken, partners, violated = self._signature(lost, cur, z)
+            broken, partners, violated = self._tracks.signature(lost, cur, z)
             lost_broken, helpers = self._lost_partners(lost, cur, z)
             near = self._tracks.plausible(lost, cur, z)
             worst = np.where(partners >= 2, broken, np.fmax(broken, lost_broken))
@@ -346,11 +324,9 @@ class Labeller:
         owners = np.full(len(z), -1, np.intp)
         if len(z) == 0 or len(lost) == 0:
             return owners
-        broken, partners, _ = self._signature(lost, cur, z)
-        fits = (broken < 1.0) & (partners >= np.where(hits >= 2, 2, 3)[None])
-        fits &= (fits.sum(axis=0) == 1)[None] & (fits.sum(axis=1) == 1)[:, None]
-        li, ri = np.nonzero(fits)
-        owners[ri] = lost[li]
+        broken, partners, _ = self._tracks.signature(lost, cur, z)
+        row = _sure_fits(broken, partners, hits)
+        owners[row >= 0] = lost[row[row >= 0]]
         return owners
 
     def _adopt(self, ready: np.ndarray, owners: np.ndarray) -> list[tuple[int, np.ndarray, np.ndarray]]:
@@ -434,6 +410,63 @@ def _carry(pos: np.ndarray, vel: np.ndarray, hits: np.ndarray, points: np.ndarra
             new_vel[k, c] = vel[u, c] + smoothing * (measured - vel[u, c]) if hits[u] >= 2 else measured
         new_hits[k] = hits[u] + 1
     return new_pos, new_vel, new_hits, order
+
+
+@njit(cache=True)
+def _hypotheses(lost: np.ndarray, outside: np.ndarray, pos: np.ndarray, vel: np.ndarray, last: np.ndarray, time: float,
+                max_coast_s: float, gate_mm: float, max_accel: float,
+                reid_gate: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # pragma: no cover
+    """``Labeller._lost_predictions`` before the placement by neighbours: each ``lost`` track's first hypothesis its
+    ``outside`` prediction where it has one (an empty array: none), its second its constant-velocity coast within
+    ``max_coast_s``, with their gates, and where the first is given."""
+    pred = np.full((len(lost), 2, 3), np.nan)
+    gate = np.full((len(lost), 2), reid_gate)
+    given = np.zeros(len(lost), np.bool_)
+    for i, t in enumerate(lost):
+        if len(outside):
+            given[i] = np.isfinite(outside[t, 0]) and np.isfinite(outside[t, 1]) and np.isfinite(outside[t, 2])
+            if given[i]:
+                pred[i, 0] = outside[t]
+        dt = time - last[t]
+        if dt <= max_coast_s:
+            for c in range(3):
+                pred[i, 1, c] = pos[t, c] + vel[t, c] * dt
+        gate[i, 1] = gate_mm + 0.5 * max_accel * (dt * dt)
+    return pred, gate, given
+
+
+@njit(cache=True)
+def _instant_costs(pred: np.ndarray, gate: np.ndarray, instant: np.ndarray,
+                   points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover
+    """The lost tracks with a hypothesis to try now (``Labeller._reidentify``: the first, placed by neighbours, only
+    where ``instant``) and the gated costs (``gated_cost``) of ``points`` for them."""
+    now = pred.copy()
+    for a in range(len(pred)):
+        if not instant[a]:
+            now[a, 0] = np.nan
+    has = np.flatnonzero(np.isfinite(now[:, 0, 0]) | np.isfinite(now[:, 1, 0]))
+    return has, gated_cost_compiled(now[has], gate[has], points)
+
+
+@njit(cache=True)
+def _sure_fits(broken: np.ndarray, partners: np.ndarray, hits: np.ndarray) -> np.ndarray:  # pragma: no cover
+    """For each point, the one row of ``rigid_signature``'s ``broken`` and ``partners`` ``(A, B)`` it surely fits
+    (``Labeller._sure_owners``), -1 where none: no distance broken, to three partners or more (two once ``hits`` says
+    the point was followed for two frames), and no other row or point fits so."""
+    fits = np.zeros(broken.shape, np.bool_)
+    rows = np.zeros(broken.shape[0], np.int64)
+    cols = np.zeros(broken.shape[1], np.int64)
+    for a in range(broken.shape[0]):
+        for b in range(broken.shape[1]):
+            fits[a, b] = broken[a, b] < 1.0 and partners[a, b] >= (2 if hits[b] >= 2 else 3)
+            rows[a] += fits[a, b]
+            cols[b] += fits[a, b]
+    out = np.full(broken.shape[1], -1, np.intp)
+    for a in range(broken.shape[0]):
+        for b in range(broken.shape[1]):
+            if fits[a, b] and rows[a] == 1 and cols[b] == 1:
+                out[b] = a
+    return out
 
 
 @njit(cache=True)

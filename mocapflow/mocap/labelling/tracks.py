@@ -10,6 +10,7 @@ import numpy as np
 from numba import njit
 from scipy.spatial.distance import cdist
 
+from mocapflow.mocap.labelling.assignment import rigid_signature_compiled
 from mocapflow.mocap.labelling.config import SD_FLOOR_MM, STATS_HZ, LabellerConfig
 
 
@@ -22,6 +23,7 @@ class Tracks:
         self.config = config
         self.rate = rate
         self.stats_every = max(1, round(rate / STATS_HZ))
+        self.rigid_samples = config.rigid_min_s * rate / self.stats_every  # statistics samples rigidity needs
         k = config.neighbours
         self.pos = np.empty((0, 3))
         self.vel = np.empty((0, 3))
@@ -92,9 +94,16 @@ class Tracks:
     def rigid(self, tracks: np.ndarray, others: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Learnt mean (NaN where the two are not one rigid body) and standard deviation of the distance between
         each of ``tracks`` and each of ``others``."""
+        return _rigid(self.pair_n, self.pair_mean, self.pair_m2, tracks, others, self.rigid_samples,
+                      self.config.rigid_sd_mm)
+
+    def signature(self, tracks: np.ndarray, cur: np.ndarray,
+                  z: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``rigid_signature`` of points ``z`` against ``tracks`` and their rigid partners (``rigid``) among the tracks
+        seen in ``cur`` (NaN rows: not seen)."""
         cfg = self.config
-        return _rigid(self.pair_n, self.pair_mean, self.pair_m2, tracks, others,
-                      cfg.rigid_min_s * self.rate / self.stats_every, cfg.rigid_sd_mm)
+        return _signature_now(self.pair_n, self.pair_mean, self.pair_m2, tracks, cur, z, self.rigid_samples,
+                              cfg.rigid_sd_mm, cfg.rigid_tolerance_mm)
 
     def observe(self, cur: np.ndarray, time: float) -> None:
         """Update the kinematic state of confirmed tracks from this frame's matches."""
@@ -139,7 +148,7 @@ class Tracks:
         n = self.pair_n[tracks]
         sd = np.sqrt(self.pair_m2[tracks] / np.maximum(n - 1.0, 1.0))
         recent = self.last >= time - cfg.reselect_s
-        rigid = (n >= cfg.rigid_min_s * self.rate / self.stats_every) & (sd <= cfg.neighbour_sd_mm) & recent[None]
+        rigid = (n >= self.rigid_samples) & (sd <= cfg.neighbour_sd_mm) & recent[None]
         rigid[np.arange(len(tracks)), tracks] = False
         # steadiest first, favouring near markers as the thesis does; current neighbours that still qualify stay, so
         # snapshots are not discarded for a marginal gain
@@ -187,6 +196,21 @@ def _rigid(pair_n: np.ndarray, pair_mean: np.ndarray, pair_m2: np.ndarray, track
             sd[i, j] = np.sqrt(pair_m2[tracks[i], others[j]] / max(n - 1.0, 1.0))
             mean[i, j] = pair_mean[tracks[i], others[j]] if n >= least and sd[i, j] <= most_sd else np.nan
     return mean, sd
+
+
+@njit(cache=True)
+def _signature_now(pair_n: np.ndarray, pair_mean: np.ndarray, pair_m2: np.ndarray, tracks: np.ndarray,
+                   cur: np.ndarray, z: np.ndarray, least: float, most_sd: float,
+                   tolerance: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # pragma: no cover
+    """``Tracks.signature`` on the pair statistics, in one compiled call: the labeller asks for it several times a
+    frame."""
+    seen = np.flatnonzero(np.isfinite(cur[:, 0]))
+    mean, sd = _rigid(pair_n, pair_mean, pair_m2, tracks, seen, least, most_sd)
+    partners = np.empty((len(z), len(seen), 3))
+    for b in range(len(z)):
+        for p in range(len(seen)):
+            partners[b, p] = cur[seen[p]]
+    return rigid_signature_compiled(z, partners, mean, sd, tolerance)
 
 
 @njit(cache=True)
