@@ -49,8 +49,9 @@ def compile_all() -> None:
 
 
 def _label_and_fill(skeleton: SkeletonModel, layout: np.ndarray) -> None:
-    """The labeller and the filler over 3 s of the two segments turning at 100 Hz, a marker hidden for a while: long
-    enough for the labeller to learn neighbours and take the marker back, and for the filler to fill it."""
+    """The labeller and the filler over 3 s of the two segments turning at 100 Hz, a marker hidden for a while and a
+    new point far off meanwhile: long enough for the labeller to learn neighbours, weigh the new point against the
+    lost marker, young and confirmed, and take the marker back, and for the filler to fill it."""
     labeller = Labeller(LabellerConfig(), 100.0)
     filler = GapFiller([m for seg in skeleton.segments for m in seg.markers], 100.0, FillerConfig(), skeleton)
     for i in range(300):
@@ -58,6 +59,7 @@ def _label_and_fill(skeleton: SkeletonModel, layout: np.ndarray) -> None:
         points = layout @ np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]).T + [i, 0.0, 0.0]
         if 200 <= i < 220:
             points[4] = np.nan
-        labeller.update(points[::-1], i / 100)
+        far = [[5000.0, 0.0, float(i)]] if 205 <= i < 215 else np.empty((0, 3))
+        labeller.update(np.vstack([points[::-1], far]), i / 100)
         filler.update(points)
         filler.predict_next()
