@@ -105,21 +105,24 @@ class Labeller:
         at = self._advance_tentatives(z, free[taken[free] < 0], time)
         history: list[tuple[int, np.ndarray, np.ndarray]] = []
         if len(at):  # some point was left over, so any lost track has its hypotheses
-            ready = np.flatnonzero(self._tentative.hits >= cfg.confirm_frames)
+            hits = self._tentative.hits
+            ready, young = np.flatnonzero(hits >= cfg.confirm_frames), np.flatnonzero(hits < cfg.confirm_frames)
             still = np.isnan(cur[lost, 0])
-            owners = (self._owners(z[at[ready]], cur, lost[still], lost_pred[still], lost_gate[still]) if len(ready)
-                      else np.empty(0, np.intp))
-            young = np.flatnonzero(self._tentative.hits < cfg.confirm_frames)
-            owned = np.zeros(len(self.labels), bool)
-            owned[owners[owners >= 0]] = True
-            still[still] = ~owned[lost[still]]
-            sure = self._sure_owners(z[at[young]], self._tentative.hits[young], cur, lost[still])
+            owners = np.empty(0, np.intp)
+            if len(ready):
+                owners = self._owners(z[at[ready]], cur, lost[still], lost_pred[still], lost_gate[still])
+                owned = np.zeros(len(self.labels), bool)
+                owned[owners[owners >= 0]] = True
+                still[still] = ~owned[lost[still]]
+            sure = self._sure_owners(z[at[young]], hits[young], cur, lost[still])
             ready, owners = np.concatenate([ready, young]), np.concatenate([owners, sure])
-            if len(self.labels) > n_tracks:  # new tracks confirmed
-                cur = np.vstack([cur, np.full((len(self.labels) - n_tracks, 3), np.nan)])
-            history = self._adopt(ready, owners)
-            cur[owners[owners >= 0]] = z[at[ready[owners >= 0]]]
-            taken[at[ready[owners >= 0]]] = owners[owners >= 0]
+            done = owners >= 0
+            if done.any():  # most frames: a passing ghost, left tentative
+                if len(self.labels) > n_tracks:  # new tracks confirmed
+                    cur = np.vstack([cur, np.full((len(self.labels) - n_tracks, 3), np.nan)])
+                history = self._adopt(ready, owners)
+                cur[owners[done]] = z[at[ready[done]]]
+                taken[at[ready[done]]] = owners[done]
         ray_out = None
         if rays is not None:
             rays = np.asarray(rays, dtype=float)
@@ -334,8 +337,6 @@ class Labeller:
         history: list[tuple[int, np.ndarray, np.ndarray]] = []
         tent = self._tentative
         done = owners >= 0
-        if not done.any():
-            return history
         for u, track in zip(ready[done], owners[done], strict=True):
             frames = np.array([f for f, _ in tent.points[u]])
             pos = np.array([p for _, p in tent.points[u]])
