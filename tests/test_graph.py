@@ -5,10 +5,11 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
+import yaml
 from conftest import run_cli
 
 from mocapflow.errors import GraphError
-from mocapflow.runtime.graph import load_graph
+from mocapflow.runtime.graph import load_graph, validate
 
 DEPLOYMENTS = sorted((Path(__file__).resolve().parents[1] / "deployments").glob("*.yaml"))
 
@@ -113,3 +114,19 @@ def test_node_health_links_only_to_the_stats_of_this_graph(tmp_path: Path) -> No
     with pytest.raises(GraphError, match="nodes.view.inputs.markers: '_stats/\\*' carries NodeStats, input expects "
                                          "MarkerFrame"):
         load_graph(path)
+
+
+def test_an_output_read_only_through_its_copies_is_not_sent_for_other_processes(tmp_path: Path) -> None:
+    """The quickstart's model stages read the filled markers' sampled copy: the frame group need not send the whole
+    stream for them (only while someone subscribes), but sends the models they send back; a model stage that reads
+    the whole stream (``queue: all``) has it sent."""
+    path = DEPLOYMENTS[0].with_name("quickstart.yaml")
+    graph = load_graph(path)
+    classes = validate(graph)
+    assert graph.linked_outputs("filler", classes) == []
+    assert graph.linked_outputs("clusterer", classes) == ["segments"]
+    assert graph.linked_outputs("joints", classes) == ["skeleton"]
+    raw = yaml.safe_load(path.read_text())
+    raw["nodes"]["clusterer"]["queue"] = {"markers": "all"}
+    graph = load_graph(write(tmp_path, yaml.safe_dump(raw)))
+    assert graph.linked_outputs("filler", validate(graph)) == ["markers"]

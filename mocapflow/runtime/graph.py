@@ -124,10 +124,13 @@ class Graph(BaseModel):
                 groups.setdefault(spec.group, []).append(name)
         return groups
 
-    def linked_outputs(self, node: str) -> list[str]:
-        """Outputs of ``node`` that a node in another process is linked to."""
-        return sorted({link.partition("/")[2] for name, spec in self.nodes.items() for link in spec.inputs.values()
-                       if link.partition("/")[0] == node and self.process_of(name) != self.process_of(node)})
+    def linked_outputs(self, node: str, classes: dict[str, type[Node]]) -> list[str]:
+        """Outputs of ``node`` that a node in another process reads as they are (``classes``: each node's plugin). An
+        input whose queue policy is 'sampled' or 'preview' reads the output's copy instead, which the node sends only
+        while someone subscribes to it: linked that way, the output itself need not be sent."""
+        return sorted({link.partition("/")[2] for name, spec in self.nodes.items() for port, link in spec.inputs.items()
+                       if link.partition("/")[0] == node and self.process_of(name) != self.process_of(node)
+                       and spec.queue.get(port, classes[name].inputs[port].queue) not in ("sampled", "preview")})
 
 
 def _format_validation(exc: ValidationError, base: str = "") -> str:

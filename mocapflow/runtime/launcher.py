@@ -111,7 +111,7 @@ class Launcher:
                 connect=endpoints, peers=list(graph.nodes), end_inputs=ends[name],
                 security=str(self.security) if self.security else None, limits=graph.limits,
                 run=self.run_id, queue=spec.queue, queue_size=spec.queue_size, wait_for=spec.wait_for, nice=spec.nice,
-                cpu=spec.cpu, linked=graph.linked_outputs(name),
+                cpu=spec.cpu, linked=graph.linked_outputs(name, classes),
             )
             for name, spec in graph.nodes.items()
         }
