@@ -7,9 +7,9 @@ node while alive, and ends the nodes cleanly on end of stream or SIGTERM.
 A node group runs several nodes in this one process: what one member publishes for another is handed over as the
 Python object, in order, on the same thread, before anything else arrives from outside (so a feedback loop inside a
 group never races: the filler's prediction reaches the labeller before the tracker's next frame). Every output is still
-published on its key for outside subscribers: always when a node of the graph outside the group is linked to it,
-otherwise only while Zenoh reports a matching subscriber (a viewer, ``mocapflow echo``), so nobody's frames are
-encoded for no one.
+published on its key for outside subscribers: always when a node of the graph outside the group reads it whole
+(``Graph.linked_outputs``), otherwise only while Zenoh reports a matching subscriber (a viewer, ``mocapflow echo``), so
+nobody's frames are encoded for no one.
 
 End of stream is a Zenoh DELETE sample on a data key: a source sends it when it has no more frames, and a node sends
 it on its own outputs once every data input it waits for has ended (``graph.end_inputs``: all linked data inputs
@@ -95,7 +95,7 @@ class WorkerSpec(BaseModel):
         default_factory=dict, description="input port -> ms: how long a frame waits for that input's message of the "
         "same frame number (feedback from another process)")
     linked: list[str] | None = Field(
-        default=None, description="outputs that nodes in other processes are linked to (always published); the "
+        default=None, description="outputs that nodes in other processes read whole (always published); the "
         "others only while someone subscribes. None: publish every output")
     members: list[WorkerSpec] = Field(
         default_factory=list, description="a node group: the nodes this process runs (``node`` names the group)")
