@@ -93,10 +93,11 @@ def _quaternion(xx: float, xy: float, xz: float, yx: float, yy: float, yz: float
     eigenvalues, in order, and the largest magnitude of any. The eigenvalues of N are sums of S's singular values with
     signs (Horn 1987): the largest is s1 + s2 + s3, the second s1 - s2 - s3, the third -s1 + s2 - s3 (s3 taken
     negative where det S is), so the first two give the first singular value, the first and third the second."""
-    n = np.array([[xx + yy + zz, yz - zy, zx - xz, xy - yx],
-                  [yz - zy, xx - yy - zz, xy + yx, zx + xz],
-                  [zx - xz, xy + yx, -xx + yy - zz, yz + zy],
-                  [xy - yx, zx + xz, yz + zy, -xx - yy + zz]])
+    n = np.empty((4, 4))  # filled entry by entry: a nested list would cost an allocation per row
+    n[0, 0], n[0, 1], n[0, 2], n[0, 3] = xx + yy + zz, yz - zy, zx - xz, xy - yx
+    n[1, 0], n[1, 1], n[1, 2], n[1, 3] = yz - zy, xx - yy - zz, xy + yx, zx + xz
+    n[2, 0], n[2, 1], n[2, 2], n[2, 3] = zx - xz, xy + yx, -xx + yy - zz, yz + zy
+    n[3, 0], n[3, 1], n[3, 2], n[3, 3] = xy - yx, zx + xz, yz + zy, -xx - yy + zz
     vectors = np.empty((4, 4))
     _jacobi(n, vectors)
     first, second = 0, 1
