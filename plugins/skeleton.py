@@ -61,7 +61,7 @@ class SkeletonPublisher(Node[SkeletonConfig]):
             return
         if self.solver is None or self.solver.labels != labels:
             self.solver = PoseSolver(self.model, labels)
-        pose = self.solver(np.stack([m.positions for m in frames]).astype(np.float64))
+        pose = self.solver(np.array([m.positions for m in frames], dtype=np.float64))
         self.frames += len(frames)
         self.posed += len(frames)
         for i, m in enumerate(frames):

@@ -93,10 +93,11 @@ def _quaternion(xx: float, xy: float, xz: float, yx: float, yy: float, yz: float
     eigenvalues, in order, and the largest magnitude of any. The eigenvalues of N are sums of S's singular values with
     signs (Horn 1987): the largest is s1 + s2 + s3, the second s1 - s2 - s3, the third -s1 + s2 - s3 (s3 taken
     negative where det S is), so the first two give the first singular value, the first and third the second."""
-    n = np.array([[xx + yy + zz, yz - zy, zx - xz, xy - yx],
-                  [yz - zy, xx - yy - zz, xy + yx, zx + xz],
-                  [zx - xz, xy + yx, -xx + yy - zz, yz + zy],
-                  [xy - yx, zx + xz, yz + zy, -xx - yy + zz]])
+    n = np.empty((4, 4))  # filled entry by entry: a nested list would cost an allocation per row
+    n[0, 0], n[0, 1], n[0, 2], n[0, 3] = xx + yy + zz, yz - zy, zx - xz, xy - yx
+    n[1, 0], n[1, 1], n[1, 2], n[1, 3] = yz - zy, xx - yy - zz, xy + yx, zx + xz
+    n[2, 0], n[2, 1], n[2, 2], n[2, 3] = zx - xz, xy + yx, -xx + yy - zz, yz + zy
+    n[3, 0], n[3, 1], n[3, 2], n[3, 3] = xy - yx, zx + xz, yz + zy, -xx - yy + zz
     vectors = np.empty((4, 4))
     _jacobi(n, vectors)
     first, second = 0, 1
@@ -352,50 +353,75 @@ def fit_frames(local: np.ndarray, observed: np.ndarray, pivot_local: np.ndarray,
                min_gap: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:  # pragma: no cover
     """``fit_pose`` before holding: per frame and segment ((F, S) of ``observed`` (F, S, n, 3)), the quaternion
     (NaN where too few points), whether the points fix it, and the two origins it turns about (centroids of the
-    visible markers, or the pivot where ``pivot_world`` is finite)."""
+    visible markers, or the pivot where ``pivot_world`` is finite): ``fit_frame`` of each."""
     count_f, count_s, n = observed.shape[0], observed.shape[1], observed.shape[2]
-    quats = np.full((count_f, count_s, 4), np.nan)
-    determined = np.zeros((count_f, count_s), np.bool_)
-    origin_loc, origin_obs = np.zeros((count_f, count_s, 3)), np.zeros((count_f, count_s, 3))
+    quats = np.empty((count_f, count_s, 4))
+    determined = np.empty((count_f, count_s), np.bool_)
+    origin_loc, origin_obs = np.empty((count_f, count_s, 3)), np.empty((count_f, count_s, 3))
     seen, x, y = np.empty(n), np.empty((n, 3)), np.empty((n, 3))
     for f in range(count_f):
         for s in range(count_s):
-            count = 0
-            for i in range(n):
-                seen[i] = 1.0 if finite(observed[f, s, i]) else 0.0
-                count += int(seen[i])
-            pinned = finite(pivot_world[f, s])
-            for c in range(3):
-                if pinned:
-                    origin_loc[f, s, c], origin_obs[f, s, c] = pivot_local[s, c], pivot_world[f, s, c]
-                elif count:
-                    for i in range(n):
-                        if seen[i]:
-                            origin_loc[f, s, c] += local[s, i, c] / count
-                            origin_obs[f, s, c] += observed[f, s, i, c] / count
-            if count < (1 if pinned else 2):
-                continue
-            for i in range(n):
-                for c in range(3):
-                    x[i, c] = local[s, i, c] - origin_loc[f, s, c]
-                    y[i, c] = observed[f, s, i, c] - origin_obs[f, s, c]
-            determined[f, s] = _horn(x, y, seen, quats[f, s]) >= min_gap
+            determined[f, s] = fit_frame(local[s], observed[f, s], pivot_local[s], pivot_world[f, s], min_gap, seen, x,
+                                         y, quats[f, s], origin_loc[f, s], origin_obs[f, s])
     return quats, determined, origin_loc, origin_obs
+
+
+@njit(cache=True)
+def fit_frame(local: np.ndarray, observed: np.ndarray, pivot_local: np.ndarray, pivot_world: np.ndarray,
+              min_gap: float, seen: np.ndarray, x: np.ndarray, y: np.ndarray, quat: np.ndarray, origin_loc: np.ndarray,
+              origin_obs: np.ndarray) -> bool:  # pragma: no cover
+    """``fit_frames`` of one frame of one segment, (n, 3) points, into ``quat`` (NaN where too few points),
+    ``origin_loc`` and ``origin_obs`` (zero where no point at all); whether the points fix the rotation. ``seen``
+    (n,), ``x`` and ``y`` (n, 3) are scratch space: a caller fitting frame after frame allocates them once."""
+    n = len(local)
+    count = 0
+    for i in range(n):
+        seen[i] = 1.0 if finite(observed[i]) else 0.0
+        count += int(seen[i])
+    pinned = finite(pivot_world)
+    for c in range(3):
+        origin_loc[c], origin_obs[c] = 0.0, 0.0
+        if pinned:
+            origin_loc[c], origin_obs[c] = pivot_local[c], pivot_world[c]
+        elif count:
+            for i in range(n):
+                if seen[i]:
+                    origin_loc[c] += local[i, c] / count
+                    origin_obs[c] += observed[i, c] / count
+    quat[:] = np.nan
+    if count < (1 if pinned else 2):
+        return False
+    for i in range(n):
+        for c in range(3):
+            x[i, c] = local[i, c] - origin_loc[c]
+            y[i, c] = observed[i, c] - origin_obs[c]
+    return _horn(x, y, seen, quat) >= min_gap
 
 
 @njit(cache=True)
 def pose_matrices(quats: np.ndarray, origin_loc: np.ndarray, origin_obs: np.ndarray
                   ) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover
     """Rotation matrices and translations (``world = R @ local + t`` maps ``origin_loc`` onto ``origin_obs``) of
-    (F, S) poses; NaN where the quaternion is."""
+    (F, S) poses; NaN where the quaternion is: ``pose_matrix`` of each."""
     count_f, count_s = quats.shape[0], quats.shape[1]
-    matrices = np.full((count_f, count_s, 3, 3), np.nan)
-    translations = np.full((count_f, count_s, 3), np.nan)
+    matrices = np.empty((count_f, count_s, 3, 3))
+    translations = np.empty((count_f, count_s, 3))
     for f in range(count_f):
         for s in range(count_s):
-            if finite(quats[f, s]) and _matrix(quats[f, s], matrices[f, s]):
-                place(-matrices[f, s], origin_loc[f, s], origin_obs[f, s], translations[f, s])
+            pose_matrix(quats[f, s], origin_loc[f, s], origin_obs[f, s], matrices[f, s], translations[f, s])
     return matrices, translations
+
+
+@njit(cache=True)
+def pose_matrix(quat: np.ndarray, origin_loc: np.ndarray, origin_obs: np.ndarray, matrix: np.ndarray,
+                translation: np.ndarray) -> None:  # pragma: no cover
+    """``pose_matrices`` of one pose, into ``matrix`` and ``translation`` (NaN where the quaternion is)."""
+    if finite(quat) and _matrix(quat, matrix):
+        for a in range(3):
+            translation[a] = (-matrix[a, 0] * origin_loc[0] - matrix[a, 1] * origin_loc[1]
+                              - matrix[a, 2] * origin_loc[2] + origin_obs[a])
+    else:
+        matrix[:], translation[:] = np.nan, np.nan
 
 
 @njit(cache=True)

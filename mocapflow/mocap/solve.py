@@ -26,10 +26,10 @@ from mocapflow.mocap.rigidfit import (
     MIN_GAP,
     det3,
     finite,
-    fit_frames,
+    fit_frame,
     hold_turns,
     place,
-    pose_matrices,
+    pose_matrix,
     quaternion_matrices,
 )
 
@@ -126,8 +126,7 @@ class PoseSolver:
         positions = np.ascontiguousarray(positions, dtype=np.float64)
         (columns, marker_local, order, inner, point_columns, point_local, parent, child, parent_offsets,
          child_offsets, up, radii, sizes) = self._model
-        sources = _sources(positions, columns, marker_local, child, child_offsets)
-        observed = sources[:, columns]  # (F, S, n, 3)
+        sources, observed = _sources(positions, columns, marker_local, child, child_offsets)
         total = 2 * len(order) if progress is not None else 0
         passes = _top_down(sources, order, inner, point_columns, point_local, parent, parent_offsets, child_offsets,
                            progress, 0, total)
@@ -151,9 +150,9 @@ def _top_down(sources: np.ndarray, order: np.ndarray, inner: np.ndarray, point_c
     """Every segment fitted from the root down (``_fit_segment``): matrices, translations and quaternions. One
     compiled call, or one per segment when ``progress`` is to hear of each."""
     frames, count = sources.shape[0], len(order)
-    matrices = np.full((frames, count, 3, 3), np.nan)
-    translations = np.full((frames, count, 3), np.nan)
-    rotations = np.full((frames, count, 4), np.nan)
+    matrices, translations, rotations = (np.empty((frames, count, *shape)) for shape in ((3, 3), (3,), (4,)))
+    for unposed in (matrices, translations, rotations):
+        unposed.fill(np.nan)  # half the cost of np.full, which a live frame pays three times
     determined = np.zeros((frames, count), bool)
     state = (sources, inner, point_columns, point_local, parent, parent_offsets, child_offsets, matrices,
              translations, rotations, determined)
@@ -175,52 +174,56 @@ def _fit_segments(order: np.ndarray, sources: np.ndarray, inner: np.ndarray, poi
     parent was not fixed by data in a frame while it has three points of its own, is fitted freely; every other
     segment turns about the joint its parent places (Schoenauer 3.8.2); frames whose points fix one direction only
     hold the rotation of their neighbours (``rigidfit.fit_pose(hold=True)``)."""
-    frames = sources.shape[0]
+    frames, n = sources.shape[0], point_columns.shape[1]
+    points = np.empty((frames, n, 3))
+    origin_loc, origin_obs = np.empty((frames, 3)), np.empty((frames, 3))
+    pivot_local, pivot_world = np.zeros(3), np.empty(3)
+    seen, x, y = np.empty(n), np.empty((n, 3)), np.empty((n, 3))
     for s in order:
-        points = np.empty((frames, 1, point_columns.shape[1], 3))
-        for i, c in enumerate(point_columns[s]):
-            points[:, 0, i] = sources[:, c]
-        pivot_world = np.full((frames, 1, 3), np.nan)
-        pivot_local = np.zeros((1, 3))
         k = inner[s]
         if k >= 0:
-            p = parent[k]
-            pivot_local[0] = child_offsets[k]
-            for f in range(frames):
-                own = 0
-                for i in range(points.shape[2]):
-                    if finite(points[f, 0, i]):
-                        own += 1
-                if determined[f, p] or own < 3:
-                    place(matrices[f, p], parent_offsets[k], translations[f, p], pivot_world[f, 0])
-        quats, fixed, origin_loc, origin_obs = fit_frames(point_local[s:s + 1], points, pivot_local, pivot_world,
-                                                           MIN_GAP)
-        if not fixed.all():
-            hold_turns(quats[:, 0], fixed[:, 0], point_local[s], points[:, 0], origin_loc[:, 0], origin_obs[:, 0])
-        posed, moved = pose_matrices(quats, origin_loc, origin_obs)
-        matrices[:, s], translations[:, s] = posed[:, 0], moved[:, 0]
-        rotations[:, s], determined[:, s] = quats[:, 0], fixed[:, 0]
+            pivot_local[:] = child_offsets[k]
+        for f in range(frames):
+            own = 0
+            for i, c in enumerate(point_columns[s]):
+                points[f, i] = sources[f, c]
+                own += finite(points[f, i])
+            pivot_world[:] = np.nan
+            if k >= 0 and (determined[f, parent[k]] or own < 3):
+                place(matrices[f, parent[k]], parent_offsets[k], translations[f, parent[k]], pivot_world)
+            determined[f, s] = fit_frame(point_local[s], points[f], pivot_local, pivot_world, MIN_GAP, seen, x, y,
+                                         rotations[f, s], origin_loc[f], origin_obs[f])
+        if not determined[:, s].all():
+            hold_turns(rotations[:, s], determined[:, s], point_local[s], points, origin_loc, origin_obs)
+        for f in range(frames):
+            pose_matrix(rotations[f, s], origin_loc[f], origin_obs[f], matrices[f, s], translations[f, s])
 
 
 @njit(cache=True)
 def _sources(positions: np.ndarray, columns: np.ndarray, marker_local: np.ndarray, child: np.ndarray,
-             child_offsets: np.ndarray) -> np.ndarray:  # pragma: no cover
+             child_offsets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover
     """(F, N + 1 + J, 3): the positions, the NaN column, then each joint where its child's own markers alone place
-    it (a free fit that fixes all three angles), NaN elsewhere."""
-    frames, count = positions.shape[0], positions.shape[1]
+    it (a free fit that fixes all three angles), NaN elsewhere; and (F, S, n, 3) each segment's markers from them
+    (``columns``)."""
+    frames, count, n = positions.shape[0], positions.shape[1], columns.shape[1]
     sources = np.full((frames, count + 1 + len(child), 3), np.nan)
     sources[:, :count] = positions
+    observed = np.empty((frames, len(columns), n, 3))
+    for f in range(frames):
+        for s in range(len(columns)):
+            for i in range(n):
+                observed[f, s, i] = sources[f, columns[s, i]]
+    pivot_local, pivot_world = np.zeros(3), np.full(3, np.nan)
+    quat, origin_loc, origin_obs = np.empty(4), np.empty(3), np.empty(3)
+    matrix, translation = np.empty((3, 3)), np.empty(3)
+    seen, x, y = np.empty(n), np.empty((n, 3)), np.empty((n, 3))
     for k, c in enumerate(child):
-        markers = np.empty((frames, 1, columns.shape[1], 3))
-        for i, column in enumerate(columns[c]):
-            markers[:, 0, i] = sources[:, column]
-        quats, fixed, origin_loc, origin_obs = fit_frames(marker_local[c:c + 1], markers, np.zeros((1, 3)),
-                                                           np.full((frames, 1, 3), np.nan), MIN_GAP)
-        posed, moved = pose_matrices(quats, origin_loc, origin_obs)
         for f in range(frames):
-            if fixed[f, 0]:
-                place(posed[f, 0], child_offsets[k], moved[f, 0], sources[f, count + 1 + k])
-    return sources
+            if fit_frame(marker_local[c], observed[f, c], pivot_local, pivot_world, MIN_GAP, seen, x, y, quat,
+                         origin_loc, origin_obs):
+                pose_matrix(quat, origin_loc, origin_obs, matrix, translation)
+                place(matrix, child_offsets[k], translation, sources[f, count + 1 + k])
+    return sources, observed
 
 
 @njit(cache=True)
@@ -232,10 +235,11 @@ def _trilaterate_joints(sources: np.ndarray, observed: np.ndarray, centres: np.n
     its distances to the visible markers of both segments (and to the parent's own joint, from ``centres``) are
     ``radii``. Whether any joint was placed so."""
     placed = False
+    space = np.empty((2 * sizes.max() + 1, 3))
     for k in range(len(parent)):
         p, c = parent[k], child[k]
         least = 2 if up[k] >= 0 else 3
-        points = np.empty((sizes[p] + sizes[c] + (1 if up[k] >= 0 else 0), 3))
+        points = space[:sizes[p] + sizes[c] + (1 if up[k] >= 0 else 0)]
         for f in range(len(sources)):
             visible = 0
             for i in range(sizes[p]):
@@ -301,10 +305,10 @@ def _centres(matrices: np.ndarray, translations: np.ndarray, parent: np.ndarray,
     """(F, J, 3) joint centres: ``joint_track`` of every joint at once (the mean of where its two segments put it,
     or the one that knows)."""
     centres = np.full((len(matrices), len(parent), 3), np.nan)
-    at = np.empty(3)
+    at, total = np.empty(3), np.empty(3)
     for f in range(len(matrices)):
         for k in range(len(parent)):
-            total, count = np.zeros(3), 0
+            total[:], count = 0.0, 0
             for side in range(2):
                 s = parent[k] if side == 0 else child[k]
                 place(matrices[f, s], parent_offsets[k] if side == 0 else child_offsets[k], translations[f, s], at)
@@ -312,7 +316,8 @@ def _centres(matrices: np.ndarray, translations: np.ndarray, parent: np.ndarray,
                     total += at
                     count += 1
             if count:
-                centres[f, k] = total / count
+                for a in range(3):
+                    centres[f, k, a] = total[a] / count
     return centres
 
 
@@ -322,14 +327,16 @@ def _residuals(matrices: np.ndarray, translations: np.ndarray, marker_local: np.
     """(F, S) RMS distance between fitted and observed markers (NaN where a segment shows none), and the mean
     distance over every seen marker of a posed segment."""
     residual = np.full(observed.shape[:2], np.nan)
-    diff = np.empty(3)
+    diff, shift = np.empty(3), np.empty(3)
     total, count = 0.0, 0
     for f in range(observed.shape[0]):
         for s in range(observed.shape[1]):
             err, seen = 0.0, 0
             for i in range(observed.shape[2]):
                 if finite(observed[f, s, i]):
-                    place(matrices[f, s], marker_local[s, i], translations[f, s] - observed[f, s, i], diff)
+                    for a in range(3):
+                        shift[a] = translations[f, s, a] - observed[f, s, i, a]
+                    place(matrices[f, s], marker_local[s, i], shift, diff)
                     square = diff[0] * diff[0] + diff[1] * diff[1] + diff[2] * diff[2]
                     err += square
                     seen += 1
