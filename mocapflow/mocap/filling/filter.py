@@ -57,6 +57,7 @@ class GapFiller:
                                    cfg.rotor_sd, cfg.ray_sd, cfg.kinematic_sd]) ** 2  # per FillCase (unused where
         # nothing is measured)
         self._unmeasured = np.zeros(n, dtype=np.int64)  # frames since a marker was last seen or anchored
+        self._gain = self._velocity_gain()  # of the next prediction, set anew whenever ``_unmeasured`` changes
         self._extrapolated = np.zeros(n, dtype=bool)  # this frame: predicted from its past alone (a constant rotor
         # with no anchor, or its filter along its ray)
         self._last = np.full((2, n, 3), np.nan)  # the last two filled frames, newest first
@@ -103,6 +104,7 @@ class GapFiller:
         self.labels = list(labels)
         self.kf.grow(extra)
         self._unmeasured = np.append(self._unmeasured, np.zeros(extra, dtype=np.int64))
+        self._gain = self._velocity_gain()
         self._extrapolated = np.append(self._extrapolated, np.zeros(extra, dtype=bool))
         self._last = np.concatenate([self._last, np.full((2, extra, 3), np.nan)], axis=1)
         if self._learner is not None:
@@ -158,7 +160,7 @@ class GapFiller:
     def predict_next(self) -> np.ndarray:
         """(N, 3) where each marker is expected in the next frame: its filter's prediction, as the next ``update``
         will start from it (NaN for a marker never seen)."""
-        return self.kf.predicted_position(self._velocity_gain())
+        return self.kf.predicted_position(self._gain)
 
     def _velocity_gain(self) -> np.ndarray | None:
         """Per-marker velocity factor of the next prediction: markers without news coast to rest."""
@@ -171,12 +173,11 @@ class GapFiller:
         n = len(self.labels)
         z = np.array(positions, dtype=float).reshape(n, 3)
         seen = np.isfinite(z).all(axis=1)
-        z[~seen] = np.nan
         if self._pending is not None:
             self._adopt(self._pending)
             self._pending = None
         self._extrapolated[:] = False
-        self.kf.predict(self._velocity_gain())
+        self.kf.predict(self._gain)
         seen &= ~self._outliers(z, seen)
         z[~seen] = np.nan
         body = self.body
@@ -193,6 +194,7 @@ class GapFiller:
             estimated = flags >= CASE_ONE_MISSING
             z[estimated] = self.kf.position[estimated]
             self._unmeasured = np.where(measured & ~self._extrapolated, 0, self._unmeasured + 1)
+        self._gain = self._velocity_gain()
 
         self._last[1] = self._last[0]
         self._last[0] = z
@@ -217,7 +219,7 @@ class GapFiller:
     def _outliers(self, z: np.ndarray, seen: np.ndarray) -> np.ndarray:
         """Samples of markers seen in the previous frame that are ``outlier_mm`` or more from their prediction: no
         marker moves so in one frame, so they would only pull the filter and the segment fits off."""
-        step = z - self.kf.position  # NaN rows (not seen, or never seen before) compare False below
+        step = z - self.kf.position  # rows with a NaN (not seen, or never seen before) compare False below
         far = np.sqrt((step * step).sum(axis=1)) >= self.config.outlier_mm
         far &= seen
         far &= self._unmeasured == 0
