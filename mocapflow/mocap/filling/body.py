@@ -160,8 +160,11 @@ class Layout:
     estimate, segments ``near`` them).
 
     ``seg_vis``: visible markers per segment; ``target_rows``, ``target_seg``, ``target_local``: each target's row,
-    segment and offset in it; ``segments``: the segments holding a target; ``rest``: the other ``near`` segments;
-    ``fit_held``, ``fit_rest``: the pose fits of both; ``parts``: per segment holding a target, its ``SegmentPart``.
+    segment and offset in it; ``segments``: the segments holding a target, ``by_vis`` the same from the most visible
+    markers down; ``first``: the segments posed first (``fit_first``), those holding a target, with the other ``near``
+    ones when one of those has fewer than three visible markers (it is then placed through its neighbours, so they
+    are needed anyway); ``later``: the other ``near`` segments, posed when needed (``fit_later``); ``parts``: per
+    segment holding a target, its ``SegmentPart``.
     """
 
     def __init__(self, body: Body, visible: np.ndarray, targets: np.ndarray, near: np.ndarray) -> None:
@@ -170,9 +173,13 @@ class Layout:
         self.target_seg = body.marker_seg[self.target_rows]
         self.target_local = body.marker_local[self.target_rows]
         self.segments = np.unique(self.target_seg)
-        self.rest = np.setdiff1d(near, self.segments)
-        self.fit_held = body.fit_for(visible, self.segments)
-        self.fit_rest = body.fit_for(visible, self.rest)
+        self.by_vis = sorted(self.segments.tolist(), key=lambda k: -self.seg_vis[k])
+        rest = np.setdiff1d(near, self.segments)
+        unposable = (self.seg_vis[self.segments] < 3).any()
+        self.first = np.concatenate([self.segments, rest]) if unposable else self.segments
+        self.later = rest[:0] if unposable else rest
+        self.fit_first = body.fit_for(visible, self.first)
+        self.fit_later = body.fit_for(visible, self.later)
         self.parts: dict[int, SegmentPart] = {}
         for k in self.segments.tolist():
             members = body.members[k]

@@ -323,22 +323,22 @@ class GapFiller:
         est = np.full((n, 3), np.nan)
         codes = np.zeros(n, dtype=np.uint8)
         layout = body.layout(visible, targets, near)
-        seg_vis, segments = layout.seg_vis, layout.segments
+        seg_vis = layout.seg_vis
         s = len(body.members)
         r_all, t_all = np.zeros((s, 3, 3)), np.zeros((s, 3))
         posed, fresh = np.zeros(s, dtype=bool), np.zeros(s, dtype=bool)
-        r_all[segments], t_all[segments], posed[segments] = layout.fit_held(filled)  # three visible markers fix a
-        fresh[segments] = True  # pose
+        first, later = layout.first, layout.later
+        r_all[first], t_all[first], posed[first] = layout.fit_first(filled)  # three visible markers fix a pose
+        fresh[first] = True
         direct = posed[layout.target_seg]  # per target: its segment is fitted
         if direct.any():
             rows, seg = layout.target_rows[direct], layout.target_seg[direct]
             est[rows] = (r_all[seg] @ layout.target_local[direct, :, None])[..., 0] + t_all[seg]
             codes[rows] = CASE_ONE_MISSING
-        pending = sorted(segments[~posed[segments]].tolist(), key=lambda k: -seg_vis[k])
-        if (pending or fit_all) and len(layout.rest):
-            rest = layout.rest
-            r_all[rest], t_all[rest], posed[rest] = layout.fit_rest(filled)
-            fresh[rest] = True
+        pending = [k for k in layout.by_vis if not posed[k]]
+        if (pending or fit_all) and len(later):
+            r_all[later], t_all[later], posed[later] = layout.fit_later(filled)
+            fresh[later] = True
         seen_posed = posed.copy()  # placed with at least one of their own markers visible
         if pending:  # placed from the last frames' poses, fitted now where skipped
             self._ensure_poses(near)
