@@ -172,13 +172,14 @@ class GapFiller:
         and direction of the single camera ray of a marker seen by one camera (NaN rows otherwise)."""
         n = len(self.labels)
         z = np.array(positions, dtype=float).reshape(n, 3)
-        seen = np.isfinite(z).all(axis=1)
         if self._pending is not None:
             self._adopt(self._pending)
             self._pending = None
         self._extrapolated[:] = False
         self.kf.predict(self._gain)
-        seen &= ~self._outliers(z, seen)
+        # a marker seen in the previous frame and now ``outlier_mm`` or more from its prediction is an outlier: no
+        # marker moves so in one frame, so it would only pull the filter and the segment fits off
+        seen = self.kf.gate(z, self.config.outlier_mm, self._unmeasured == 0)
         z[~seen] = np.nan
         body = self.body
         flags = seen.astype(np.uint8)
@@ -215,15 +216,6 @@ class GapFiller:
             # ``joint_names`` keep describing the same body until then
             self._pending = self._learner.observe(z, seen, flags, body, self._current_poses) or self._pending
         return FillResult(positions=z, flags=flags, joint_centres=centres)
-
-    def _outliers(self, z: np.ndarray, seen: np.ndarray) -> np.ndarray:
-        """Samples of markers seen in the previous frame that are ``outlier_mm`` or more from their prediction: no
-        marker moves so in one frame, so they would only pull the filter and the segment fits off."""
-        step = z - self.kf.position  # rows with a NaN (not seen, or never seen before) compare False below
-        far = np.sqrt((step * step).sum(axis=1)) >= self.config.outlier_mm
-        far &= seen
-        far &= self._unmeasured == 0
-        return far
 
     def _current_poses(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """This frame's segment poses, fitted now where skipped."""
