@@ -338,7 +338,7 @@ class GapFiller:
         while pending:
             progress = False
             for k in list(pending):
-                seen_rows, seen_offsets, seen_names, miss, hit = layout.parts[k]
+                seen_rows, _, _, miss, hit = layout.parts[k]
                 nv = int(seg_vis[k])
                 links = [link for link in body.links[k] if posed[link[1]]]
                 reference = None  # a posed neighbour, preferring one placed with its own markers seen, then the
@@ -357,11 +357,11 @@ class GapFiller:
                 m = nv + len(links)
                 if m == 0 and not force:
                     continue  # a hidden neighbour may be placed first and anchor this segment
-                p, a, w = np.empty((m, 3)), np.empty((m, 3)), np.ones(m)
-                p[:nv], a[:nv] = filled[seen_rows], seen_offsets
-                for i, (_, other, own, theirs) in enumerate(links, start=nv):
-                    p[i], a[i], w[i] = r_all[other] @ theirs + t_all[other], own, cfg.joint_weight
-                anchors = tuple(seen_names + [("joint", j) for j, *_ in links])
+                a, w, anchors = layout.anchors(k, links, cfg.joint_weight)
+                p = np.empty((m, 3))
+                p[:nv] = filled[seen_rows]
+                for i, (_, other, _, theirs) in enumerate(links, start=nv):
+                    p[i] = r_all[other] @ theirs + t_all[other]
                 if learnt is not None:  # the learnt markers join the joints: they fix the twist the joints leave
                     p, a = np.concatenate([p, learnt]), np.concatenate([a, body.offsets[k]])
                     w = np.concatenate([w, np.full(len(learnt), self._kinematic_weight)])
