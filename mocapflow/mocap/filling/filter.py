@@ -7,6 +7,7 @@ from collections.abc import Callable
 from typing import NamedTuple
 
 import numpy as np
+from numba import njit
 from scipy.spatial.transform import Rotation
 
 from mocapflow.mocap.filling.body import Body, joint_centres
@@ -273,6 +274,8 @@ class GapFiller:
                 flags[ok] = FillCase.RAY
                 visible |= ok
         poses = None
+        targets = np.zeros(n, dtype=bool)
+        est, codes = prior, flags  # no rigid-body estimate
         if body is not None:
             targets = ~visible & body.in_segment
             self._held = set()
@@ -283,16 +286,8 @@ class GapFiller:
             if self._holds:
                 self._holds = {k: hold for k, hold in self._holds.items() if k in self._held}
             memory.kinematic.end_frame()
-            done = targets & np.isfinite(est).all(axis=1)
-            if self._max_coast is not None:
-                done &= ~self._extrapolated | (self._unmeasured < self._max_coast)
-            z[done] = est[done]
-            flags[done] = codes[done]
-        lone = (flags == CASE_MISSING) & np.isfinite(prior).all(axis=1)
-        if self._max_coast is not None:
-            lone &= self._unmeasured < self._max_coast
-        z[lone] = prior[lone]
-        flags[lone] = CASE_KALMAN
+        _take_estimates(z, flags, est, codes, targets, prior, self._extrapolated, self._unmeasured,
+                        np.iinfo(np.int64).max if self._max_coast is None else self._max_coast)
         return poses
 
     def _constrain(
@@ -452,3 +447,22 @@ class GapFiller:
             return last
         step = Rotation.from_matrix(last @ self._pose_r[1, k].T)  # R_{k-1} R_{k-2}^T, re-orthonormalised
         return (step * Rotation.from_matrix(last)).as_matrix()
+
+
+@njit(cache=True)
+def _take_estimates(z: np.ndarray, flags: np.ndarray, est: np.ndarray, codes: np.ndarray, targets: np.ndarray,
+                    prior: np.ndarray, extrapolated: np.ndarray, unmeasured: np.ndarray,
+                    max_coast: int) -> None:  # pragma: no cover
+    """The end of ``GapFiller._fill_missing``, in place, marker by marker: a ``targets`` marker with a rigid-body
+    estimate (``est``, case ``codes``) takes it, one with no other news than its filter's ``prior`` takes that
+    (``CASE_KALMAN``); a marker extrapolated from its past alone only until ``max_coast`` frames without news."""
+    for i in range(len(z)):
+        fresh = unmeasured[i] < max_coast
+        if (targets[i] and np.isfinite(est[i, 0]) and np.isfinite(est[i, 1]) and np.isfinite(est[i, 2])
+                and (fresh or not extrapolated[i])):
+            z[i, :] = est[i]
+            flags[i] = codes[i]
+        if flags[i] == CASE_MISSING and fresh and (np.isfinite(prior[i, 0]) and np.isfinite(prior[i, 1])
+                                                   and np.isfinite(prior[i, 2])):
+            z[i, :] = prior[i]
+            flags[i] = CASE_KALMAN
