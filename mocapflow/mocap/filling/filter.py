@@ -193,9 +193,7 @@ class GapFiller:
             measured = flags >= CASE_OBSERVED
             measured &= flags != CASE_KALMAN
             self.kf.update(z, self._variance[flags], measured)
-            estimated = flags >= CASE_ONE_MISSING
-            z[estimated] = self.kf.position[estimated]
-            self._unmeasured = np.where(measured & ~self._extrapolated, 0, self._unmeasured + 1)
+            _filtered_out(z, flags, self.kf.position, measured, self._extrapolated, self._unmeasured)
         self._gain = self._velocity_gain()
 
         self._last[1] = self._last[0]
@@ -211,7 +209,7 @@ class GapFiller:
                 memory.kinematic.forget()
             else:  # the constraint's own poses around the gaps, so estimates cannot creep through the filter's lag
                 self._pose_r[0], self._pose_t[0], self._pose_ok[0], self._pose_fresh[0] = poses
-            centres = self._centres_later(z, flags)
+            centres = self._centres_later(z, flags, poses)
             memory.observe(z, seen)
         if self._learner is not None:  # a new model is taken up from the next frame, so the result and
             # ``joint_names`` keep describing the same body until then
@@ -223,16 +221,18 @@ class GapFiller:
         self._ensure_poses(ages=1)
         return self._pose_r[0].copy(), self._pose_t[0].copy(), self._pose_ok[0].copy()
 
-    def _centres_later(self, z: np.ndarray, flags: np.ndarray) -> Callable[[], np.ndarray]:
-        """The joint centres of this frame, computed on first read from its poses (fitted then where skipped)."""
+    def _centres_later(self, z: np.ndarray, flags: np.ndarray,
+                       poses: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None) -> Callable[[], np.ndarray]:
+        """The joint centres of this frame, computed on first read from its ``poses`` (R, t, known, fitted: those
+        ``_constrain`` worked out, none without a gap), the others fitted then."""
         body = self.body
         assert body is not None
-        flags = flags.copy()  # the caller may edit the result's arrays before reading the centres
-        r, t, ok = self._pose_r[0].copy(), self._pose_t[0].copy(), self._pose_ok[0].copy()
-        fresh = self._pose_fresh[0].copy()
-        z = z.copy()
+        flags, z = flags.copy(), z.copy()  # the caller may edit the result's arrays before reading the centres
 
         def centres() -> np.ndarray:
+            if poses is None:
+                return joint_centres(body, self._fitted_poses_for(body, z, np.arange(len(body.members))), flags)
+            r, t, ok, fresh = poses
             stale = np.flatnonzero(~fresh)
             if len(stale):
                 r[stale], t[stale], ok[stale] = self._fitted_poses_for(body, z, stale)
@@ -466,3 +466,14 @@ def _take_estimates(z: np.ndarray, flags: np.ndarray, est: np.ndarray, codes: np
                                                    and np.isfinite(prior[i, 2])):
             z[i, :] = prior[i]
             flags[i] = CASE_KALMAN
+
+
+@njit(cache=True)
+def _filtered_out(z: np.ndarray, flags: np.ndarray, position: np.ndarray, measured: np.ndarray,
+                  extrapolated: np.ndarray, unmeasured: np.ndarray) -> None:  # pragma: no cover
+    """After the filters' update, in place, marker by marker: an estimated marker's output is its filter's
+    ``position``; ``unmeasured`` counts the frames since a marker was last ``measured`` (not ``extrapolated``)."""
+    for i in range(len(z)):
+        if flags[i] >= CASE_ONE_MISSING:
+            z[i, :] = position[i]
+        unmeasured[i] = 0 if measured[i] and not extrapolated[i] else unmeasured[i] + 1
