@@ -55,11 +55,12 @@ class Filler(Node[FillerNodeConfig]):
             return
         if message.labels is None:
             raise ValueError("the filler needs labelled markers: link it after a labeller")
-        if self.filler is not None and added(self.filler.labels, message.labels):
-            self.filler.grow(message.labels)  # new markers confirmed upstream: everything known is kept
-        elif self.filler is None or self.filler.labels != message.labels:  # another marker set
-            self.filler = GapFiller(message.labels, message.rate, self._filling(), self.model)
-        result = self.filler.update(message.positions.astype(np.float64), message.rays)
+        if self.filler is None or self.filler.labels != message.labels:
+            if self.filler is not None and added(self.filler.labels, message.labels):
+                self.filler.grow(message.labels)  # new markers confirmed upstream: everything known is kept
+            else:  # another marker set
+                self.filler = GapFiller(message.labels, message.rate, self._filling(), self.model)
+        result = self.filler.update(message.positions, message.rays)  # filled in float64, on a copy
         self.publish("markers", MarkerFrame.derive(message, positions=result.positions, labels=message.labels,
                                                    flags=result.flags))
         predicted = self.filler.predict_next()

@@ -155,13 +155,25 @@ class SegmentPart(NamedTuple):
     hit: np.ndarray
 
 
+class Anchors(NamedTuple):
+    """The points a segment is placed by, in its own frame (``local``), with their weights in the fit and their
+    names (``("marker", row)`` or ``("joint", index)``)."""
+
+    local: np.ndarray
+    weight: np.ndarray
+    names: tuple[tuple[str, int], ...]
+
+
 class Layout:
     """The index work of ``GapFiller._constrain`` for one visibility pattern (``visible`` markers, ``targets`` to
     estimate, segments ``near`` them).
 
     ``seg_vis``: visible markers per segment; ``target_rows``, ``target_seg``, ``target_local``: each target's row,
-    segment and offset in it; ``segments``: the segments holding a target; ``rest``: the other ``near`` segments;
-    ``fit_held``, ``fit_rest``: the pose fits of both; ``parts``: per segment holding a target, its ``SegmentPart``.
+    segment and offset in it; ``segments``: the segments holding a target, ``by_vis`` the same from the most visible
+    markers down; ``first``: the segments posed first (``fit_first``), those holding a target, with the other ``near``
+    ones when one of those has fewer than three visible markers (it is then placed through its neighbours, so they
+    are needed anyway); ``later``: the other ``near`` segments, posed when needed (``fit_later``); ``parts``: per
+    segment holding a target, its ``SegmentPart``; ``anchors``: a segment's anchors through given joints.
     """
 
     def __init__(self, body: Body, visible: np.ndarray, targets: np.ndarray, near: np.ndarray) -> None:
@@ -170,9 +182,13 @@ class Layout:
         self.target_seg = body.marker_seg[self.target_rows]
         self.target_local = body.marker_local[self.target_rows]
         self.segments = np.unique(self.target_seg)
-        self.rest = np.setdiff1d(near, self.segments)
-        self.fit_held = body.fit_for(visible, self.segments)
-        self.fit_rest = body.fit_for(visible, self.rest)
+        self.by_vis = sorted(self.segments.tolist(), key=lambda k: -self.seg_vis[k])
+        rest = np.setdiff1d(near, self.segments)
+        unposable = (self.seg_vis[self.segments] < 3).any()
+        self.first = np.concatenate([self.segments, rest]) if unposable else self.segments
+        self.later = rest[:0] if unposable else rest
+        self.fit_first = body.fit_for(visible, self.first)
+        self.fit_later = body.fit_for(visible, self.later)
         self.parts: dict[int, SegmentPart] = {}
         for k in self.segments.tolist():
             members = body.members[k]
@@ -180,6 +196,22 @@ class Layout:
             self.parts[k] = SegmentPart(members[vis], body.offsets[k][vis],
                                         [("marker", x) for x in members[vis].tolist()],
                              members[hit], hit)
+        self._anchors: dict[tuple[int, tuple[int, ...]], Anchors] = {}
+
+    def anchors(self, k: int, links: list[tuple[int, int, np.ndarray, np.ndarray]], joint_weight: float) -> Anchors:
+        """The anchors of segment ``k`` (one holding a target): its visible markers, then the centres of the joints
+        ``links`` (some of ``Body.links[k]``) weighted ``joint_weight``; kept per set of joints."""
+        key = (k, tuple(j for j, *_ in links))
+        found = self._anchors.get(key)
+        if found is None:
+            part, nv = self.parts[k], int(self.seg_vis[k])
+            local, weight = np.empty((nv + len(links), 3)), np.ones(nv + len(links))
+            local[:nv] = part.seen_offsets
+            for i, (_, _, own, _) in enumerate(links, start=nv):
+                local[i], weight[i] = own, joint_weight
+            found = self._anchors[key] = Anchors(local, weight,
+                                                 tuple(part.seen_names + [("joint", j) for j, *_ in links]))
+        return found
 
 
 def joint_centres(body: Body, poses: tuple[np.ndarray, np.ndarray, np.ndarray], flags: np.ndarray) -> np.ndarray:

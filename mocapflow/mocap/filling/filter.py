@@ -7,6 +7,7 @@ from collections.abc import Callable
 from typing import NamedTuple
 
 import numpy as np
+from numba import njit
 from scipy.spatial.transform import Rotation
 
 from mocapflow.mocap.filling.body import Body, joint_centres
@@ -57,6 +58,7 @@ class GapFiller:
                                    cfg.rotor_sd, cfg.ray_sd, cfg.kinematic_sd]) ** 2  # per FillCase (unused where
         # nothing is measured)
         self._unmeasured = np.zeros(n, dtype=np.int64)  # frames since a marker was last seen or anchored
+        self._gain = self._velocity_gain()  # of the next prediction, set anew whenever ``_unmeasured`` changes
         self._extrapolated = np.zeros(n, dtype=bool)  # this frame: predicted from its past alone (a constant rotor
         # with no anchor, or its filter along its ray)
         self._last = np.full((2, n, 3), np.nan)  # the last two filled frames, newest first
@@ -103,6 +105,7 @@ class GapFiller:
         self.labels = list(labels)
         self.kf.grow(extra)
         self._unmeasured = np.append(self._unmeasured, np.zeros(extra, dtype=np.int64))
+        self._gain = self._velocity_gain()
         self._extrapolated = np.append(self._extrapolated, np.zeros(extra, dtype=bool))
         self._last = np.concatenate([self._last, np.full((2, extra, 3), np.nan)], axis=1)
         if self._learner is not None:
@@ -158,7 +161,7 @@ class GapFiller:
     def predict_next(self) -> np.ndarray:
         """(N, 3) where each marker is expected in the next frame: its filter's prediction, as the next ``update``
         will start from it (NaN for a marker never seen)."""
-        return self.kf.predicted_position(self._velocity_gain())
+        return self.kf.predicted_position(self._gain)
 
     def _velocity_gain(self) -> np.ndarray | None:
         """Per-marker velocity factor of the next prediction: markers without news coast to rest."""
@@ -170,14 +173,14 @@ class GapFiller:
         and direction of the single camera ray of a marker seen by one camera (NaN rows otherwise)."""
         n = len(self.labels)
         z = np.array(positions, dtype=float).reshape(n, 3)
-        seen = np.isfinite(z).all(axis=1)
-        z[~seen] = np.nan
         if self._pending is not None:
             self._adopt(self._pending)
             self._pending = None
         self._extrapolated[:] = False
-        self.kf.predict(self._velocity_gain())
-        seen &= ~self._outliers(z, seen)
+        self.kf.predict(self._gain)
+        # a marker seen in the previous frame and now ``outlier_mm`` or more from its prediction is an outlier: no
+        # marker moves so in one frame, so it would only pull the filter and the segment fits off
+        seen = self.kf.gate(z, self.config.outlier_mm, self._unmeasured == 0)
         z[~seen] = np.nan
         body = self.body
         flags = seen.astype(np.uint8)
@@ -190,9 +193,8 @@ class GapFiller:
             measured = flags >= CASE_OBSERVED
             measured &= flags != CASE_KALMAN
             self.kf.update(z, self._variance[flags], measured)
-            estimated = flags >= CASE_ONE_MISSING
-            z[estimated] = self.kf.position[estimated]
-            self._unmeasured = np.where(measured & ~self._extrapolated, 0, self._unmeasured + 1)
+            _filtered_out(z, flags, self.kf.position, measured, self._extrapolated, self._unmeasured)
+        self._gain = self._velocity_gain()
 
         self._last[1] = self._last[0]
         self._last[0] = z
@@ -207,37 +209,30 @@ class GapFiller:
                 memory.kinematic.forget()
             else:  # the constraint's own poses around the gaps, so estimates cannot creep through the filter's lag
                 self._pose_r[0], self._pose_t[0], self._pose_ok[0], self._pose_fresh[0] = poses
-            centres = self._centres_later(z, flags)
+            centres = self._centres_later(z, flags, poses)
             memory.observe(z, seen)
         if self._learner is not None:  # a new model is taken up from the next frame, so the result and
             # ``joint_names`` keep describing the same body until then
             self._pending = self._learner.observe(z, seen, flags, body, self._current_poses) or self._pending
         return FillResult(positions=z, flags=flags, joint_centres=centres)
 
-    def _outliers(self, z: np.ndarray, seen: np.ndarray) -> np.ndarray:
-        """Samples of markers seen in the previous frame that are ``outlier_mm`` or more from their prediction: no
-        marker moves so in one frame, so they would only pull the filter and the segment fits off."""
-        step = z - self.kf.position  # NaN rows (not seen, or never seen before) compare False below
-        far = np.sqrt((step * step).sum(axis=1)) >= self.config.outlier_mm
-        far &= seen
-        far &= self._unmeasured == 0
-        return far
-
     def _current_poses(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """This frame's segment poses, fitted now where skipped."""
         self._ensure_poses(ages=1)
         return self._pose_r[0].copy(), self._pose_t[0].copy(), self._pose_ok[0].copy()
 
-    def _centres_later(self, z: np.ndarray, flags: np.ndarray) -> Callable[[], np.ndarray]:
-        """The joint centres of this frame, computed on first read from its poses (fitted then where skipped)."""
+    def _centres_later(self, z: np.ndarray, flags: np.ndarray,
+                       poses: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None) -> Callable[[], np.ndarray]:
+        """The joint centres of this frame, computed on first read from its ``poses`` (R, t, known, fitted: those
+        ``_constrain`` worked out, none without a gap), the others fitted then."""
         body = self.body
         assert body is not None
-        flags = flags.copy()  # the caller may edit the result's arrays before reading the centres
-        r, t, ok = self._pose_r[0].copy(), self._pose_t[0].copy(), self._pose_ok[0].copy()
-        fresh = self._pose_fresh[0].copy()
-        z = z.copy()
+        flags, z = flags.copy(), z.copy()  # the caller may edit the result's arrays before reading the centres
 
         def centres() -> np.ndarray:
+            if poses is None:
+                return joint_centres(body, self._fitted_poses_for(body, z, np.arange(len(body.members))), flags)
+            r, t, ok, fresh = poses
             stale = np.flatnonzero(~fresh)
             if len(stale):
                 r[stale], t[stale], ok[stale] = self._fitted_poses_for(body, z, stale)
@@ -279,6 +274,8 @@ class GapFiller:
                 flags[ok] = FillCase.RAY
                 visible |= ok
         poses = None
+        targets = np.zeros(n, dtype=bool)
+        est, codes = prior, flags  # no rigid-body estimate
         if body is not None:
             targets = ~visible & body.in_segment
             self._held = set()
@@ -289,16 +286,8 @@ class GapFiller:
             if self._holds:
                 self._holds = {k: hold for k, hold in self._holds.items() if k in self._held}
             memory.kinematic.end_frame()
-            done = targets & np.isfinite(est).all(axis=1)
-            if self._max_coast is not None:
-                done &= ~self._extrapolated | (self._unmeasured < self._max_coast)
-            z[done] = est[done]
-            flags[done] = codes[done]
-        lone = (flags == CASE_MISSING) & np.isfinite(prior).all(axis=1)
-        if self._max_coast is not None:
-            lone &= self._unmeasured < self._max_coast
-        z[lone] = prior[lone]
-        flags[lone] = CASE_KALMAN
+        _take_estimates(z, flags, est, codes, targets, prior, self._extrapolated, self._unmeasured,
+                        np.iinfo(np.int64).max if self._max_coast is None else self._max_coast)
         return poses
 
     def _constrain(
@@ -321,22 +310,22 @@ class GapFiller:
         est = np.full((n, 3), np.nan)
         codes = np.zeros(n, dtype=np.uint8)
         layout = body.layout(visible, targets, near)
-        seg_vis, segments = layout.seg_vis, layout.segments
+        seg_vis = layout.seg_vis
         s = len(body.members)
         r_all, t_all = np.zeros((s, 3, 3)), np.zeros((s, 3))
         posed, fresh = np.zeros(s, dtype=bool), np.zeros(s, dtype=bool)
-        r_all[segments], t_all[segments], posed[segments] = layout.fit_held(filled)  # three visible markers fix a
-        fresh[segments] = True  # pose
+        first, later = layout.first, layout.later
+        r_all[first], t_all[first], posed[first] = layout.fit_first(filled)  # three visible markers fix a pose
+        fresh[first] = True
         direct = posed[layout.target_seg]  # per target: its segment is fitted
         if direct.any():
             rows, seg = layout.target_rows[direct], layout.target_seg[direct]
             est[rows] = (r_all[seg] @ layout.target_local[direct, :, None])[..., 0] + t_all[seg]
             codes[rows] = CASE_ONE_MISSING
-        pending = sorted(segments[~posed[segments]].tolist(), key=lambda k: -seg_vis[k])
-        if (pending or fit_all) and len(layout.rest):
-            rest = layout.rest
-            r_all[rest], t_all[rest], posed[rest] = layout.fit_rest(filled)
-            fresh[rest] = True
+        pending = [k for k in layout.by_vis if not posed[k]]
+        if (pending or fit_all) and len(later):
+            r_all[later], t_all[later], posed[later] = layout.fit_later(filled)
+            fresh[later] = True
         seen_posed = posed.copy()  # placed with at least one of their own markers visible
         if pending:  # placed from the last frames' poses, fitted now where skipped
             self._ensure_poses(near)
@@ -344,7 +333,7 @@ class GapFiller:
         while pending:
             progress = False
             for k in list(pending):
-                seen_rows, seen_offsets, seen_names, miss, hit = layout.parts[k]
+                seen_rows, _, _, miss, hit = layout.parts[k]
                 nv = int(seg_vis[k])
                 links = [link for link in body.links[k] if posed[link[1]]]
                 reference = None  # a posed neighbour, preferring one placed with its own markers seen, then the
@@ -363,11 +352,11 @@ class GapFiller:
                 m = nv + len(links)
                 if m == 0 and not force:
                     continue  # a hidden neighbour may be placed first and anchor this segment
-                p, a, w = np.empty((m, 3)), np.empty((m, 3)), np.ones(m)
-                p[:nv], a[:nv] = filled[seen_rows], seen_offsets
-                for i, (_, other, own, theirs) in enumerate(links, start=nv):
-                    p[i], a[i], w[i] = r_all[other] @ theirs + t_all[other], own, cfg.joint_weight
-                anchors = tuple(seen_names + [("joint", j) for j, *_ in links])
+                a, w, anchors = layout.anchors(k, links, cfg.joint_weight)
+                p = np.empty((m, 3))
+                p[:nv] = filled[seen_rows]
+                for i, (_, other, _, theirs) in enumerate(links, start=nv):
+                    p[i] = r_all[other] @ theirs + t_all[other]
                 if learnt is not None:  # the learnt markers join the joints: they fix the twist the joints leave
                     p, a = np.concatenate([p, learnt]), np.concatenate([a, body.offsets[k]])
                     w = np.concatenate([w, np.full(len(learnt), self._kinematic_weight)])
@@ -458,3 +447,33 @@ class GapFiller:
             return last
         step = Rotation.from_matrix(last @ self._pose_r[1, k].T)  # R_{k-1} R_{k-2}^T, re-orthonormalised
         return (step * Rotation.from_matrix(last)).as_matrix()
+
+
+@njit(cache=True)
+def _take_estimates(z: np.ndarray, flags: np.ndarray, est: np.ndarray, codes: np.ndarray, targets: np.ndarray,
+                    prior: np.ndarray, extrapolated: np.ndarray, unmeasured: np.ndarray,
+                    max_coast: int) -> None:  # pragma: no cover
+    """The end of ``GapFiller._fill_missing``, in place, marker by marker: a ``targets`` marker with a rigid-body
+    estimate (``est``, case ``codes``) takes it, one with no other news than its filter's ``prior`` takes that
+    (``CASE_KALMAN``); a marker extrapolated from its past alone only until ``max_coast`` frames without news."""
+    for i in range(len(z)):
+        fresh = unmeasured[i] < max_coast
+        if (targets[i] and np.isfinite(est[i, 0]) and np.isfinite(est[i, 1]) and np.isfinite(est[i, 2])
+                and (fresh or not extrapolated[i])):
+            z[i, :] = est[i]
+            flags[i] = codes[i]
+        if flags[i] == CASE_MISSING and fresh and (np.isfinite(prior[i, 0]) and np.isfinite(prior[i, 1])
+                                                   and np.isfinite(prior[i, 2])):
+            z[i, :] = prior[i]
+            flags[i] = CASE_KALMAN
+
+
+@njit(cache=True)
+def _filtered_out(z: np.ndarray, flags: np.ndarray, position: np.ndarray, measured: np.ndarray,
+                  extrapolated: np.ndarray, unmeasured: np.ndarray) -> None:  # pragma: no cover
+    """After the filters' update, in place, marker by marker: an estimated marker's output is its filter's
+    ``position``; ``unmeasured`` counts the frames since a marker was last ``measured`` (not ``extrapolated``)."""
+    for i in range(len(z)):
+        if flags[i] >= CASE_ONE_MISSING:
+            z[i, :] = position[i]
+        unmeasured[i] = 0 if measured[i] and not extrapolated[i] else unmeasured[i] + 1

@@ -32,7 +32,7 @@ class MotionMemory:
         if previous is not None and same_segments(previous.body, body):
             self.kinematic.history = previous.kinematic.history
             if self.twist.slot.keys() == previous.twist.slot.keys():
-                self.twist.sums = previous.twist.sums
+                self.twist.carry_on(previous.twist)
 
     def observe(self, z: np.ndarray, seen: np.ndarray) -> None:
         """Take a frame (N, 3) and which of its markers were observed; a sampled frame's segments seen whole are

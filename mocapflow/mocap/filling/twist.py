@@ -51,10 +51,16 @@ class TwistSpread:
         self.axes = axes
         self.gain = 1.0 / max(window, 1.0)
         self.sums = np.zeros((len(self.pairs), 2, 3))  # per joint, per side: weight, mean cos, mean sin
+        self._spreads: np.ndarray | None = None  # ``spread`` of every slot, worked out from ``sums`` when first read
         self.slot: dict[tuple[int, int], tuple[int, int]] = {}  # (segment, joint) -> (row in pairs, side)
         for row, (joint, (p, c)) in enumerate(joints.items()):
             self.slot[p, joint] = (row, 0)
             self.slot[c, joint] = (row, 1)
+
+    def carry_on(self, previous: TwistSpread) -> None:
+        """Go on from the statistics of ``previous``, a spread over the same joints."""
+        self.sums = previous.sums
+        self._spreads = None
 
     def update(self, r: np.ndarray, complete: np.ndarray) -> None:
         """Take one sample: the segments' rotations (S, 3, 3) and which were fitted to all their markers (S,)."""
@@ -66,11 +72,13 @@ class TwistSpread:
         angle = twist_angles(r[seg], r[ref], self.axes[seg]).reshape(2, -1).T  # (J, 2): parent's, child's twist
         sample = np.stack([np.ones_like(angle), np.cos(angle), np.sin(angle)], axis=-1)
         self.sums[use] += self.gain * (sample - self.sums[use])
+        self._spreads = None
 
     def spread(self, segment: int, joint: int) -> float:
         """How much ``segment``'s twist has varied relative to the neighbour across ``joint``."""
-        row, side = self.slot[segment, joint]
-        weight, cos, sin = self.sums[row, side]
-        if weight <= 0:
-            return float("inf")
-        return 1.0 - float(np.hypot(cos, sin)) / weight
+        if self._spreads is None:  # read for each hidden segment every frame, changed only every sample
+            weight, cos, sin = np.moveaxis(self.sums, -1, 0)
+            known = weight > 0
+            self._spreads = np.full(weight.shape, np.inf)
+            self._spreads[known] = 1.0 - np.hypot(cos[known], sin[known]) / weight[known]
+        return float(self._spreads[self.slot[segment, joint]])
