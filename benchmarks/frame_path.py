@@ -2,11 +2,12 @@
 
 Run as ``python benchmarks/frame_path.py [--rate HZ] [--seconds S]`` (about 3 x S s of CPU on a quiet machine). The
 nodes of deployments/quickstart.yaml are built from that file (the tracker at ``--rate``) and driven in the order the
-runtime drives them: the tracker's frame is encoded (in the tracker's process) and decoded (in the group's), then the
-``frame`` group hands it from node to node as Python objects, each frame followed by all it causes (the filler's
-prediction back to the labeller); the clusterer and the joint estimator run in processes of their own and read the
-filled markers' sampled copy (``queue: sampled``), so only its frames are encoded for them and decoded there; their
-costs are shown apart (they do not hold the frame back; their models reach the group as they would live).
+runtime drives them: the ``frame`` group (the tracker among them) hands each frame from node to node as Python
+objects, each frame followed by all it causes (the filler's prediction back to the labeller), and a frame that leaves
+the group's process is encoded there and decoded in the other; the clusterer and the joint estimator run in processes
+of their own and read the filled markers' sampled copy (``queue: sampled``), so only its frames are encoded for them
+and decoded there; their costs are shown apart (they do not hold the frame back; their models reach the group as
+they would live).
 Frames are produced as fast as they are handled, so each step's time is its cost alone, with no wait in a queue;
 Zenoh's own transport is what ``mocapflow bench`` measures next to it. Printed: per step, the wall-clock time per
 frame (p50 / p99 over the frames after the skeleton model arrived) and the sum along the frame's path.
