@@ -8,8 +8,6 @@ be read (not C3D/TRC, truncated, no points) stops the node at start with a one-l
 
 from __future__ import annotations
 
-import time
-
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
@@ -69,6 +67,6 @@ class FileReplay(Node[ReplayConfig]):
             points = points[~np.isnan(points).any(axis=1)]
             points = points[np.random.default_rng([self.config.seed, index]).permutation(len(points))]
             labels = None
-        self.publish("markers", MarkerFrame(frame=self.first_frame + index, capture_ns=time.time_ns(),
+        self.publish("markers", MarkerFrame(frame=self.first_frame + index, capture_ns=self.due_ns(index),
                                             rate=self.file_rate, positions=points, labels=labels))
         return True

@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import time
-
 from pydantic import Field
 
 from mocapflow.io.bvh import read_bvh
@@ -35,7 +33,7 @@ class SimulatorNode(Node[SimulatorNodeConfig]):
         if self.config.frames is not None and index >= self.config.frames:
             return False
         frame = self.sim.frame(index)
-        capture_ns = time.time_ns()
+        capture_ns = self.due_ns(index)  # a late frame is late from when it was due
         self.publish("markers", MarkerFrame(
             frame=index, capture_ns=capture_ns, rate=self.rate, positions=frame.points, labels=frame.labels,
             rays=frame.rays,

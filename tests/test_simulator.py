@@ -3,8 +3,10 @@ driving, and the camera model with its single-camera rays."""
 
 from __future__ import annotations
 
+import time
 from itertools import combinations, pairwise
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -583,3 +585,17 @@ def test_simulator_node_publishes_the_rays(unlabelled: bool) -> None:
         else:
             np.testing.assert_array_equal(np.isnan(back.positions).any(1), ~frame.visible)
     assert sum(np.isfinite(m.rays).all(1).sum() for m in markers) > 20
+
+
+def test_a_simulated_frame_is_stamped_with_the_time_it_was_due() -> None:
+    """Latency counts from when a frame was due on the source's timetable, so a frame emitted late (its process busy)
+    shows as late; outside a run, when it is made."""
+    sent: list[Any] = []
+    node = SimulatorNode(SimulatorNodeConfig(rig="rods", rate=100), lambda port, msg: sent.append(msg), "tracker")
+    before = time.time_ns()
+    node.emit(3)
+    assert before <= sent[0].capture_ns <= time.time_ns()
+    node.clock_origin_ns = 10**18  # as the runtime sets it: frame 0 due then
+    node.emit(250)
+    assert sent[-1].frame == 250 and sent[-1].capture_ns == 10**18 + 2_500_000_000
+    assert all(m.capture_ns == sent[-1].capture_ns for m in sent[2:])  # the truth carries the same stamp

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import logging
 import os
+import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, ClassVar, Generic, TypeVar
@@ -75,6 +76,7 @@ class Node(Generic[ConfigT]):
 
     rate: float = 0.0
     linked: frozenset[str] | None = None  # the input ports the graph links; None when driven outside a graph
+    clock_origin_ns: int | None = None  # sources: when frame 0 was due (wall clock), set by the runtime
     paced: ClassVar[bool] = True
     """Sources: False when frames are pushed by a device (a live tracker), so the runtime calls ``emit`` again at
     once instead of on the ``rate`` timetable, and ``emit`` itself waits for the next frame."""
@@ -126,6 +128,14 @@ class Node(Generic[ConfigT]):
     def emit(self, index: int) -> bool:
         """Sources: produce frame ``index``. Return False when the source has no more frames."""
         raise NotImplementedError(f"{type(self).__name__} is a source but does not implement emit()")
+
+    def due_ns(self, index: int) -> int:
+        """Sources: when frame ``index`` is due on the runtime's timetable (wall clock, ns since the Unix epoch), the
+        capture time of a simulated or replayed frame, so that latency also counts the time a frame was emitted late;
+        the present moment outside a run."""
+        if self.clock_origin_ns is None or not self.rate:
+            return time.time_ns()
+        return self.clock_origin_ns + round(index * 1e9 / self.rate)
 
     def first_index(self, elapsed_s: float) -> int:
         """Sources: the frame to start from, ``elapsed_s`` after frame 0 was due (0 on a first start). Resuming where

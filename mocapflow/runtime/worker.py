@@ -364,7 +364,7 @@ class Worker:
             origin_ns = src.spec.clock_origin_ns or time.time_ns()
             resumed_s = (time.time_ns() - origin_ns) / 1e9 if src.spec.clock_origin_ns is not None else 0.0
             index = node.first_index(max(0.0, resumed_s))  # a first start begins at frame 0, however busy we are
-            self.clock_origin_ns = origin_ns
+            self.clock_origin_ns = node.clock_origin_ns = origin_ns
             self.publish_stats()
             # Frame i is due at origin + i * period, so a restarted source resumes on schedule and a late frame is
             # caught up at once instead of shifting every later frame.
