@@ -11,6 +11,8 @@ import numpy as np
 from filterpy.common import Q_discrete_white_noise, kinematic_kf
 from numba import njit
 
+from mocapflow.mocap.rigidfit import finite
+
 
 class ConstantVelocityBank:
     """``n`` independent constant-velocity filters sharing one model; a filter starts at its marker's first sight.
@@ -122,7 +124,7 @@ def _gate(pos: np.ndarray, z: np.ndarray, limit: float, check: np.ndarray,
           usable: np.ndarray) -> None:  # pragma: no cover
     """``ConstantVelocityBank.gate`` into ``usable``, marker by marker."""
     for i in range(len(z)):
-        ok = np.isfinite(z[i, 0]) and np.isfinite(z[i, 1]) and np.isfinite(z[i, 2])
+        ok = finite(z[i])
         if ok and check[i]:
             d0, d1, d2 = z[i, 0] - pos[i, 0], z[i, 1] - pos[i, 1], z[i, 2] - pos[i, 2]
             ok = not np.sqrt(d0 * d0 + d1 * d1 + d2 * d2) >= limit  # NaN (filter not started): kept

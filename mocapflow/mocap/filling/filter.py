@@ -19,7 +19,7 @@ from mocapflow.mocap.flags import CASE_KALMAN, CASE_MISSING, CASE_OBSERVED, CASE
 from mocapflow.mocap.kalman import ConstantVelocityBank
 from mocapflow.mocap.markerset import added
 from mocapflow.mocap.model import SkeletonModel
-from mocapflow.mocap.rigidfit import fit_one
+from mocapflow.mocap.rigidfit import finite, fit_one
 
 
 class Hold(NamedTuple):
@@ -458,12 +458,10 @@ def _take_estimates(z: np.ndarray, flags: np.ndarray, est: np.ndarray, codes: np
     (``CASE_KALMAN``); a marker extrapolated from its past alone only until ``max_coast`` frames without news."""
     for i in range(len(z)):
         fresh = unmeasured[i] < max_coast
-        if (targets[i] and np.isfinite(est[i, 0]) and np.isfinite(est[i, 1]) and np.isfinite(est[i, 2])
-                and (fresh or not extrapolated[i])):
+        if targets[i] and finite(est[i]) and (fresh or not extrapolated[i]):
             z[i, :] = est[i]
             flags[i] = codes[i]
-        if flags[i] == CASE_MISSING and fresh and (np.isfinite(prior[i, 0]) and np.isfinite(prior[i, 1])
-                                                   and np.isfinite(prior[i, 2])):
+        if flags[i] == CASE_MISSING and fresh and finite(prior[i]):
             z[i, :] = prior[i]
             flags[i] = CASE_KALMAN
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import TypeVar
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
@@ -12,6 +13,7 @@ VETO = 3.0  # a point breaking the distance to a rigid partner by this many tole
 CANDIDATES = 3  # snapshots fitted per lost marker
 SD_FLOOR_MM = 1.0  # spread of a distance within a rigid body, from measurement noise: caps neighbour weights
 UNGATED_MM = 1e6  # a gate no capture volume reaches: "nearest wins" in an assignment
+Seconds = TypeVar("Seconds", float, np.ndarray)  # a time, or one per track
 
 
 class LabellerConfig(BaseModel):
@@ -59,6 +61,11 @@ class LabellerConfig(BaseModel):
                                "rigid_sd_mm; moving by more than that, RMS)")
     expected_markers: int | None = Field(None, ge=1, description="number of physical markers, when known: at most "
                                          "this many tracks; beyond it new points can only re-identify lost tracks")
+
+    def coast_gate(self, dt: Seconds) -> Seconds:
+        """The gate of a track coasting at constant velocity for ``dt`` s: ``gate_mm``, widened by what
+        ``max_accel_mm_s2`` could have moved it off its course since."""
+        return self.gate_mm + 0.5 * self.max_accel_mm_s2 * dt**2
 
 
 @dataclass

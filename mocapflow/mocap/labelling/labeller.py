@@ -18,6 +18,7 @@ from mocapflow.mocap.labelling.assignment import (
 from mocapflow.mocap.labelling.config import UNGATED_MM, LabellerConfig, LabelResult
 from mocapflow.mocap.labelling.placement import place_marker
 from mocapflow.mocap.labelling.tracks import Tentatives, Tracks
+from mocapflow.mocap.rigidfit import finite
 
 
 class Labeller:
@@ -168,7 +169,7 @@ class Labeller:
         tracks = self._tracks
         expected = np.where((dt <= cfg.max_coast_s)[:, None], tracks.pos[unseen] + tracks.vel[unseen] * dt[:, None],
                             np.nan)
-        gate = cfg.gate_mm + 0.5 * cfg.max_accel_mm_s2 * dt**2
+        gate = cfg.coast_gate(dt)
         if outside is not None:
             known = np.zeros(len(unseen), bool)
             known[unseen < len(outside)] = np.isfinite(outside[unseen[unseen < len(outside)], 0])
@@ -419,13 +420,13 @@ def _hypotheses(lost: np.ndarray, outside: np.ndarray, pos: np.ndarray, vel: np.
                 reid_gate: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # pragma: no cover
     """``Labeller._lost_predictions`` before the placement by neighbours: each ``lost`` track's first hypothesis its
     ``outside`` prediction where it has one (an empty array: none), its second its constant-velocity coast within
-    ``max_coast_s``, with their gates, and where the first is given."""
+    ``max_coast_s``, with their gates (the coast's is ``LabellerConfig.coast_gate``), and where the first is given."""
     pred = np.full((len(lost), 2, 3), np.nan)
     gate = np.full((len(lost), 2), reid_gate)
     given = np.zeros(len(lost), np.bool_)
     for i, t in enumerate(lost):
         if len(outside):
-            given[i] = np.isfinite(outside[t, 0]) and np.isfinite(outside[t, 1]) and np.isfinite(outside[t, 2])
+            given[i] = finite(outside[t])
             if given[i]:
                 pred[i, 0] = outside[t]
         dt = time - last[t]

@@ -217,7 +217,7 @@ def _junctions(state: _Round, rate: float, cfg: LabellerConfig) -> dict[tuple[in
                 continue
             forward = tracks[a, x] + (tracks[a, x] - tracks[a - 1, x]) * gap
             backward = tracks[s, y] - (tracks[s + 1, y] - tracks[s, y]) * gap
-            gate = cfg.gate_mm + 0.5 * cfg.max_accel_mm_s2 * (gap / rate) ** 2
+            gate = cfg.coast_gate(gap / rate)
             error = max(float(np.linalg.norm(forward - tracks[s, y])), float(np.linalg.norm(backward - tracks[a, x])))
             key = (min(x, y), max(x, y))
             worst[key] = max(worst.get(key, 0.0), error / gate)
