@@ -251,12 +251,9 @@ def test_view_attaches_to_a_running_graph_and_replays_its_recording(tmp_path: Pa
     # the live view drew the streams' previews; `record`, asked for the streams, left those copies out
     assert not any(keys.copy_kind(r.key) for r in read_recording(tmp_path / "run.mcap"))
     assert f"{recorded_frames} marker frames" in replay_out, replay_out
-    # the tracker's and the filler's markers go to other processes of the graph, so they are sent from the first
-    # frame; the labeller's markers and the filler's predictions only once Zenoh tells their senders that `record`
-    # subscribes, a few frames after the start
-    for key in ("tracker/markers", "filler/markers"):
-        assert streams[f"{prefix}/{key}"] >= frames - 2, streams
-    for key in ("labeller/markers", "filler/predictions"):
+    # no other process of the graph reads these streams whole (the model stages read the filled markers' sampled
+    # copy), so each is sent once Zenoh tells its sender that `record` subscribes, a few frames after the start
+    for key in ("tracker/markers", "labeller/markers", "filler/markers", "filler/predictions"):
         assert streams[f"{prefix}/{key}"] >= frames - frames // 20, streams
     for name in ("live", "replay"):  # node health as time series
         health = read_rrd(tmp_path / f"{name}.rrd", "capture_time")
