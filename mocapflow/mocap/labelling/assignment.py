@@ -31,7 +31,7 @@ def gated_cost(pred: np.ndarray, gate: np.ndarray | float, points: np.ndarray) -
     with a dummy option costing half a gate on each side, so a match is made only when it lowers the total distance.
     A track with no hypothesis (NaN) fits no point. Compiled: the labeller asks for it several times a frame.
     """
-    hypotheses = np.asarray(pred, dtype=np.float64)
+    hypotheses = np.ascontiguousarray(pred, dtype=np.float64)  # one compiled layout, whatever slice is passed
     if hypotheses.ndim == 2:
         hypotheses = hypotheses[:, None]
     gates = np.asarray(gate, dtype=np.float64)

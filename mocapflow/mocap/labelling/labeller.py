@@ -141,13 +141,32 @@ class Labeller:
         """Give the ``free`` points of ``z`` to the ``lost`` tracks whose hypotheses (``_lost_predictions``; the
         placement by neighbours only where ``instant``) they fit, screened by their rigid partners; in place in
         ``cur`` and ``taken``. The screening only ever raises a cost, so it is skipped when no point is in a gate."""
-        has, cost = _instant_costs(pred, gate, instant, z[free])
+        points = z[free]
+        has, cost = _instant_costs(pred, gate, instant, points)
         if not (cost < 0.0).any():
             return
-        broken, partners, violated = self._tracks.signature(lost[has], cur, z[free])
-        ti, pi = match(screened(cost, broken, partners, violated))
+        broken, partners, violated = self._tracks.signature(lost, cur, points)
+        cost = screened(cost, broken[has], partners[has], violated[has])
+        # A coast's gate grows with the time lost, and a segment mate of the marker, lost too, may come back inside
+        # it first. A point is not taken on the coast alone (it stays tentative until the evidence tells them apart)
+        # when another lost track's rigid partners seen now explain it as well, or when no rigid partner of the
+        # track is seen and one lost with it lies within reach of the gate.
+        placed = instant[has, None] & (gated_cost(pred[has, 0], gate[has, 0], points) < 0.0)
+        rival = _rival_fit(broken, partners, has)
+        ambiguous = (rival < np.inf) & ((partners[has] == 0) | (rival <= broken[has]))
+        ambiguous |= (partners[has] == 0) & self._mate_within(lost[has], gate[has, 1], lost)[:, None]
+        cost = np.where(ambiguous & ~placed, 0.0, cost)
+        ti, pi = match(cost)
         cur[lost[has[ti]]] = z[free[pi]]
         taken[free[pi]] = lost[has[ti]]
+
+    def _mate_within(self, tracks: np.ndarray, gate: np.ndarray, lost: np.ndarray | None = None) -> np.ndarray:
+        """Whether each of ``tracks`` has a rigid partner among the ``lost`` tracks (default: ``tracks``) close
+        enough that its marker may show up inside the track's ``gate`` about where the track is expected."""
+        others = tracks if lost is None else lost
+        mate, _ = self._tracks.rigid(tracks, others)
+        mate[tracks[:, None] == others[None]] = np.nan  # not its own mate
+        return np.any(mate < 2.0 * gate[:, None], axis=1)  # NaN (not rigid) is never near
 
     def _ray_owners(self, rays: np.ndarray, cur: np.ndarray, time: float,
                     outside: np.ndarray | None) -> np.ndarray:
@@ -308,6 +327,10 @@ class Labeller:
             # looser cues notwithstanding: two markers of one segment often lie at one distance from a third
             rival = pooled | ((worst < 1.0) & (partners >= 1))
             fits = ((partners >= 2) & (broken < 1.0)) | (pooled & (rival.sum(axis=0) == 1))
+            if not full:  # a coast alone does not tell a marker from a segment mate lost with it (``_reidentify``)
+                coast = (gated_cost(pred[:, 1], gate[:, 1], z) < 0.0) & ~(gated_cost(pred[:, 0], gate[:, 0], z) < 0.0)
+                alone = coast & (partners == 0) & (helpers == 0)
+                cost = np.where(alone & self._mate_within(lost, gate[:, 1])[:, None], 0.0, cost)
             cost = np.where(fits, np.minimum(cost, worst - 1.0), cost)
             cost = screened(cost, broken, partners, violated)
             li, ri = match(cost)
@@ -481,3 +504,15 @@ def _drop_near(hypotheses: np.ndarray, points: np.ndarray, radius: float) -> Non
                 if distance(hypotheses[i, h], points[t]) < radius:
                     hypotheses[i, h] = np.nan
                     break
+
+
+def _rival_fit(broken: np.ndarray, partners: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """``(len(rows), B)``: for each of ``rows`` and point, how well the best other row of ``rigid_signature``'s
+    ``broken`` and ``partners`` ``(A, B)`` fits the point by at least one rigid partner (``broken`` < 1), inf where
+    no other does."""
+    fit = np.where((partners >= 1) & (broken < 1.0), broken, np.inf)
+    if len(fit) < 2:
+        return np.full((len(rows), fit.shape[1]), np.inf)
+    order = np.argsort(fit, axis=0)
+    best, second = fit[order[0], np.arange(fit.shape[1])], fit[order[1], np.arange(fit.shape[1])]
+    return np.where(order[0][None] == rows[:, None], second[None], best[None])
