@@ -17,9 +17,9 @@ marker seen by two cameras or more is observed as a point; one seen by a single 
 camera's centre through its noisy position, and is missing from the points (an unlabelled cloud lists it as an extra
 row with a ray and no position, after the points); one seen by none is missing.
 
-Every frame is a pure function of (config, frame index): per-frame randomness is seeded by (seed, frame) and
-occlusion schedules by (seed, kind, block of frames), so frames can be produced in any order, live or offline, and a
-restarted simulator resumes exactly where it stopped.
+Every frame is a pure function of (config, frame index): its randomness is drawn for its block of frames, seeded by
+(seed, block), and occlusion schedules by (seed, kind, block of frames), so frames can be produced in any order, live
+or offline, and a restarted simulator resumes exactly where it stopped.
 """
 
 from __future__ import annotations
@@ -38,7 +38,7 @@ from mocapflow.mocap.rigs import RIG_NAMES, Rig, make_rig
 # Random streams: the second entropy word of each generator, so streams never share draws.
 _FRAME, _DROPOUT, _LONG_GAP, _HIDDEN, _MOTION, _SKIN = range(6)
 _BLOCK_S = 10.0  # occlusion schedules are drawn per block of this many seconds
-_POSE_BLOCK = 64  # frames whose poses are worked out together
+_BLOCK = 64  # frames worked out together: poses, positions and random draws
 _DROPOUT_FRAMES = (2, 10)  # length of a short dropout, frames
 _LONG_GAP_S = (1.0, 4.0)  # length of a long gap, s
 _HIDDEN_S = (2.0, 6.0)  # length of a hidden-segment period, s
@@ -118,6 +118,21 @@ class SimFrame:
     joint_centres: np.ndarray  # (J, 3) world joint centres, J = S - 1
     rays: np.ndarray | None  # single-camera rays (origin, unit direction) per row of points, NaN rows where none
     # (unlabelled: extra rows with no position after the points); None without cameras
+
+
+@dataclass
+class _Block:
+    """Frames ``index * _BLOCK`` to ``(index + 1) * _BLOCK - 1`` (row k: the block's k-th frame)."""
+
+    index: int
+    rot: np.ndarray  # (B, S, 3, 3) segment rotations
+    pos: np.ndarray  # (B, S, 3) segment origins
+    true: np.ndarray  # (B, N, 3) noise-free marker positions
+    observed: np.ndarray  # (B, N, 3) with noise
+    misses: np.ndarray | None  # (B, N, C) True where a camera misses a marker at random (camera_dropout)
+    ghost_rows: np.ndarray  # (B + 1,) frame k's ghosts are rows ghost_rows[k]:ghost_rows[k + 1] of ghosts
+    ghosts: np.ndarray  # (G, 3)
+    shuffle: np.ndarray  # (B, N + most ghosts) random keys: a frame's points are ordered by the keys of its rows
 
 
 @dataclass
@@ -211,48 +226,60 @@ class Simulator:
         aim = np.array([0.0, 0.0, _CAMERA_AIM_MM]) - self.camera_centres
         self._camera_axes = aim / np.linalg.norm(aim, axis=1, keepdims=True)
         self.capsule_ends, self.capsule_radii = _capsules(rig)
-        self._poses: tuple[int, np.ndarray, np.ndarray, np.ndarray] = (-1, *(np.empty(0),) * 3)  # block, R, t, rotvec
+        self._block = _Block(-1, *(np.empty(0),) * 8)
 
-    def _pose(self, i: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Segment rotations and origins and local rotation vectors of frame i. They are worked out for a block of
-        _POSE_BLOCK frames at once (vectorised), the block i falls in, so frame i is the same whatever was asked
-        before it."""
+    def _block_of(self, i: int) -> _Block:
+        """The block of _BLOCK frames that frame i falls in, worked out at once (vectorised): segment poses, true and
+        noisy marker positions, and every random draw of its frames, from a generator seeded by (seed, block). So
+        frame i is the same whatever was asked before it, and a frame costs a few slices."""
         if i < 0:
             raise ValueError(f"frame index must be >= 0, got {i}")
-        block = i // _POSE_BLOCK
-        if self._poses[0] != block:
-            root, rotvec = self._motion(np.arange(block * _POSE_BLOCK, (block + 1) * _POSE_BLOCK) / self.config.rate)
-            local = Rotation.from_rotvec(rotvec.reshape(-1, 3)).as_matrix().reshape(*rotvec.shape, 3)
-            self._poses = (block, *forward_kinematics(self.rig, local, root), rotvec)
-        _, rot, pos, rotvec = self._poses
-        k = i % _POSE_BLOCK
-        return rot[k], pos[k], rotvec[k]
+        b = i // _BLOCK
+        if self._block.index == b:
+            return self._block
+        cfg, rig = self.config, self.rig
+        root, rotvec = self._motion(np.arange(b * _BLOCK, (b + 1) * _BLOCK) / cfg.rate)
+        local = Rotation.from_rotvec(rotvec.reshape(-1, 3)).as_matrix().reshape(*rotvec.shape, 3)
+        rot, pos = forward_kinematics(rig, local, root)
+        offsets = np.broadcast_to(rig.marker_offsets, (_BLOCK, *rig.marker_offsets.shape))
+        if self._skin is not None:
+            offsets = offsets + (np.sin(rotvec.reshape(_BLOCK, -1)) @ self._skin.T).reshape(_BLOCK, -1, 3)
+        seg = rig.marker_segment
+        true = (rot[:, seg] @ offsets[..., None])[..., 0] + pos[:, seg]
+        rng = np.random.default_rng([cfg.seed, _FRAME, b])
+        observed = true + rng.standard_normal(true.shape) * cfg.noise_mm
+        n = len(seg)
+        misses = rng.random((_BLOCK, n, cfg.cameras)) < cfg.camera_dropout if cfg.camera_dropout > 0 else None
+        counts = rng.poisson(cfg.ghosts, _BLOCK) if cfg.unlabelled and cfg.ghosts > 0 else np.zeros(_BLOCK, int)
+        direction = rng.standard_normal((counts.sum(), 3))
+        direction /= np.sqrt((direction * direction).sum(1, keepdims=True))
+        radius = rng.uniform(*_GHOST_MM, (len(direction), 1))
+        near = rng.integers(0, n, len(direction))
+        ghosts = true[np.repeat(np.arange(_BLOCK), counts), near] + direction * radius
+        shuffle = rng.random((_BLOCK, n + counts.max(initial=0))) if cfg.unlabelled else np.empty((_BLOCK, 0))
+        self._block = _Block(b, rot, pos, true, observed, misses, np.concatenate([[0], np.cumsum(counts)]),
+                             ghosts, shuffle)
+        return self._block
 
     def segment_poses(self, i: int) -> tuple[np.ndarray, np.ndarray]:
         """World pose of every segment's rig frame (origin at its proximal joint centre): R (S, 3, 3), t (S, 3)."""
-        rot, pos, _ = self._pose(i)
-        return rot, pos
+        block, k = self._block_of(i), i % _BLOCK
+        return block.rot[k], block.pos[k]
 
     def frame(self, i: int) -> SimFrame:
         """Frame i as the tracker reports it, with its truth."""
-        cfg, rig = self.config, self.rig
-        rot, pos, rotvec = self._pose(i)
-        offsets = rig.marker_offsets
-        if self._skin is not None:
-            offsets = offsets + (self._skin @ np.sin(rotvec.ravel())).reshape(-1, 3)
-        seg = rig.marker_segment
-        true = np.einsum("nij,nj->ni", rot[seg], offsets) + pos[seg]
-        hidden = np.zeros(len(seg), bool)
+        cfg = self.config
+        block, k = self._block_of(i), i % _BLOCK
+        rot, pos, true, observed = block.rot[k], block.pos[k], block.true[k], block.observed[k]
+        hidden = np.zeros(len(true), bool)
         for gaps in self._gaps:
             hidden |= gaps.hidden(i)
         visible = ~hidden
-        rng = np.random.default_rng([cfg.seed, _FRAME, i])
-        observed = true + rng.standard_normal(true.shape) * cfg.noise_mm
         rays = None
         if cfg.cameras:
             seen = self._seen(true, rot, pos) & visible[:, None]
-            if cfg.camera_dropout > 0:
-                seen &= rng.random(seen.shape) >= cfg.camera_dropout
+            if block.misses is not None:
+                seen &= ~block.misses[k]
             seen_by = seen.sum(1)
             visible = seen_by >= 2
             origin = self.camera_centres[seen.argmax(1)]
@@ -260,17 +287,15 @@ class Simulator:
             direction /= np.linalg.norm(direction, axis=1, keepdims=True)
             rays = np.where((seen_by == 1)[:, None], np.concatenate([origin, direction], axis=1), np.nan)
         if cfg.unlabelled:
-            count = rng.poisson(cfg.ghosts) if cfg.ghosts > 0 else 0
-            direction = rng.standard_normal((count, 3))
-            direction /= np.sqrt((direction * direction).sum(1, keepdims=True))  # np.linalg.norm's sum, less overhead
-            radius = rng.uniform(*_GHOST_MM, (count, 1))
-            ghosts = true[rng.integers(0, len(true), count)] + direction * radius
-            identity = np.concatenate([np.flatnonzero(visible), np.full(count, -1)])
-            order = rng.permutation(len(identity))
+            ghosts = block.ghosts[block.ghost_rows[k]:block.ghost_rows[k + 1]]
+            identity = np.concatenate([np.flatnonzero(visible), np.full(len(ghosts), -1)])
+            shuffle = block.shuffle[k]
+            order = np.argsort(shuffle[:len(identity)])
             points = np.concatenate([observed[visible], ghosts])[order]
             identity, labels = identity[order], None
             if rays is not None:  # single-camera markers follow the points, as rows with a ray and no position
-                single = rng.permutation(np.flatnonzero(np.isfinite(rays[:, 0])))
+                single = np.flatnonzero(np.isfinite(rays[:, 0]))
+                single = single[np.argsort(shuffle[::-1][:len(single)])]  # keys from the other end: no row shares
                 rays = np.concatenate([np.full((len(points), 6), np.nan), rays[single]])
                 points = np.concatenate([points, np.full((len(single), 3), np.nan)])
                 identity = np.concatenate([identity, single])
