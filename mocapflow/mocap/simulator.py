@@ -302,8 +302,9 @@ class Simulator:
         else:
             points = np.where(visible[:, None], observed, np.nan)
             identity, labels = np.arange(len(true)), self.labels
+        # copies of the block's rows: a caller may change its frame, the block's later frames stay as drawn
         return SimFrame(frame=i, time=i / cfg.rate, points=points, labels=labels, identity=identity,
-                        true_positions=true, visible=visible, joint_centres=pos[1:], rays=rays)
+                        true_positions=true.copy(), visible=visible, joint_centres=pos[1:].copy(), rays=rays)
 
     def _seen(self, markers: np.ndarray, rot: np.ndarray, pos: np.ndarray) -> np.ndarray:
         """(N, C) True where a camera sees a marker at ``markers`` (N, 3): inside its cone of view, with a line of
