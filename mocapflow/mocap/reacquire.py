@@ -28,9 +28,9 @@ TOLERANCE_MM = 4.0
 HIDDEN_MM = 10.0
 """What a layout point with no cloud point where it lands adds to a placement's misfit."""
 AMBIGUITY = 3.0
-"""A layout fits one way when every other way misfits this many times as much, plus ``MARGIN_MM``."""
+"""A way to fit is sure when every other way scores this many times as much, plus a margin (``_sure``)."""
 MARGIN_MM = 2.0
-"""Misfit no better way is told by: three markers fit their mirror image (the other side of the body) by a proper
+"""The margin of a layout's misfits: three markers fit their mirror image (the other side of the body) by a proper
 rotation, within the noise of the positions saved and those seen now (0.15 against 1.5 mm RMS has been seen)."""
 STEADIEST = 4
 """Placed markers that tell the ways a layout fits apart: those of the steadiest distance to it."""
@@ -66,10 +66,11 @@ def _placements(layout: np.ndarray, cloud: np.ndarray, dist: np.ndarray,
     return found
 
 
-def _sure(scored: list[tuple[float, int]]) -> int | None:
-    """The point of the best score when it is far better than every other."""
+def _sure(scored: list[tuple[float, int]], margin: float = 1.0) -> int | None:
+    """The point of the best score when it is far better than every other: ``AMBIGUITY`` times, plus ``margin`` (in
+    the scores' unit)."""
     scored = sorted(scored)
-    if scored and (len(scored) == 1 or scored[1][0] > AMBIGUITY * scored[0][0] + MARGIN_MM):
+    if scored and (len(scored) == 1 or scored[1][0] > AMBIGUITY * scored[0][0] + margin):
         return scored[0][1]
     return None
 
@@ -116,7 +117,7 @@ class Reacquirer:
                 fixed = {r: placed[m] for r, m in enumerate(members) if m in placed}
                 found = {p: f for p, f in _placements(self.saved[members], cloud, dist, fixed).items()
                          if p not in placed.values()}
-                point = _sure([(f[0], p) for p, f in found.items()])
+                point = _sure([(f[0], p) for p, f in found.items()], MARGIN_MM)
                 if point is None and len(found) > 1:
                     point = _sure(self._by_distances(track, members, found, cloud, placed))
                 if point is None and len(found) > 1:
