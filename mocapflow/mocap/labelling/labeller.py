@@ -151,11 +151,10 @@ class Labeller:
         # it first. A point is not taken on the coast alone (it stays tentative until the evidence tells them apart)
         # when another lost track's rigid partners seen now explain it as well, or when no rigid partner of the
         # track is seen and one lost with it lies within reach of the gate.
-        placed = instant[has, None] & (gated_cost(pred[has, 0], gate[has, 0], points) < 0.0)
         rival = _rival_fit(broken, partners, has)
         ambiguous = (rival < np.inf) & ((partners[has] == 0) | (rival <= broken[has]))
         ambiguous |= (partners[has] == 0) & self._mate_within(lost[has], gate[has, 1], lost)[:, None]
-        cost = np.where(ambiguous & ~placed, 0.0, cost)
+        cost = np.where(ambiguous & _on_coast_only(pred[has], gate[has], points, instant[has]), 0.0, cost)
         ti, pi = match(cost)
         cur[lost[has[ti]]] = z[free[pi]]
         taken[free[pi]] = lost[has[ti]]
@@ -328,8 +327,7 @@ class Labeller:
             rival = pooled | ((worst < 1.0) & (partners >= 1))
             fits = ((partners >= 2) & (broken < 1.0)) | (pooled & (rival.sum(axis=0) == 1))
             if not full:  # a coast alone does not tell a marker from a segment mate lost with it (``_reidentify``)
-                coast = (gated_cost(pred[:, 1], gate[:, 1], z) < 0.0) & ~(gated_cost(pred[:, 0], gate[:, 0], z) < 0.0)
-                alone = coast & (partners == 0) & (helpers == 0)
+                alone = _on_coast_only(pred, gate, z, np.ones(len(lost), bool)) & (partners == 0) & (helpers == 0)
                 cost = np.where(alone & self._mate_within(lost, gate[:, 1])[:, None], 0.0, cost)
             cost = np.where(fits, np.minimum(cost, worst - 1.0), cost)
             cost = screened(cost, broken, partners, violated)
@@ -504,6 +502,13 @@ def _drop_near(hypotheses: np.ndarray, points: np.ndarray, radius: float) -> Non
                 if distance(hypotheses[i, h], points[t]) < radius:
                     hypotheses[i, h] = np.nan
                     break
+
+
+def _on_coast_only(pred: np.ndarray, gate: np.ndarray, points: np.ndarray, first: np.ndarray) -> np.ndarray:
+    """``(A, B)``: the points inside the gate of a track's coast (its second hypothesis, ``_hypotheses``) and not
+    inside that of its first, which counts only where ``first``."""
+    firsts = np.where(first[:, None], gated_cost(pred[:, 0], gate[:, 0], points) < 0.0, False)
+    return (gated_cost(pred[:, 1], gate[:, 1], points) < 0.0) & ~firsts
 
 
 def _rival_fit(broken: np.ndarray, partners: np.ndarray, rows: np.ndarray) -> np.ndarray:
