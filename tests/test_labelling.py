@@ -545,11 +545,13 @@ def test_the_labeller_node_gives_the_labeller_the_predictions_of_its_tracks() ->
     assert differ > 0, "the predictions never mattered"
 
 
-@pytest.mark.parametrize("gap", [320, 820])
+@pytest.mark.parametrize("gap", [320, 820, 973])
 def test_a_labeller_resumed_after_a_gap_names_no_other_marker(gap: int) -> None:
     """A labeller's tracks saved, every marker lost for ``gap`` frames (a restart), then found again by their rigid
     layouts (``mocap.reacquire``): the mirror-image hands and arms, which fit either side, are never swapped. After
-    these gaps the arms had swung so far that the head and trunk no longer told the two ways apart."""
+    these gaps the arms had swung so far that the head and trunk no longer told the two ways apart; after the longest,
+    a hand's neighbours had moved to where its mirror image puts them, while the distances to them, though unsure,
+    ranked the right way first (the two cues disagreeing, neither decides)."""
     import pickle
 
     from mocapflow.mocap.reacquire import Reacquirer

@@ -1,16 +1,18 @@
 """Finding a labeller's markers again when every one of them was lost at once (the labeller restarted).
 
-After an occlusion a lost marker is found again from its neighbours that are still seen; after a restart none is
-seen, so that cannot start. Each marker with its rigid partners (the markers whose distance to it varies by at most
+After an occlusion a lost marker is found again from its neighbours that are still seen; after a restart none is seen,
+so that cannot start. Each marker with its rigid partners (the markers whose distance to it varies by at most
 ``rigid_sd_mm``), where they were last seen together, is a small rigid layout; it is searched for in the new point
 cloud by its pairwise distances, placed by a proper rotation (so a mirror image, the other side of the body, does not
 fit), and the marker takes the point only when its whole layout fits one way far better than any other and no other
 marker claims that point. Markers placed so pin their partners' layouts; a layout that still fits several ways (the
-mirror-image segments of a body, a triangle of nearly equal sides) is decided by the distances to, then by where
-each way puts, the nearby markers placed so far (only while the best way puts them within the layout's own size:
-after a long restart they have moved otherwise). The markers placed are tracked again from that frame on; the
-others are looked for again in the next frames. Only this brings a track back: the labeller relearns its other cues
-from scratch, so a marker that cannot be placed surely gets a new label rather than another marker's.
+mirror-image segments of a body, a triangle of nearly equal sides) is decided by the distances to, then by where each
+way puts, the nearby markers placed so far (only while the best way puts them within the layout's own size: after a
+long restart they have moved otherwise, and only for the way those distances, though unsure, rank first: a limb that
+swung through the restart can move its neighbours to where the mirror image puts them). The markers placed are tracked
+again from that frame on; the others are looked for again in the next frames. Only this brings a track back: the
+labeller relearns its other cues from scratch, so a marker that cannot be placed surely gets a new label rather than
+another marker's.
 """
 
 from __future__ import annotations
@@ -119,9 +121,12 @@ class Reacquirer:
                          if p not in placed.values()}
                 point = _sure([(f[0], p) for p, f in found.items()], MARGIN_MM)
                 if point is None and len(found) > 1:
-                    point = _sure(self._by_distances(track, members, found, cloud, placed))
-                if point is None and len(found) > 1:
-                    point = _sure(self._by_context(track, members, found, cloud, placed))
+                    distances = self._by_distances(track, members, found, cloud, placed)
+                    point = _sure(distances)
+                    if point is None:
+                        point = _sure(self._by_context(track, members, found, cloud, placed))
+                        if distances and point != min(distances)[1]:  # the two cues disagree: neither decides
+                            point = None
                 if point is not None:
                     claims.setdefault(point, []).append(track)
             new = {tracks[0]: point for point, tracks in claims.items() if len(tracks) == 1}
