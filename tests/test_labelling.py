@@ -550,7 +550,7 @@ def test_a_labeller_resumed_after_a_gap_names_no_other_marker(gap: int) -> None:
     """A labeller's tracks saved, every marker lost for ``gap`` frames (a restart), then found again by their rigid
     layouts (``mocap.reacquire``): the mirror-image hands and arms, which fit either side, are never swapped. After
     these gaps the arms had swung so far that the head and trunk no longer told the two ways apart; after the longest,
-    a hand's neighbours had moved to where its mirror image puts them, while the distances to them, though unsure,
+    a forearm's neighbours had moved to where its mirror image puts them, while the distances to them, though unsure,
     ranked the right way first (the two cues disagreeing, neither decides)."""
     import pickle
 
