@@ -545,42 +545,50 @@ def test_the_labeller_node_gives_the_labeller_the_predictions_of_its_tracks() ->
     assert differ > 0, "the predictions never mattered"
 
 
-@pytest.mark.parametrize("gap", [320, 820, 973])
-def test_a_labeller_resumed_after_a_gap_names_no_other_marker(gap: int) -> None:
+@pytest.mark.parametrize("saved_at,gap", [(840, 320), (840, 820), (840, 973), (1200, 527)])
+def test_a_labeller_resumed_after_a_gap_names_no_other_marker(saved_at: int, gap: int) -> None:
     """A labeller's tracks saved, every marker lost for ``gap`` frames (a restart), then found again by their rigid
     layouts (``mocap.reacquire``): the mirror-image hands and arms, which fit either side, are never swapped. After
     these gaps the arms had swung so far that the head and trunk no longer told the two ways apart; after the longest,
     a forearm's neighbours had moved to where its mirror image puts them, while the distances to them, though unsure,
-    ranked the right way first (the two cues disagreeing, neither decides)."""
+    ranked the right way first (the two cues disagreeing, neither decides). Resumed at 7.2 s, a hand swinging at
+    8 m/s leaves the tracking gate in the frame after its placement unless it is followed with its own velocity."""
     import pickle
 
     from mocapflow.mocap.reacquire import Reacquirer
 
-    rate, saved_at = 240.0, 840
+    rate = 240.0
     sim = Simulator(SimulatorConfig(rig="human", rate=rate, seed=3, unlabelled=True))
     labeller = Labeller(LabellerConfig(), rate)
 
-    def identities(frame: int, positions: np.ndarray) -> np.ndarray:
-        """The simulated marker each track's point is (-1: none)."""
-        shot = sim.frame(frame)
+    def vote(votes: dict[int, list[int]], i: int, positions: np.ndarray) -> None:
+        """Note the simulated marker each track's point in frame ``i`` is."""
+        shot = sim.frame(i)
         d = np.linalg.norm(positions[:, None] - shot.points[None], axis=2)
         d = np.where(np.isnan(d), np.inf, d)
         near = d.argmin(axis=1)
-        return np.where(d[np.arange(len(positions)), near] < 1e-6, shot.identity[near], -1)
+        for track in np.flatnonzero(d[np.arange(len(positions)), near] < 1e-6):
+            votes.setdefault(int(track), []).append(int(shot.identity[near[track]]))
 
+    before: dict[int, list[int]] = {}
+    after: dict[int, list[int]] = {}
     for i in range(saved_at + 1):
         result = labeller.update(sim.frame(i).points.astype(float), i / rate)
-    before = identities(saved_at, result.positions)
-    assert (before >= 0).sum() >= 40
+        if i > saved_at - rate / 2:
+            vote(before, i, result.positions)
+    assert len(before) >= 40
     resumed = pickle.loads(pickle.dumps(labeller))  # as the node keeps and loads its state
-    find = Reacquirer(resumed)
+    find: Reacquirer | None = Reacquirer(resumed)
     start = saved_at + gap
     for i in range(start, start + int(rate)):
         points = sim.frame(i).points.astype(float)
-        find(points, i / rate)
-        result = resumed.update(points, i / rate)
-    after = identities(start + int(rate) - 1, result.positions)
-    both = (before[: len(after)] >= 0) & (after[: len(before)] >= 0)
-    moved = both & (before[: len(after)] != after[: len(before)])
-    assert not moved.any(), f"{moved.sum()} labels name another marker after the gap"
-    assert both.sum() >= len(before) // 2  # most markers keep their label
+        if find is not None:  # as the labeller node: until every track is placed, for a second at most
+            find(points, i / rate)
+            find = find if len(find.found) < len(resumed.labels) else None
+        vote(after, i, resumed.update(points, i / rate).positions)
+    # each track's marker over the last half second before and the second after: no track names another marker
+    was = {t: np.bincount(v).argmax() for t, v in before.items()}
+    now = {t: np.bincount(v).argmax() for t, v in after.items()}
+    moved = [t for t in was.keys() & now.keys() if was[t] != now[t]]
+    assert not moved, f"{len(moved)} labels name another marker after the gap"
+    assert len(was.keys() & now.keys()) >= len(was) // 2  # most markers keep their label

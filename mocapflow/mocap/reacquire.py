@@ -9,8 +9,10 @@ marker claims that point. Markers placed so pin their partners' layouts; a layou
 mirror-image segments of a body, a triangle of nearly equal sides) is decided by the distances to, then by where each
 way puts, the nearby markers placed so far (only while the best way puts them within the layout's own size: after a
 long restart they have moved otherwise, and only for the way those distances, though unsure, rank first: a limb that
-swung through the restart can move its neighbours to where the mirror image puts them). The markers placed are tracked
-again from that frame on; the others are looked for again in the next frames. Only this brings a track back: the
+swung through the restart can move its neighbours to where the mirror image puts them). A marker placed so in two
+frames running is tracked again from the second on, with the velocity of its step between them (a hand swinging
+through the restart moves farther in a frame than the tracking gate); the others are looked for again in the next
+frames. Only this brings a track back: the
 labeller relearns its other cues from scratch, so a marker that cannot be placed surely gets a new label rather than
 another marker's.
 """
@@ -98,11 +100,15 @@ class Reacquirer:
         # before the gap and, with every marker lost at once, could hand a mirror-image marker to the wrong track.
         self.mean = tracks.pair_mean.copy()
         self.found: set[int] = set()  # tracks placed so far
+        self._pending: dict[int, np.ndarray] = {}  # track -> where its layout put it surely in the previous frame
+        self._previous = -np.inf  # time of that frame
         tracks.forget_cues()
 
     def __call__(self, points: np.ndarray, time: float) -> None:
-        """Place the lost tracks on ``points`` captured at ``time`` where their layouts say surely; those are followed
-        from this frame on as if seen in the previous one, and join ``found``."""
+        """Place the lost tracks on ``points`` captured at ``time`` where their layouts say surely. A track placed so in
+        two frames running, by a step a marker can make, is followed from this frame on, with the velocity of that
+        step (a hand swinging through a restart moves farther in a frame than the tracking gate), and joins
+        ``found``."""
         lab = self.labeller.tracks
         lab.streak[time - lab.last > lab.config.max_coast_s] = 0  # tracks not seen since the restart are lost
         cloud = points[np.isfinite(points).all(axis=1)]
@@ -133,11 +139,18 @@ class Reacquirer:
             if not new:
                 break
             placed.update(new)
+        previous, before = self._previous, self._pending if time - self._previous <= 1.5 / lab.rate else {}
+        self._pending, self._previous = {}, time
         for t, point in placed.items():
-            if lab.streak[t] == 0:
-                lab.pos[t], lab.vel[t] = cloud[point], 0.0
-                lab.last[t], lab.streak[t] = time - 1.0 / lab.rate, 1  # as if seen a frame ago
-        self.found.update(set(placed) - followed)
+            if t in followed:
+                continue
+            at = before.get(t)
+            if at is None or np.linalg.norm(cloud[point] - at) > lab.config.max_speed_mm_s * (time - previous):
+                self._pending[t] = cloud[point]
+                continue
+            lab.pos[t], lab.vel[t] = at, (cloud[point] - at) / (time - previous)
+            lab.last[t], lab.streak[t] = previous, 1  # as if followed from the previous frame
+            self.found.add(t)
 
     def _steadiest(self, track: int, members: np.ndarray, placed: dict[int, int]) -> np.ndarray:
         others = np.array([t for t in placed if t not in members and np.isfinite(self.sd[track, t])], np.intp)
