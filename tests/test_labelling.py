@@ -545,20 +545,23 @@ def test_the_labeller_node_gives_the_labeller_the_predictions_of_its_tracks() ->
     assert differ > 0, "the predictions never mattered"
 
 
-@pytest.mark.parametrize("saved_at,gap", [(840, 320), (840, 820), (840, 973), (1200, 527)])
-def test_a_labeller_resumed_after_a_gap_names_no_other_marker(saved_at: int, gap: int) -> None:
+@pytest.mark.parametrize("rig,saved_at,gap", [("human", 840, 320), ("human", 840, 820), ("human", 840, 973),
+                                             ("human", 1200, 527), ("quadruped", 1080, 770)])
+def test_a_labeller_resumed_after_a_gap_names_no_other_marker(rig: str, saved_at: int, gap: int) -> None:
     """A labeller's tracks saved, every marker lost for ``gap`` frames (a restart), then found again by their rigid
     layouts (``mocap.reacquire``): the mirror-image hands and arms, which fit either side, are never swapped. After
     these gaps the arms had swung so far that the head and trunk no longer told the two ways apart; after the longest,
     a forearm's neighbours had moved to where its mirror image puts them, while the distances to them, though unsure,
     ranked the right way first (the two cues disagreeing, neither decides). Resumed at 7.2 s, a hand swinging at
-    8 m/s leaves the tracking gate in the frame after its placement unless it is followed with its own velocity."""
+    8 m/s leaves the tracking gate in the frame after its placement unless it is followed with its own velocity. The
+    quadruped's lower hind leg, a triangle with two like sides, fits two ways whose distances to the neighbours differ
+    by 0.17 against 1.53 standard deviations, the wrong way first: neither is ruled out."""
     import pickle
 
     from mocapflow.mocap.reacquire import Reacquirer
 
     rate = 240.0
-    sim = Simulator(SimulatorConfig(rig="human", rate=rate, seed=3, unlabelled=True))
+    sim = Simulator(SimulatorConfig(rig=rig, rate=rate, seed=3, unlabelled=True))
     labeller = Labeller(LabellerConfig(), rate)
 
     def vote(votes: dict[int, list[int]], i: int, positions: np.ndarray) -> None:
@@ -576,7 +579,7 @@ def test_a_labeller_resumed_after_a_gap_names_no_other_marker(saved_at: int, gap
         result = labeller.update(sim.frame(i).points.astype(float), i / rate)
         if i > saved_at - rate / 2:
             vote(before, i, result.positions)
-    assert len(before) >= 40
+    assert len(before) >= 0.75 * len(sim.rig.marker_labels)  # most markers are tracked before the gap
     resumed = pickle.loads(pickle.dumps(labeller))  # as the node keeps and loads its state
     find: Reacquirer | None = Reacquirer(resumed)
     start = saved_at + gap

@@ -38,6 +38,10 @@ MARGIN_MM = 2.0
 rotation, within the noise of the positions saved and those seen now (0.15 against 1.5 mm RMS has been seen)."""
 STEADIEST = 4
 """Placed markers that tell the ways a layout fits apart: those of the steadiest distance to it."""
+IMPLAUSIBLE_SD = 3.0
+"""Distances to those markers rule a way out only beyond this many standard deviations (RMS): across a joint they vary
+by 20-60 mm, and the two ways of a triangle with two like sides differ by little more (on a simulated quadruped's
+lower hind leg the wrong way scored 0.17, the right one 1.53)."""
 
 
 Placement = tuple[float, np.ndarray, np.ndarray]  # misfit, rotation, translation
@@ -70,11 +74,11 @@ def _placements(layout: np.ndarray, cloud: np.ndarray, dist: np.ndarray,
     return found
 
 
-def _sure(scored: list[tuple[float, int]], margin: float = 1.0) -> int | None:
+def _sure(scored: list[tuple[float, int]], margin: float = 1.0, beyond: float = 0.0) -> int | None:
     """The point of the best score when it is far better than every other: ``AMBIGUITY`` times, plus ``margin`` (in
-    the scores' unit)."""
+    the scores' unit), and more than ``beyond``."""
     scored = sorted(scored)
-    if scored and (len(scored) == 1 or scored[1][0] > AMBIGUITY * scored[0][0] + margin):
+    if scored and (len(scored) == 1 or scored[1][0] > max(AMBIGUITY * scored[0][0] + margin, beyond)):
         return scored[0][1]
     return None
 
@@ -128,7 +132,7 @@ class Reacquirer:
                 point = _sure([(f[0], p) for p, f in found.items()], MARGIN_MM)
                 if point is None and len(found) > 1:
                     distances = self._by_distances(track, members, found, cloud, placed)
-                    point = _sure(distances)
+                    point = _sure(distances, beyond=IMPLAUSIBLE_SD)
                     if point is None:
                         point = _sure(self._by_context(track, members, found, cloud, placed))
                         if distances and point != min(distances)[1]:  # the two cues disagree: neither decides
