@@ -6,13 +6,13 @@ so that cannot start. Each marker with its rigid partners (the markers whose dis
 cloud by its pairwise distances, placed by a proper rotation (so a mirror image, the other side of the body, does not
 fit), and the marker takes the point only when its whole layout fits one way far better than any other and no other
 marker claims that point. Markers placed so pin their partners' layouts; a layout that still fits several ways (the
-mirror-image segments of a body, a triangle of nearly equal sides) is decided by the distances to, then by where each
-way puts, the nearby markers placed so far (only while the best way puts them within the layout's own size: after a
-long restart they have moved otherwise, and only for the way those distances, though unsure, rank first: a limb that
-swung through the restart can move its neighbours to where the mirror image puts them). A marker placed so in two
-frames running is tracked again from the second on, with the velocity of its step between them (a hand swinging
-through the restart moves farther in a frame than the tracking gate); the others are looked for again in the next
-frames. Only this brings a track back: the
+mirror-image segments of a body, a triangle of nearly equal sides) is decided by the distances to the nearby markers
+placed so far (when they put every other way beyond 3 standard deviations), then by where each way puts those markers
+(only while the best way puts them within the layout's own size: after a long restart they have moved otherwise, and
+only for the way those distances, though unsure, rank first: a limb that swung through the restart can move its
+neighbours to where the mirror image puts them). A marker placed so in two frames running is tracked again from the
+second on, with the velocity of its step between them (a hand swinging through the restart moves farther in a frame
+than the tracking gate); the others are looked for again in the next frames. Only this brings a track back: the
 labeller relearns its other cues from scratch, so a marker that cannot be placed surely gets a new label rather than
 another marker's.
 """
