@@ -143,7 +143,8 @@ class Reacquirer:
             if not new:
                 break
             placed.update(new)
-        previous, before = self._previous, self._pending if time - self._previous <= 1.5 / lab.rate else {}
+        previous = self._previous
+        before = self._pending if time - previous <= 1.5 / lab.rate else {}  # a frame went by unseen: start again
         self._pending, self._previous = {}, time
         for t, point in placed.items():
             if t in followed:

@@ -327,7 +327,7 @@ class Labeller:
             rival = pooled | ((worst < 1.0) & (partners >= 1))
             fits = ((partners >= 2) & (broken < 1.0)) | (pooled & (rival.sum(axis=0) == 1))
             if not full:  # a coast alone does not tell a marker from a segment mate lost with it (``_reidentify``)
-                alone = _on_coast_only(pred, gate, z, np.ones(len(lost), bool)) & (partners == 0) & (helpers == 0)
+                alone = _on_coast_only(pred, gate, z) & (partners == 0) & (helpers == 0)
                 cost = np.where(alone & self._mate_within(lost, gate[:, 1])[:, None], 0.0, cost)
             cost = np.where(fits, np.minimum(cost, worst - 1.0), cost)
             cost = screened(cost, broken, partners, violated)
@@ -504,10 +504,13 @@ def _drop_near(hypotheses: np.ndarray, points: np.ndarray, radius: float) -> Non
                     break
 
 
-def _on_coast_only(pred: np.ndarray, gate: np.ndarray, points: np.ndarray, first: np.ndarray) -> np.ndarray:
+def _on_coast_only(pred: np.ndarray, gate: np.ndarray, points: np.ndarray,
+                   first: np.ndarray | None = None) -> np.ndarray:
     """``(A, B)``: the points inside the gate of a track's coast (its second hypothesis, ``_hypotheses``) and not
-    inside that of its first, which counts only where ``first``."""
-    firsts = np.where(first[:, None], gated_cost(pred[:, 0], gate[:, 0], points) < 0.0, False)
+    inside that of its first, which counts only where ``first`` (default: for every track)."""
+    firsts = gated_cost(pred[:, 0], gate[:, 0], points) < 0.0
+    if first is not None:
+        firsts &= first[:, None]
     return (gated_cost(pred[:, 1], gate[:, 1], points) < 0.0) & ~firsts
 
 
