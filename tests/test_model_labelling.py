@@ -11,7 +11,7 @@ from conftest import graph_file, run_cli
 
 from mocapflow.mocap.calibration import calibrate
 from mocapflow.mocap.evaluation import unlabel
-from mocapflow.mocap.labelling.model import ModelLabeller, label_with_skeleton
+from mocapflow.mocap.labelling.model import ModelLabeller, _track_names, label_with_skeleton
 from mocapflow.mocap.model import SkeletonModel
 from mocapflow.mocap.simulator import Simulator, SimulatorConfig, simulate, truth_skeleton
 
@@ -80,6 +80,26 @@ def test_a_marker_seen_alone_before_its_segment_is_found_is_named_from_later_fra
                    for f, marker in enumerate(alone)), "the forward pass alone cannot name it"
 
 
+def test_trajectories_carry_the_name_most_of_their_points_were_given() -> None:
+    """Over a whole recording the names go to whole trajectories (``_track_names``): three trajectories over 30
+    frames, the names the skeleton's passes gave their points frame by frame, and the name each point ends with."""
+    frames = 30
+    track_row = np.full((frames, 3), -1, np.intp)
+    track_row[:, 0] = 0  # marker 0, seen throughout
+    track_row[:, 1] = 1  # marker 1, seen throughout
+    track_row[:12, 2] = 2  # marker 2 for 12 frames, then, after a gap, marker 3 (joined to it across the gap)
+    track_row[16:, 2] = 2
+    named = [np.full(3, -1, np.intp) for _ in range(frames)]
+    for f in range(frames):
+        named[f][:2] = [0, 1] if f < 10 else [-1, -1] if f < 14 else [1, 0] if f < 20 else [0, 1]
+        named[f][2] = 2 if f < 12 else 3 if f >= 18 else -1
+    names = _track_names(track_row, named, 4)
+    # unnamed for a while, and the names of two markers given turned for a while: each keeps its trajectory's name
+    assert (names[:, 0] == 0).all() and (names[:, 1] == 1).all()
+    # a trajectory joined to another marker across a gap: each run keeps what its own points were named most
+    assert (names[:12, 2] == 2).all() and (names[16:, 2] == 3).all() and (names[12:16, 2] == -1).all()
+
+
 def test_a_marker_known_to_stray_keeps_its_name() -> None:
     """A pelvis marker on soft tissue circles 35 mm about its place once a second, farther from the rigid layout than
     ``fit_mm`` (10 mm) and ``gate_mm`` (30 mm). A skeleton that says the marker strays (14 mm RMS, as calibration
@@ -127,9 +147,10 @@ def _gaping(trial_seed: int, frames: int) -> tuple[np.ndarray, list[str]]:
 def test_a_joint_known_to_gape_still_poses_its_segment() -> None:
     """Calibration measures how far apart a joint's two segments put its centre (``gap_mm``): about 1.5 mm at the
     simulated human's ball joints, tens of mm at an elbow whose forearm shifts 45 mm about it. Labelling a trial with
-    one forearm marker hidden and the others in and out of view, the forearm is posed from its other two markers and
-    its joints: a skeleton that knows the elbow gapes names them in every frame, one that takes the elbow for as
-    tight as the others loses them in many."""
+    one forearm marker hidden and the others in and out of view, frame by frame as the live labeller does, the forearm
+    is posed from its other two markers and its joints: a skeleton that knows the elbow gapes names them in nearly
+    every frame, one that takes the elbow for as tight as the others loses them in many. (Over a whole recording,
+    the names a trajectory was given in some frames reach its other frames too.)"""
     calibration, labels = _gaping(3, 720)
     skeleton = calibrate(calibration, labels, RATE)
     gaps = {j.name: j.gap_mm for j in skeleton.joints}
@@ -142,7 +163,8 @@ def test_a_joint_known_to_gape_still_poses_its_segment() -> None:
     forearm = [labels.index(name) for name in ("LFA2", "LFA3")]
 
     def named_forearm(model: SkeletonModel) -> int:
-        named, names = label_with_skeleton(list(points), RATE, model)
+        labeller = ModelLabeller(model, RATE)
+        named, names = np.stack([labeller.update(p, f / RATE)[0] for f, p in enumerate(points)]), labeller.labels
         right, wrong, _ = _named(named, names, points, identity, labels)
         assert wrong == 0
         return sum(bool(np.linalg.norm(named[f, names.index(labels[c])] - points[f, identity[f] == c][0]) < 1e-9)
@@ -150,8 +172,8 @@ def test_a_joint_known_to_gape_still_poses_its_segment() -> None:
 
     seen = sum(int((identity[f] == c).any()) for f in range(240) for c in forearm)
     tight = skeleton.model_copy(update={"joints": [j.model_copy(update={"gap_mm": None}) for j in skeleton.joints]})
-    assert named_forearm(skeleton) == seen
-    assert named_forearm(tight) < 0.9 * seen  # 83 %
+    assert named_forearm(skeleton) > 0.9 * seen  # 94 %: the first frames, before the forearm is found
+    assert named_forearm(tight) < 0.7 * seen  # 62 %
 
 
 def test_skeleton_validation() -> None:

@@ -38,6 +38,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from scipy.spatial.distance import cdist
 
 from mocapflow.mocap.labelling.assignment import assign, gated_cost, match, norm
+from mocapflow.mocap.labelling.offline import label_sequence
 from mocapflow.mocap.model import SkeletonModel
 from mocapflow.mocap.report import Progress, steps
 from mocapflow.mocap.rigidfit import fit_one, kabsch
@@ -527,20 +528,106 @@ def label_with_skeleton(frames: Sequence[np.ndarray] | np.ndarray, rate: float, 
     pose (a foot whose mates and shank are hidden) is left unnamed by the forward pass until the segment is found,
     and named by the backward pass, which met the segment posed first. The forward pass's names stand; the backward
     pass names a point the forward pass left unnamed with a name the forward pass gave no point of that frame.
-    ``report`` is told each pass's progress.
+
+    Then the names go to whole trajectories: the recording is labelled without the skeleton too
+    (:func:`label_sequence`), whose trajectories keep one marker each, however often their segment had no pose. Each
+    trajectory takes the name the passes gave most of its points, if they gave it to most of them, the trajectories
+    with most such votes first, and a name is never given to two trajectories seen in one frame. A point on no named
+    trajectory keeps its name from the passes. ``report`` is told each pass's progress.
     """
     forward = ModelLabeller(skeleton, rate, config)
     backward = ModelLabeller(skeleton, rate, config)
     n = len(frames)
+    markers = len(forward.labels)
     ahead = [forward.update(points, i / rate)[1] for i, points in enumerate(steps(frames, n, "label forward", report))]
     behind = [backward.update(frames[i], (n - 1 - i) / rate)[1]
               for i in steps(range(n - 1, -1, -1), n, "label backward", report)][::-1]
-    out = np.full((n, len(forward.labels), 3), np.nan)
+    clouds = [np.asarray(frames[f], dtype=float).reshape(-1, 3) for f in range(n)]
+    named = []  # per frame: the marker each row is named, -1 for none
     for f, (one, other) in enumerate(zip(ahead, behind, strict=True)):
-        at = _merged(one, other, len(forward.labels))
-        found = at >= 0
-        out[f, found] = np.asarray(frames[f], dtype=float).reshape(-1, 3)[at[found]]
+        at = _merged(one, other, markers)
+        row_marker = np.full(len(clouds[f]), -1, np.intp)
+        row_marker[at[at >= 0]] = np.flatnonzero(at >= 0)
+        named.append(row_marker)
+    tracks, _ = label_sequence(steps(clouds, n, "label trajectories", report), rate)
+    track_row = _rows_of(tracks, clouds)
+    owner = _track_names(track_row, named, markers)
+    out = np.full((n, markers, 3), np.nan)
+    for f in range(n):
+        rows = track_row[f]
+        mine = np.flatnonzero(owner[f] >= 0)
+        out[f, owner[f, mine]] = clouds[f][rows[mine]]
+        free = np.ones(len(clouds[f]), bool)
+        free[rows[mine]] = False
+        left = np.flatnonzero(free & (named[f] >= 0))
+        left = left[np.isnan(out[f, named[f][left], 0])]
+        out[f, named[f][left]] = clouds[f][left]
     return out, list(forward.labels)
+
+
+def _rows_of(tracks: np.ndarray, clouds: list[np.ndarray]) -> np.ndarray:
+    """The row of each frame's cloud each trajectory's point is, ``(F, T)`` (-1 where the trajectory is not seen):
+    a trajectory holds its points as they are."""
+    out = np.full(tracks.shape[:2], -1, np.intp)
+    for f, cloud in enumerate(clouds):
+        seen = np.flatnonzero(np.isfinite(tracks[f, :, 0]))
+        if len(seen) and len(cloud):
+            d = cdist(tracks[f, seen], np.nan_to_num(cloud, nan=np.inf))
+            row = d.argmin(axis=1)
+            hit = d[np.arange(len(seen)), row] == 0.0
+            out[f, seen[hit]] = row[hit]
+    return out
+
+
+def _track_names(track_row: np.ndarray, named: list[np.ndarray], markers: int) -> np.ndarray:
+    """The marker each trajectory's point is named, ``(F, T)`` (-1 for none), from the names each frame's rows were
+    given. A trajectory is named in runs: each run of frames it is seen in a row is one marker surely (followed from
+    frame to frame), while across its gaps it may have been joined to another marker's.
+
+    Each run first takes its trajectory's name: the name given most of the trajectory's points, if given to most of
+    them; the trajectories with most votes first, and never a name to two runs that share a frame. A run whose own
+    points were mostly given another name then takes that one, if no other run holds it in any of its frames: its
+    trajectory was joined to it across a gap. Where the names of a whole segment were given turned (a layout that
+    fits a quarter turn), the other runs of that segment hold them, and the trajectories' names stand."""
+    frames, count = track_row.shape
+    seen = track_row >= 0
+    starts = seen & ~np.vstack([np.zeros((1, count), bool), seen[:-1]])
+    # runs numbered trajectory by trajectory: a run's points follow its start in its trajectory's column
+    run_of = np.where(seen, np.cumsum(starts.T.ravel()).reshape(count, frames).T - 1, -1)
+    runs = int(starts.sum())
+    length = np.bincount(run_of[seen], minlength=runs)
+    track, first = np.nonzero(starts.T)  # each run's trajectory and first frame, in run order
+    votes = np.zeros((runs, markers), np.int64)
+    for f in range(frames):
+        k = np.flatnonzero(seen[f])
+        name = named[f][track_row[f, k]]
+        np.add.at(votes, (run_of[f, k[name >= 0]], name[name >= 0]), 1)
+    pooled = np.zeros((count, markers), np.int64)
+    np.add.at(pooled, track, votes)
+    best = pooled.argmax(axis=1)
+    top = pooled[np.arange(count), best]
+    name_of = np.full(runs, -1, np.intp)
+    holder = np.full((frames, markers), -1, np.intp)  # the run holding each name in each frame
+
+    def give(r: int, m: int) -> bool:
+        during = slice(first[r], first[r] + length[r])
+        if ((holder[during, m] >= 0) & (holder[during, m] != r)).any():
+            return False
+        if name_of[r] >= 0:
+            holder[during, name_of[r]] = -1
+        name_of[r] = m
+        holder[during, m] = r
+        return True
+
+    for k in np.argsort(-top, kind="stable"):
+        if top[k] > 0 and 2 * top[k] > pooled[k].sum():
+            for r in np.flatnonzero(track == k):
+                give(int(r), int(best[k]))
+    own = votes.argmax(axis=1)
+    differs = (2 * votes[np.arange(runs), own] > length) & (own != name_of)
+    for r in sorted(np.flatnonzero(differs), key=lambda r: -votes[r, own[r]]):
+        give(int(r), int(own[r]))
+    return np.where(seen, name_of[np.maximum(run_of, 0)], -1)
 
 
 def _merged(one: np.ndarray, other: np.ndarray, markers: int) -> np.ndarray:
