@@ -530,10 +530,10 @@ def label_with_skeleton(frames: Sequence[np.ndarray] | np.ndarray, rate: float, 
     pass names a point the forward pass left unnamed with a name the forward pass gave no point of that frame.
 
     Then the names go to whole trajectories: the recording is labelled without the skeleton too
-    (:func:`label_sequence`), whose trajectories keep one marker each, however often their segment had no pose. Each
-    trajectory takes the name the passes gave most of its points, if they gave it to most of them, the trajectories
-    with most such votes first, and a name is never given to two trajectories seen in one frame. A point on no named
-    trajectory keeps its name from the passes. ``report`` is told each pass's progress.
+    (:func:`label_sequence`), whose trajectories keep one marker each, however often their segment had no pose, and
+    each run of a trajectory takes the name the passes gave most of its points, or its trajectory's
+    (:func:`_track_names`). A point on no named run keeps its name from the passes. ``report`` is told each pass's
+    progress.
     """
     forward = ModelLabeller(skeleton, rate, config)
     backward = ModelLabeller(skeleton, rate, config)
@@ -549,7 +549,7 @@ def label_with_skeleton(frames: Sequence[np.ndarray] | np.ndarray, rate: float, 
         row_marker = np.full(len(clouds[f]), -1, np.intp)
         row_marker[at[at >= 0]] = np.flatnonzero(at >= 0)
         named.append(row_marker)
-    tracks, _ = label_sequence(steps(clouds, n, "label trajectories", report), rate)
+    tracks, _ = label_sequence(steps(clouds, n, "label trajectories", report), rate, progress=report)
     track_row = _rows_of(tracks, clouds)
     owner = _track_names(track_row, named, markers)
     out = np.full((n, markers, 3), np.nan)
@@ -609,15 +609,15 @@ def _track_names(track_row: np.ndarray, named: list[np.ndarray], markers: int) -
     name_of = np.full(runs, -1, np.intp)
     holder = np.full((frames, markers), -1, np.intp)  # the run holding each name in each frame
 
-    def give(r: int, m: int) -> bool:
+    def give(r: int, m: int) -> None:
+        """Name run ``r`` marker ``m`` unless another run holds ``m`` in one of its frames."""
         during = slice(first[r], first[r] + length[r])
         if ((holder[during, m] >= 0) & (holder[during, m] != r)).any():
-            return False
+            return
         if name_of[r] >= 0:
             holder[during, name_of[r]] = -1
         name_of[r] = m
         holder[during, m] = r
-        return True
 
     for k in np.argsort(-top, kind="stable"):
         if top[k] > 0 and 2 * top[k] > pooled[k].sum():
