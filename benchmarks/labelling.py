@@ -20,7 +20,8 @@ marker was first labelled at all (a streaming labeller that tells a marker from 
 name a marker's first frames). Stress cases are also labelled from a skeleton calibrated on an undamaged trial of the
 same subject (the simulated rigs: another trial; a real capture: its first half, the second half being labelled),
 streaming (``ModelLabeller``, as the ``labeller-skeleton`` node) and offline (``label_with_skeleton``, forward and
-backward): the share of true points named with their own marker's name.
+backward, then by trajectory): the share of true points named with their own marker's name, and of those of the
+markers the skeleton has (a marker alone on its segment is left out of it).
 
     python benchmarks/labelling.py [--cases mild|stress|ghosts|all] [--quick] [--data DIR]
 """
@@ -149,10 +150,11 @@ def _ghosts(data: Path) -> list[Case]:
 
 
 def _named(skeleton: SkeletonModel, points: list[np.ndarray], identity: list[np.ndarray], rate: float,
-           labels: list[str], streaming: bool = False) -> tuple[float, float, float]:
+           labels: list[str], streaming: bool = False) -> tuple[float, float, float, float]:
     """Shares of true points that ``label_with_skeleton`` (or, ``streaming``, ``ModelLabeller`` frame by frame, as
-    the ``labeller-skeleton`` node runs it) names with their own marker's name, with another's, and not at all; and
-    its cost per frame (us, wall time)."""
+    the ``labeller-skeleton`` node runs it) names with their own marker's name and with another's; the share of the
+    true points of the markers the skeleton has (a marker alone on its segment has no layout) named with their own
+    name; and its cost per frame (us, wall time)."""
     start = time.perf_counter()
     if streaming:
         labeller = ModelLabeller(skeleton, rate)
@@ -161,16 +163,17 @@ def _named(skeleton: SkeletonModel, points: list[np.ndarray], identity: list[np.
         named, names = label_with_skeleton(points, rate, skeleton)
     cost = (time.perf_counter() - start) / len(points) * 1e6
     index = np.array([labels.index(n) if n in labels else -2 for n in names])
-    right = wrong = total = 0
+    right = wrong = total = known = 0
     for f, (rows, ids) in enumerate(zip(points, identity, strict=True)):
         real = np.flatnonzero(ids >= 0)
         total += len(real)
+        known += int(np.isin(ids[real], index).sum())
         d = cdist(np.asarray(rows)[real], np.nan_to_num(named[f], nan=np.inf))
         hit = d.min(axis=1, initial=np.inf) < 1e-9
         who = index[d.argmin(axis=1)] if d.size else np.empty(0, int)
         right += int((hit & (who == ids[real])).sum())
         wrong += int((hit & (who != ids[real])).sum())
-    return right / total, wrong / total, cost
+    return right / total, wrong / total, right / known, cost
 
 
 def _stream(points: list[np.ndarray], rate: float) -> tuple[np.ndarray, np.ndarray]:
@@ -225,10 +228,11 @@ def main() -> None:
         print(f"  streaming: {_line(score_labelling(tracks, points, identity, markers))}")
         print(f"  offline:   {_line(score_labelling(offline, points, identity, markers))}", flush=True)
         for streaming in (True, False) if skeleton is not None else ():
-            right, wrong, named_us = _named(skeleton, points, identity, rate, labels, streaming)
+            right, wrong, of_known, named_us = _named(skeleton, points, identity, rate, labels, streaming)
             print(f"  skeleton, {'streaming' if streaming else 'offline'}: {100 * right:.3f} % of true points carry "
-                  f"their own marker's name, {100 * wrong:.3f} % another's, {100 * (1 - right - wrong):.3f} % none "
-                  f"({named_us:.0f} us per frame)", flush=True)
+                  f"their own marker's name, {100 * wrong:.3f} % another's, {100 * (1 - right - wrong):.3f} % none; "
+                  f"{100 * of_known:.3f} % of those of the skeleton's markers ({named_us:.0f} us per frame)",
+                  flush=True)
 
 
 if __name__ == "__main__":

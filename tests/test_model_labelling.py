@@ -100,6 +100,30 @@ def test_trajectories_carry_the_name_most_of_their_points_were_given() -> None:
     assert (names[:12, 2] == 2).all() and (names[16:, 2] == 3).all() and (names[12:16, 2] == -1).all()
 
 
+def test_a_segment_no_pass_places_is_named_by_its_trajectories_distances() -> None:
+    """A skeleton whose right foot has no joint (as where calibration could not locate it): the passes never place the
+    foot, three markers with nothing to anchor them. Over the whole recording its markers' trajectories keep the
+    layout's distances, and no other unnamed trajectories do: they are named by them, each point with its own name."""
+    skeleton = subject()
+    footless = skeleton.model_copy(update={"joints": [j for j in skeleton.joints if j.child != "right_foot"]})
+    trial = simulate(SimulatorConfig(rig="human", rate=RATE, noise_mm=0.5, seed=7), 480)
+    points, identity = unlabel(trial.positions, RATE, seed=2, gaps_per_s=0.3, long_fraction=1.0, long_s=(0.2, 1.0),
+                               ghosts=0.2, ghost_frames=1)
+    foot = [trial.labels.index(name) for name in ("RHEE", "RTOE", "RMT5")]
+    labeller = ModelLabeller(footless, RATE)
+    rows = [labeller.labels.index(trial.labels[c]) for c in foot]
+    assert not any(np.isfinite(labeller.update(p, f / RATE)[0][rows]).any() for f, p in enumerate(points)), \
+        "a pass places the foot"
+    named, names = label_with_skeleton(list(points), RATE, footless)
+    right, wrong, total = _named(named, names, points, identity, trial.labels)
+    assert wrong == 0
+    seen = sum(int((identity[f] == c).any()) for f in range(len(points)) for c in foot)
+    on_foot = sum(bool(np.linalg.norm(named[f, names.index(trial.labels[c])] - points[f, identity[f] == c][0]) < 1e-9)
+                  for f in range(len(points)) for c in foot if (identity[f] == c).any())
+    assert on_foot >= 0.99 * seen, (on_foot, seen)
+    assert right >= 0.999 * total
+
+
 def test_a_marker_known_to_stray_keeps_its_name() -> None:
     """A pelvis marker on soft tissue circles 35 mm about its place once a second, farther from the rigid layout than
     ``fit_mm`` (10 mm) and ``gate_mm`` (30 mm). A skeleton that says the marker strays (14 mm RMS, as calibration

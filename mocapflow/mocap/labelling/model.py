@@ -47,6 +47,8 @@ PRIOR_WEIGHT = 1e-3
 """Weight of a segment's previous pose in its fit, against 1 for each marker or joint centre seen now."""
 JOINT_WEIGHT = 0.1
 """Weight of a joint centre in a segment's fit: a joint is less sure than a marker."""
+LAYOUT_S = 0.2
+"""Least time (s) two trajectories must be seen together for their distance to name them by a segment's layout."""
 POSTURE_DEG = 30.0
 """How much farther than the best one (degrees) from the segment's last posture a rival placement must turn it."""
 
@@ -532,8 +534,9 @@ def label_with_skeleton(frames: Sequence[np.ndarray] | np.ndarray, rate: float, 
     Then the names go to whole trajectories: the recording is labelled without the skeleton too
     (:func:`label_sequence`), whose trajectories keep one marker each, however often their segment had no pose, and
     each run of a trajectory takes the name the passes gave most of its points, or its trajectory's
-    (:func:`_track_names`). A point on no named run keeps its name from the passes. ``report`` is told each pass's
-    progress.
+    (:func:`_track_names`). A segment the passes never placed is named last, by its layout's distances between
+    trajectories (:func:`_name_by_layout`). A point on no named run keeps its name from the passes. ``report`` is
+    told each pass's progress.
     """
     forward = ModelLabeller(skeleton, rate, config)
     backward = ModelLabeller(skeleton, rate, config)
@@ -552,6 +555,7 @@ def label_with_skeleton(frames: Sequence[np.ndarray] | np.ndarray, rate: float, 
     tracks, _ = label_sequence(steps(clouds, n, "label trajectories", report), rate, progress=report)
     track_row = _rows_of(tracks, clouds)
     owner = _track_names(track_row, named, markers)
+    _name_by_layout(tracks, owner, forward.segments, rate)
     out = np.full((n, markers, 3), np.nan)
     for f in range(n):
         rows = track_row[f]
@@ -628,6 +632,89 @@ def _track_names(track_row: np.ndarray, named: list[np.ndarray], markers: int) -
     for r in sorted(np.flatnonzero(differs), key=lambda r: -votes[r, own[r]]):
         give(int(r), int(own[r]))
     return np.where(seen, name_of[np.maximum(run_of, 0)], -1)
+
+
+def _name_by_layout(tracks: np.ndarray, owner: np.ndarray, segments: list[_Segment], rate: float) -> None:
+    """Name whole trajectories that no pass named by a segment's layout, in ``owner`` (see :func:`_track_names`).
+
+    A segment whose markers the passes never placed (its joints too poorly known to anchor it, and never three of its
+    markers seen with nothing like them around) may still be in the recording, its markers' trajectories unnamed.
+    Over the whole recording the distances between trajectories are known: those seen together for
+    ``LAYOUT_S`` or more, keeping their median distance within a marker's tolerance and varying less, are matched to
+    the segment's markers that no trajectory carries, three or more at once, when one match fits clearly better than
+    any other (as ``_place_layout`` decides among placements). A trajectory never seen with one matched (another
+    piece of the same marker) and fitting as well takes the name too.
+    """
+    least = max(3, int(LAYOUT_S * rate))
+    given = set(owner[owner >= 0].tolist())
+    seen = np.isfinite(tracks[..., 0])
+    free = [k for k in range(tracks.shape[1]) if not (owner[:, k] >= 0).any() and seen[:, k].sum() >= least]
+    if len(free) < 3:
+        return
+    together = seen[:, free].T.astype(np.int64) @ seen[:, free].astype(np.int64)
+    median = np.full((len(free), len(free)), np.nan)
+    spread = np.full((len(free), len(free)), np.nan)
+    for i, j in zip(*np.nonzero(np.triu(together >= least, 1)), strict=True):
+        both = seen[:, free[i]] & seen[:, free[j]]
+        apart = norm(tracks[both, free[i]] - tracks[both, free[j]])
+        median[i, j] = median[j, i] = np.median(apart)
+        spread[i, j] = spread[j, i] = apart.std()
+    for seg in segments:
+        rows = [r for r, m in enumerate(seg.markers) if int(m) not in given]
+        if len(rows) < 3:
+            continue
+        matches = _layout_matches(cdist(seg.local[rows], seg.local[rows]),
+                                  np.maximum(seg.tol[rows][:, None], seg.tol[rows][None, :]), median, spread)
+        if not matches:
+            continue
+        count, misfit, best = matches[0]
+        # a rival that differs only by pieces of the same markers (never seen together with the one it replaces)
+        # names those pieces too; one that puts a marker on a trajectory seen beside the best one's is a doubt
+        pieces = [{c} for c in best]
+        doubt = False
+        for other_count, other_misfit, other in matches[1:]:
+            if other_count < count or other_misfit >= 3.0 * misfit + 1.0:
+                break
+            for a, (c, d) in enumerate(zip(best, other, strict=True)):
+                if c != d and (c < 0 or d < 0 or together[c, d] > 0):
+                    doubt = True
+                elif c != d:
+                    pieces[a].add(d)
+        if doubt:
+            continue
+        for a, found in enumerate(pieces):
+            for c in found - {-1}:
+                owner[seen[:, free[c]], free[c]] = seg.markers[rows[a]]
+                given.add(int(seg.markers[rows[a]]))
+                median[c], median[:, c] = np.nan, np.nan  # named: no other segment's
+
+
+def _layout_matches(want: np.ndarray, tol: np.ndarray, median: np.ndarray,
+                    spread: np.ndarray) -> list[tuple[int, float, tuple[int, ...]]]:
+    """Every way to put three or more of a layout's markers (their distances ``want`` and pair tolerances ``tol``,
+    ``(n, n)``) on trajectories (their median distances ``median`` and its spread ``spread``, ``(c, c)``, NaN where
+    not seen together), each pair within tolerance and varying less: how many markers, the RMS misfit of their
+    distances (mm), and the trajectory of each marker (-1 for none); most markers and least misfit first."""
+    n, count = len(want), len(median)
+    fits = (np.abs(median[None, None] - want[:, :, None, None]) <= tol[:, :, None, None]) \
+        & (spread[None, None] <= tol[:, :, None, None])  # (marker, marker, trajectory, trajectory)
+    matches: list[tuple[int, float, tuple[int, ...]]] = []
+
+    def extend(chosen: tuple[int, ...]) -> None:
+        a = len(chosen)
+        if a == n:
+            placed = [(r, c) for r, c in enumerate(chosen) if c >= 0]
+            if len(placed) >= 3:
+                misfit = [median[c, d] - want[r, q] for (r, c), (q, d) in combinations(placed, 2)]
+                matches.append((len(placed), float(np.sqrt(np.mean(np.square(misfit)))), chosen))
+            return
+        extend((*chosen, -1))
+        for c in range(count):
+            if c not in chosen and all(d < 0 or fits[a, b, c, d] for b, d in enumerate(chosen)):
+                extend((*chosen, c))
+
+    extend(())
+    return sorted(matches, key=lambda m: (-m[0], m[1]))
 
 
 def _merged(one: np.ndarray, other: np.ndarray, markers: int) -> np.ndarray:
