@@ -19,8 +19,8 @@ output tracks per true marker and the share of true points left unlabelled, and 
 marker was first labelled at all (a streaming labeller that tells a marker from a ghost by how long it lives cannot
 name a marker's first frames). Stress cases are also labelled from a skeleton calibrated on an undamaged trial of the
 same subject (the simulated rigs: another trial; a real capture: its first half, the second half being labelled),
-streaming (``ModelLabeller``, as the ``labeller-skeleton`` node) and offline (``label_with_skeleton``, forward and
-backward, then by trajectory): the share of true points named with their own marker's name, and of those of the
+streaming (``TrackedModelLabeller``, as the ``labeller-skeleton`` node) and offline (``label_with_skeleton``, forward
+and backward, then by trajectory): the share of true points named with their own marker's name, and of those of the
 markers the skeleton has (a marker alone on its segment is left out of it).
 
     python benchmarks/labelling.py [--cases mild|stress|ghosts|all] [--quick] [--data DIR]
@@ -41,7 +41,7 @@ from scipy.spatial.distance import cdist
 from mocapflow.mocap.calibration import CalibrationError, calibrate
 from mocapflow.mocap.evaluation import LabellingScore, score_labelling, unlabel
 from mocapflow.mocap.labelling import Labeller, LabellerConfig, label_sequence
-from mocapflow.mocap.labelling.model import ModelLabeller, label_with_skeleton
+from mocapflow.mocap.labelling.model import TrackedModelLabeller, label_with_skeleton
 from mocapflow.mocap.model import SkeletonModel
 from mocapflow.mocap.simulator import SimulatorConfig, simulate
 
@@ -151,13 +151,13 @@ def _ghosts(data: Path) -> list[Case]:
 
 def _named(skeleton: SkeletonModel, points: list[np.ndarray], identity: list[np.ndarray], rate: float,
            labels: list[str], streaming: bool = False) -> tuple[float, float, float, float]:
-    """Shares of true points that ``label_with_skeleton`` (or, ``streaming``, ``ModelLabeller`` frame by frame, as
-    the ``labeller-skeleton`` node runs it) names with their own marker's name and with another's; the share of the
-    true points of the markers the skeleton has (a marker alone on its segment has no layout) named with their own
-    name; and its cost per frame (us, wall time)."""
+    """Shares of true points that ``label_with_skeleton`` (or, ``streaming``, ``TrackedModelLabeller`` frame by frame,
+    as the ``labeller-skeleton`` node runs it) names with their own marker's name and with another's; the share of
+    the true points of the markers the skeleton has (a marker alone on its segment has no layout) named with their
+    own name; and its cost per frame (us, wall time)."""
     start = time.perf_counter()
     if streaming:
-        labeller = ModelLabeller(skeleton, rate)
+        labeller = TrackedModelLabeller(skeleton, rate)
         named, names = np.stack([labeller.update(p, i / rate)[0] for i, p in enumerate(points)]), labeller.labels
     else:
         named, names = label_with_skeleton(points, rate, skeleton)

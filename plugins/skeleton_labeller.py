@@ -6,7 +6,7 @@ from pydantic import Field
 
 from mocapflow.io.skeleton import read_skeleton
 from mocapflow.messages import MarkerFrame
-from mocapflow.mocap.labelling.model import ModelLabeller, ModelLabellerConfig
+from mocapflow.mocap.labelling.model import ModelLabellerConfig, TrackedModelLabeller
 from mocapflow.runtime.node import Input, Node, Output
 
 
@@ -15,11 +15,11 @@ class SkeletonLabellerConfig(ModelLabellerConfig):
 
 
 class SkeletonLabeller(Node[SkeletonLabellerConfig]):
-    """Names the points of each frame with the skeleton's own marker names by fitting its segments' marker layouts
-    (``mocapflow.mocap.labelling.model``): the lab's names from trial to trial, whatever the point order and however
-    long a marker was hidden. It keeps no state worth saving: restarted, it finds the segments again by their
-    layouts in the first frames it gets. Points that fit no marker (ghosts, markers the skeleton does not know) are
-    left out."""
+    """Names the points of each frame with the skeleton's own marker names by fitting its segments' marker layouts,
+    and keeps a name with its point's track where the layouts do not decide (``TrackedModelLabeller``): the lab's
+    names from trial to trial, whatever the point order and however long a marker was hidden. It keeps no state worth
+    saving: restarted, it finds the segments again by their layouts in the first frames it gets. Points that fit no
+    marker (ghosts, markers the skeleton does not know) are left out."""
 
     Config = SkeletonLabellerConfig
     inputs = {"markers": Input(MarkerFrame, doc="raw points, unlabelled")}
@@ -29,15 +29,15 @@ class SkeletonLabeller(Node[SkeletonLabellerConfig]):
         self.skeleton = read_skeleton(self.config.skeleton)
         self.tolerances = ModelLabellerConfig(**self.config.model_dump(exclude={"skeleton"}))
         try:  # a skeleton it cannot use fails the node now, not at the first frame
-            ModelLabeller(self.skeleton, 1.0, self.tolerances)
+            TrackedModelLabeller(self.skeleton, 1.0, self.tolerances)
         except ValueError as exc:
             raise ValueError(f"{self.config.skeleton}: {exc}") from None
-        self.labeller: ModelLabeller | None = None
+        self.labeller: TrackedModelLabeller | None = None
         self.late = 0  # frames that came no later than the last one labelled, and were left out
 
     def process(self, port: str, message: MarkerFrame) -> None:
         if self.labeller is None or self.labeller.rate != message.rate:
-            self.labeller = ModelLabeller(self.skeleton, message.rate, self.tolerances)
+            self.labeller = TrackedModelLabeller(self.skeleton, message.rate, self.tolerances)
         time = message.frame / message.rate
         if time <= self.labeller.time:
             self.late += 1

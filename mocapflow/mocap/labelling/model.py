@@ -23,8 +23,11 @@ whatever the point order and however long a marker was hidden:
    segment clearly least from its last posture to its neighbours.
 
 Steps 2-4 repeat while they pose new segments, so a segment found in step 4 poses its neighbours through their
-joints. Points that fit no marker (ghosts, markers the skeleton does not know) stay unnamed. The method, its workflow
-and its accuracy under stress: docs/labelling.md.
+joints. Points that fit no marker (ghosts, markers the skeleton does not know) stay unnamed.
+
+The names then go with the points' tracks, as the labeller without a model follows them: frame by frame as far as the
+frames so far tell (``TrackedModelLabeller``, the live node's), or over a whole recording, by runs of trajectories
+(``label_with_skeleton``). The method, its workflow and its accuracy under stress: docs/labelling.md.
 """
 
 from __future__ import annotations
@@ -38,6 +41,8 @@ from pydantic import BaseModel, ConfigDict, Field
 from scipy.spatial.distance import cdist
 
 from mocapflow.mocap.labelling.assignment import assign, gated_cost, match, norm
+from mocapflow.mocap.labelling.config import LabellerConfig
+from mocapflow.mocap.labelling.labeller import Labeller
 from mocapflow.mocap.labelling.offline import label_sequence
 from mocapflow.mocap.model import SkeletonModel
 from mocapflow.mocap.report import Progress, steps
@@ -412,6 +417,80 @@ class ModelLabeller:
         self.pos[m] = cur[m]
         self.last[m] = time
         self.streak = np.where(seen, self.streak + 1, 0)
+
+
+class TrackedModelLabeller:
+    """Streaming labeller that names points with a skeleton's marker names and keeps a name with its point's track;
+    feed frames in time order to :meth:`update`, as to :class:`ModelLabeller`.
+
+    :class:`ModelLabeller` names a point only in the frames where its segment can be posed, and a segment it poses
+    wrong keeps its wrong names while its markers are followed. The model-free labeller (``Labeller``) follows the
+    same points as tracks, one marker each across most gaps, with no name. Each track counts the names its points
+    were given, over its whole life and over its current run (the frames it has been seen in a row: one marker surely).
+    A point then takes, the surest first and never a name another point of the frame took: its run's name (given to
+    more than half of the run's points), else its track's (given to more than half of the named ones), else the name
+    :class:`ModelLabeller` gave it. The same rules as over a whole recording (:func:`label_with_skeleton`), known
+    only up to the current frame."""
+
+    def __init__(self, skeleton: SkeletonModel, rate: float, config: ModelLabellerConfig | None = None,
+                 tracking: LabellerConfig | None = None) -> None:
+        self.model = ModelLabeller(skeleton, rate, config)
+        self.tracks = Labeller(tracking or LabellerConfig(), rate)
+        self.rate = self.model.rate
+        self.labels = self.model.labels
+        markers = len(self.labels)
+        self._votes = np.zeros((0, markers), np.int64)  # per track: the names its points were given
+        self._run = np.zeros((0, markers), np.int64)  # per track: the same over its current run
+        self._run_length = np.zeros(0, np.int64)
+        self._seen = np.zeros(0, bool)  # per track: seen in the last frame
+
+    @property
+    def time(self) -> float:
+        """Capture time of the last frame named (s; -inf before the first)."""
+        return self.model.time
+
+    def update(self, points: np.ndarray, time: float) -> tuple[np.ndarray, np.ndarray]:
+        """Name one frame of points ``(M, 3)`` (NaN rows ignored) captured at ``time`` seconds (increasing): the
+        markers' positions ``(N, 3)`` in ``labels`` order (NaN where unseen) and the marker of each row of
+        ``points`` (-1 for none)."""
+        pts = np.asarray(points, dtype=float).reshape(-1, 3)
+        _, given = self.model.update(pts, time)
+        point_track = self.tracks.update(pts, time).point_track
+        grow = len(self.tracks.labels) - len(self._seen)
+        if grow > 0:
+            self._votes = np.vstack([self._votes, np.zeros((grow, len(self.labels)), np.int64)])
+            self._run = np.vstack([self._run, np.zeros((grow, len(self.labels)), np.int64)])
+            self._run_length = np.concatenate([self._run_length, np.zeros(grow, np.int64)])
+            self._seen = np.concatenate([self._seen, np.zeros(grow, bool)])
+        rows = np.flatnonzero(point_track >= 0)
+        track = point_track[rows]
+        fresh = track[~self._seen[track]]
+        self._run[fresh], self._run_length[fresh] = 0, 0
+        self._seen[:] = False
+        self._seen[track] = True
+        named = given[rows] >= 0
+        self._votes[track[named], given[rows[named]]] += 1  # a track holds one point a frame
+        self._run[track[named], given[rows[named]]] += 1
+        self._run_length[track] += 1
+        marker = np.full(len(pts), -1, np.intp)
+        held = np.zeros(len(self.labels), bool)
+        run, votes = self._run[track], self._votes[track]
+        own, usual = run.argmax(axis=1), votes.argmax(axis=1)
+        own_votes, usual_votes = run.max(axis=1, initial=0), votes.max(axis=1, initial=0)
+        for choice, count, sure in ((own, own_votes, 2 * own_votes > self._run_length[track]),
+                                    (usual, usual_votes, (usual_votes > 0) & (2 * usual_votes > votes.sum(axis=1)))):
+            for i in np.argsort(-count, kind="stable"):
+                if sure[i] and marker[rows[i]] < 0 and not held[choice[i]]:
+                    marker[rows[i]] = choice[i]
+                    held[choice[i]] = True
+        for row in np.flatnonzero((marker < 0) & (given >= 0)):
+            if not held[given[row]]:
+                marker[row] = given[row]
+                held[given[row]] = True
+        positions = np.full((len(self.labels), 3), np.nan)
+        found = np.flatnonzero(marker >= 0)
+        positions[marker[found]] = pts[found]
+        return positions, marker
 
 
 def _place_layout(layout: np.ndarray, cloud: np.ndarray, tol: np.ndarray, weight: np.ndarray,
