@@ -432,10 +432,9 @@ class TrackedModelLabeller:
     :class:`ModelLabeller` gave it. The same rules as over a whole recording (:func:`label_with_skeleton`), known
     only up to the current frame."""
 
-    def __init__(self, skeleton: SkeletonModel, rate: float, config: ModelLabellerConfig | None = None,
-                 tracking: LabellerConfig | None = None) -> None:
+    def __init__(self, skeleton: SkeletonModel, rate: float, config: ModelLabellerConfig | None = None) -> None:
         self.model = ModelLabeller(skeleton, rate, config)
-        self.tracks = Labeller(tracking or LabellerConfig(), rate)
+        self.tracks = Labeller(LabellerConfig(), rate)
         self.rate = self.model.rate
         self.labels = self.model.labels
         markers = len(self.labels)
