@@ -805,5 +805,6 @@ def _merged(one: np.ndarray, other: np.ndarray, markers: int) -> np.ndarray:
         place[name[rows]] = rows
         at.append(place)
     a, b = at
-    keep_b = (a < 0) & (b >= 0) & (one[np.maximum(b, 0)] < 0)
+    keep_b = (a < 0) & (b >= 0)
+    keep_b[keep_b] = one[b[keep_b]] < 0  # a frame with no point has no row to look up
     return np.where(keep_b, b, a)
