@@ -36,12 +36,12 @@ from pathlib import Path
 import _common
 import numpy as np
 import yaml
-from scipy.spatial.distance import cdist
 
 from mocapflow.mocap.calibration import CalibrationError, calibrate
 from mocapflow.mocap.evaluation import LabellingScore, score_labelling, unlabel
 from mocapflow.mocap.labelling import Labeller, LabellerConfig, label_sequence
 from mocapflow.mocap.labelling.model import TrackedModelLabeller, label_with_skeleton
+from mocapflow.mocap.labelling.offline import source_rows
 from mocapflow.mocap.model import SkeletonModel
 from mocapflow.mocap.simulator import SimulatorConfig, simulate
 
@@ -168,11 +168,10 @@ def _named(skeleton: SkeletonModel, points: list[np.ndarray], identity: list[np.
         real = np.flatnonzero(ids >= 0)
         total += len(real)
         known += int(np.isin(ids[real], index).sum())
-        d = cdist(np.asarray(rows)[real], np.nan_to_num(named[f], nan=np.inf))
-        hit = d.min(axis=1, initial=np.inf) < 1e-9
-        who = index[d.argmin(axis=1)] if d.size else np.empty(0, int)
-        right += int((hit & (who == ids[real])).sum())
-        wrong += int((hit & (who != ids[real])).sum())
+        source = source_rows(named[f], np.asarray(rows)[real])  # the true point each marker was named on
+        hit = np.flatnonzero(source >= 0)
+        right += int((index[hit] == ids[real][source[hit]]).sum())
+        wrong += int((index[hit] != ids[real][source[hit]]).sum())
     return right / total, wrong / total, right / known, cost
 
 

@@ -7,7 +7,8 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial.distance import cdist
+
+from mocapflow.mocap.labelling.offline import source_rows
 
 
 @dataclass
@@ -58,11 +59,8 @@ def score_labelling(tracks: np.ndarray, points: Sequence[np.ndarray], identity: 
         seen[f, ids[present & (ids >= 0)]] = True
         ghosts += int((present & (ids < 0)).sum())
         on = np.flatnonzero(np.isfinite(tracks[f, :, 0]))
-        if len(on) == 0:
-            continue
-        d = cdist(tracks[f, on], np.where(present[:, None], rows, np.inf))
-        source = d.argmin(axis=1)
-        if (d[np.arange(len(on)), source] > 1e-6).any():
+        source = source_rows(tracks[f, on], np.where(present[:, None], rows, np.nan))
+        if (source < 0).any():
             raise ValueError(f"frame {f}: a labelled position is not one of the input points")
         held[f, on] = ids[source]
     majority = np.array([np.bincount(h[h >= 0], minlength=markers).argmax() if (h >= 0).any() else -1

@@ -43,7 +43,7 @@ from scipy.spatial.distance import cdist
 from mocapflow.mocap.labelling.assignment import assign, gated_cost, match, norm
 from mocapflow.mocap.labelling.config import LabellerConfig
 from mocapflow.mocap.labelling.labeller import Labeller
-from mocapflow.mocap.labelling.offline import label_sequence
+from mocapflow.mocap.labelling.offline import label_sequence, source_rows
 from mocapflow.mocap.model import SkeletonModel
 from mocapflow.mocap.report import Progress, steps
 from mocapflow.mocap.rigidfit import fit_one, kabsch
@@ -620,18 +620,13 @@ def label_with_skeleton(frames: Sequence[np.ndarray] | np.ndarray, rate: float, 
     backward = ModelLabeller(skeleton, rate, config)
     n = len(frames)
     markers = len(forward.labels)
-    ahead = [forward.update(points, i / rate)[1] for i, points in enumerate(steps(frames, n, "label forward", report))]
-    behind = [backward.update(frames[i], (n - 1 - i) / rate)[1]
-              for i in steps(range(n - 1, -1, -1), n, "label backward", report)][::-1]
     clouds = [np.asarray(frames[f], dtype=float).reshape(-1, 3) for f in range(n)]
-    named = []  # per frame: the marker each row is named, -1 for none
-    for f, (one, other) in enumerate(zip(ahead, behind, strict=True)):
-        at = _merged(one, other, markers)
-        row_marker = np.full(len(clouds[f]), -1, np.intp)
-        row_marker[at[at >= 0]] = np.flatnonzero(at >= 0)
-        named.append(row_marker)
+    ahead = [forward.update(points, i / rate)[1] for i, points in enumerate(steps(clouds, n, "label forward", report))]
+    behind = [backward.update(clouds[i], (n - 1 - i) / rate)[1]
+              for i in steps(range(n - 1, -1, -1), n, "label backward", report)][::-1]
+    named = [_merged(one, other) for one, other in zip(ahead, behind, strict=True)]  # per frame: each row's marker
     tracks, _ = label_sequence(steps(clouds, n, "label trajectories", report), rate, progress=report)
-    track_row = _rows_of(tracks, clouds)
+    track_row = np.array([source_rows(tracks[f], clouds[f]) for f in range(n)], np.intp).reshape(tracks.shape[:2])
     owner = _track_names(track_row, named, markers)
     _name_by_layout(tracks, owner, forward.segments, rate)
     out = np.full((n, markers, 3), np.nan)
@@ -645,20 +640,6 @@ def label_with_skeleton(frames: Sequence[np.ndarray] | np.ndarray, rate: float, 
         left = left[np.isnan(out[f, named[f][left], 0])]
         out[f, named[f][left]] = clouds[f][left]
     return out, list(forward.labels)
-
-
-def _rows_of(tracks: np.ndarray, clouds: list[np.ndarray]) -> np.ndarray:
-    """The row of each frame's cloud each trajectory's point is, ``(F, T)`` (-1 where the trajectory is not seen):
-    a trajectory holds its points as they are."""
-    out = np.full(tracks.shape[:2], -1, np.intp)
-    for f, cloud in enumerate(clouds):
-        seen = np.flatnonzero(np.isfinite(tracks[f, :, 0]))
-        if len(seen) and len(cloud):
-            d = cdist(tracks[f, seen], np.nan_to_num(cloud, nan=np.inf))
-            row = d.argmin(axis=1)
-            hit = d[np.arange(len(seen)), row] == 0.0
-            out[f, seen[hit]] = row[hit]
-    return out
 
 
 def _track_names(track_row: np.ndarray, named: list[np.ndarray], markers: int) -> np.ndarray:
@@ -795,16 +776,7 @@ def _layout_matches(want: np.ndarray, tol: np.ndarray, median: np.ndarray,
     return sorted(matches, key=lambda m: (-m[0], m[1]))
 
 
-def _merged(one: np.ndarray, other: np.ndarray, markers: int) -> np.ndarray:
-    """The row of each of ``markers`` markers (-1 for none) from two passes' marker of each row (-1 for none): the
-    row the first pass gives it, else the row the second gives it if the first named that row nothing."""
-    at = []
-    for name in (one, other):
-        rows = np.flatnonzero(name >= 0)
-        place = np.full(markers, -1, np.intp)
-        place[name[rows]] = rows
-        at.append(place)
-    a, b = at
-    keep_b = (a < 0) & (b >= 0)
-    keep_b[keep_b] = one[b[keep_b]] < 0  # a frame with no point has no row to look up
-    return np.where(keep_b, b, a)
+def _merged(one: np.ndarray, other: np.ndarray) -> np.ndarray:
+    """The marker each row is named (-1 for none) from two passes' names of the rows: the first pass's, else the
+    second's where the first named that row nothing and gave that name to no row."""
+    return np.where((one < 0) & (other >= 0) & ~np.isin(other, one[one >= 0]), other, one)

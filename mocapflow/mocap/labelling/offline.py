@@ -6,6 +6,7 @@ from __future__ import annotations
 from collections.abc import Iterable
 
 import numpy as np
+from scipy.spatial.distance import cdist
 
 from mocapflow.mocap.clustering import noise_floor
 from mocapflow.mocap.labelling.assignment import norm, rigid_signature
@@ -366,3 +367,16 @@ def label_sequence(frames: Iterable[np.ndarray], rate: float, config: LabellerCo
     markers.sort(key=lambda m: np.flatnonzero(np.isfinite(m[:, 0]))[0])
     out = np.stack(markers, axis=1) if markers else np.full((len(rows), 0, 3), np.nan)
     return out, [f"M{k + 1:03d}" for k in range(out.shape[1])]
+
+
+def source_rows(positions: np.ndarray, cloud: np.ndarray) -> np.ndarray:
+    """The row of ``cloud`` ``(M, 3)`` each of ``positions`` ``(T, 3)`` was copied from, as a labelling holds its
+    points: -1 for a NaN position, or one that is none of the cloud's points (within 1e-6 mm)."""
+    rows = np.full(len(positions), -1, np.intp)
+    seen = np.flatnonzero(np.isfinite(positions).all(axis=1))
+    if len(seen) and len(cloud):
+        d = cdist(positions[seen], np.nan_to_num(np.asarray(cloud, dtype=float), nan=np.inf))
+        near = d.argmin(axis=1)
+        hit = d[np.arange(len(seen)), near] <= 1e-6
+        rows[seen[hit]] = near[hit]
+    return rows
