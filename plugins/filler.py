@@ -7,7 +7,7 @@ from pydantic import Field
 
 from mocapflow.io.skeleton import read_skeleton
 from mocapflow.messages import MarkerFrame, Skeleton
-from mocapflow.mocap.compiled import compile_all
+from mocapflow.mocap.compiled import compile_filling
 from mocapflow.mocap.filling import FillerConfig, GapFiller
 from mocapflow.mocap.flags import CASE_KALMAN, CASE_MISSING
 from mocapflow.mocap.markerset import added
@@ -36,7 +36,7 @@ class Filler(Node[FillerNodeConfig]):
     }
 
     def setup(self) -> None:
-        compile_all()  # the Kalman filters' and rigid fits' kernels loaded now, not while the first frames wait
+        compile_filling()  # the Kalman filters' and rigid fits' kernels loaded now, not while the first frames wait
         self.model: SkeletonModel | None = read_skeleton(self.config.skeleton) if self.config.skeleton else None
         self.filler: GapFiller | None = None
 

@@ -12,7 +12,7 @@ from mocapflow.errors import CalibrationError
 from mocapflow.io.skeleton import read_skeleton
 from mocapflow.messages import MarkerFrame, Segments, Skeleton
 from mocapflow.mocap.calibration import build_skeleton
-from mocapflow.mocap.compiled import compile_all
+from mocapflow.mocap.compiled import compile_fits
 from mocapflow.mocap.markerset import added
 from mocapflow.runtime.node import Input, Node, Output
 from mocapflow.runtime.sampling import Sampler
@@ -47,7 +47,7 @@ class VarianceJoints(Node[JointsConfig]):
     outputs = {"skeleton": Output(Skeleton, state=True, doc="the current skeleton model")}
 
     def setup(self) -> None:
-        compile_all()  # the rigid fits' kernels loaded now, not while the first estimate waits
+        compile_fits()  # the rigid fits' kernels loaded now, not while the first estimate waits
         self.seed = read_skeleton(self.config.skeleton) if self.config.skeleton else None
         self.published = False
         self.segments: Segments | None = None

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from mocapflow.messages import MarkerFrame, Segments
-from mocapflow.mocap.compiled import compile_all
+from mocapflow.mocap.compiled import compile_labelling
 from mocapflow.mocap.labelling import Labeller, LabellerConfig
 from mocapflow.mocap.reacquire import Reacquirer
 from mocapflow.runtime.node import Input, Node, Output
@@ -34,7 +34,7 @@ class LabellerNode(Node[LabellerConfig]):
     outputs = {"markers": Output(MarkerFrame, doc="labelled markers, NaN where not seen")}
 
     def setup(self) -> None:
-        compile_all()  # the assignments' and track statistics' kernels loaded now, not while the first frames wait
+        compile_labelling()  # the assignments' and track statistics' kernels loaded now, not on the first frames
         self.labeller: Labeller | None = load_state(self.run_id, self.name)
         self._saved_at = -float("inf")
         self.reacquire = Reacquirer(self.labeller) if self.labeller is not None else None

@@ -7,7 +7,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from mocapflow.io.skeleton import read_skeleton
 from mocapflow.messages import MarkerFrame, Pose, Skeleton
-from mocapflow.mocap.compiled import compile_all
+from mocapflow.mocap.compiled import compile_fits
 from mocapflow.mocap.model import SkeletonModel
 from mocapflow.mocap.solve import PoseSolver
 from mocapflow.runtime.node import Input, Node, Output
@@ -31,7 +31,7 @@ class SkeletonPublisher(Node[SkeletonConfig]):
     outputs = {"pose": Output(Pose, doc="joint centres and segment rotations")}
 
     def setup(self) -> None:
-        compile_all()  # the pose solve's kernels loaded now, not while the first frames wait
+        compile_fits()  # the pose solve's kernels loaded now, not while the first frames wait
         self.model: SkeletonModel | None = read_skeleton(self.config.skeleton) if self.config.skeleton else None
         self.solver: PoseSolver | None = None  # compiled for self.model and the labels last seen; None when stale
         self.frames = self.posed = 0

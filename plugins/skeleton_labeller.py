@@ -6,7 +6,7 @@ from pydantic import Field
 
 from mocapflow.io.skeleton import read_skeleton
 from mocapflow.messages import MarkerFrame
-from mocapflow.mocap.compiled import compile_all
+from mocapflow.mocap.compiled import compile_fits, compile_labelling
 from mocapflow.mocap.labelling.model import ModelLabellerConfig, TrackedModelLabeller
 from mocapflow.runtime.node import Input, Node, Output
 
@@ -27,7 +27,8 @@ class SkeletonLabeller(Node[SkeletonLabellerConfig]):
     outputs = {"markers": Output(MarkerFrame, doc="the skeleton's markers, NaN where not found")}
 
     def setup(self) -> None:
-        compile_all()  # the fits' and assignments' kernels loaded now, not while the first frames wait
+        compile_fits()  # the fits' and assignments' kernels loaded now, not while the first frames wait
+        compile_labelling()
         self.skeleton = read_skeleton(self.config.skeleton)
         self.tolerances = ModelLabellerConfig(**self.config.model_dump(exclude={"skeleton"}))
         try:  # a skeleton it cannot use fails the node now, not at the first frame

@@ -1,25 +1,37 @@
-"""The compiled kernels are made ready before a live stage's first frame: after ``compile_all``, labelling, filling and
-posing a capture compiles nothing and loads nothing more from numba's cache. The kalman bank and the rigid fits give
-what their written-out arithmetic gives."""
+"""The compiled kernels are made ready before a live stage's first frame: after its node's ``compile_*`` (each in a
+process of its own, as a node's is), labelling, filling, posing and calibrating a capture compiles nothing and loads
+nothing more from numba's cache (``compile_all``, which the launcher and the offline commands call, runs those
+stages' loading). The kalman bank and the rigid fits give what their written-out arithmetic gives.
+
+Run as a script (``python test_compiled.py STAGE``), this module is that fresh process: it loads the stage's kernels,
+does the stage's work and names the kernels loaded late."""
 
 from __future__ import annotations
 
 import importlib
 import pkgutil
+import subprocess
+import sys
 
 import numpy as np
 import pytest
 from numba.core.registry import CPUDispatcher
 
 import mocapflow.mocap
-from mocapflow.mocap.compiled import compile_all
+from mocapflow.mocap import compiled
+from mocapflow.mocap.calibration import build_skeleton
 from mocapflow.mocap.filling import FillerConfig, GapFiller
 from mocapflow.mocap.kalman import ConstantVelocityBank
 from mocapflow.mocap.labelling import Labeller, LabellerConfig
+from mocapflow.mocap.labelling.model import TrackedModelLabeller
 from mocapflow.mocap.rigidfit import fit_one, kabsch
 from mocapflow.mocap.rigs import make_rig
 from mocapflow.mocap.simulator import SimulatorConfig, simulate, truth_skeleton
 from mocapflow.mocap.solve import PoseSolver
+
+STAGES = {"labelling": ["compile_labelling"], "filling": ["compile_filling"], "fits": ["compile_fits"],
+          "skeleton-labelling": ["compile_fits", "compile_labelling"]}
+"""Each stage's work and what its node calls in its setup (``compile_all`` calls the first three)."""
 
 
 def _kernels() -> list[CPUDispatcher]:
@@ -31,30 +43,54 @@ def _kernels() -> list[CPUDispatcher]:
     return found
 
 
-@pytest.mark.integration
-def test_after_compile_all_a_live_stage_compiles_nothing_on_its_frames() -> None:
-    compile_all()
+def _stage(stage: str) -> list[str]:
+    """Load ``stage``'s kernels as its node does, then do its work over a simulated capture (the labeller on a cloud
+    with ghosts; the filler given a skeleton and learning one; the pose solve and the joint estimator's calibration;
+    the skeleton labeller on the cloud); the kernels compiled or loaded during that work."""
+    for name in STAGES[stage]:
+        getattr(compiled, name)()
     kernels = _kernels()
     assert len(kernels) >= 20
     ready = {kernel: set(kernel.overloads) for kernel in kernels}
     config = SimulatorConfig(rig="human", rate=240, noise_mm=0.5, dropout_rate=0.5, long_gaps=4.0, seed=4)
     labelled = simulate(config, 720)
-    cloud = simulate(config.model_copy(update={"unlabelled": True, "ghosts": 1.0}), 720)
-    assert cloud.points is not None
     skeleton = truth_skeleton(make_rig("human"), labelled.true_positions[0])
-    labeller = Labeller(LabellerConfig(), cloud.rate)
-    given = GapFiller(labelled.labels, labelled.rate, FillerConfig(), skeleton)
-    learning = GapFiller(labelled.labels, labelled.rate, FillerConfig(), None)
-    solver = PoseSolver(skeleton, labelled.labels)
-    for f in range(720):
-        labeller.update(cloud.points[f], f / cloud.rate)
-        filled = given.update(labelled.positions[f]).positions
-        learning.update(labelled.positions[f])
-        given.predict_next()
-        solver(filled[None])
-    assert learning.skeleton is not None and len(labeller.labels) >= len(labelled.labels)
-    late = [kernel.__name__ for kernel in kernels if set(kernel.overloads) != ready[kernel]]
-    assert not late, f"compiled or loaded on a frame, not by compile_all: {late}"
+    if stage in ("labelling", "skeleton-labelling"):
+        cloud = simulate(config.model_copy(update={"unlabelled": True, "ghosts": 1.0}), 720)
+        assert cloud.points is not None
+        if stage == "labelling":
+            labeller = Labeller(LabellerConfig(), cloud.rate)
+            for f in range(720):
+                labeller.update(cloud.points[f], f / cloud.rate)
+            assert len(labeller.labels) >= len(labelled.labels)
+        else:
+            naming = TrackedModelLabeller(skeleton, cloud.rate)
+            named = [naming.update(cloud.points[f], f / cloud.rate)[1] for f in range(720)]
+            assert sum(int((n >= 0).sum()) for n in named) > 720 * len(labelled.labels) // 2
+    if stage == "filling":
+        given = GapFiller(labelled.labels, labelled.rate, FillerConfig(), skeleton)
+        learning = GapFiller(labelled.labels, labelled.rate, FillerConfig(), None)
+        for f in range(720):
+            given.update(labelled.positions[f])
+            learning.update(labelled.positions[f])
+            given.predict_next()
+        assert learning.skeleton is not None
+    if stage == "fits":
+        solver = PoseSolver(skeleton, labelled.labels)
+        for f in range(720):
+            solver(labelled.true_positions[f][None])
+        groups = [[labelled.labels.index(m) for m in seg.markers] for seg in skeleton.segments]
+        build_skeleton(labelled.true_positions, labelled.labels, labelled.rate, groups)
+    return [kernel.__name__ for kernel in kernels if set(kernel.overloads) != ready[kernel]]
+
+
+@pytest.mark.integration
+@pytest.mark.parametrize("stage", list(STAGES))
+def test_after_its_compile_a_live_stage_compiles_nothing_on_its_frames(stage: str) -> None:
+    done = subprocess.run([sys.executable, __file__, stage], capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr
+    late = done.stdout.split()
+    assert not late, f"{stage}: compiled or loaded on a frame, not by {' and '.join(STAGES[stage])}: {late}"
 
 
 def test_the_kalman_bank_follows_its_equations() -> None:
@@ -98,3 +134,7 @@ def test_a_rigid_fit_recovers_a_known_pose_and_ignores_what_weighs_nothing() -> 
     assert ok[0]
     np.testing.assert_allclose(r[0], rotation, atol=1e-12)
     np.testing.assert_allclose(t[0], [10.0, -20.0, 30.0], atol=1e-9)
+
+
+if __name__ == "__main__":
+    print(*_stage(sys.argv[1]))

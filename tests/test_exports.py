@@ -167,6 +167,7 @@ def read_with_c3d_package(path: Path) -> tuple[np.ndarray, list[str]]:
 
 
 @pytest.mark.integration
+@pytest.mark.xdist_group("exported")  # one worker makes the exports for all three
 def test_filled_c3d_flags_read_the_same_in_ezc3d_and_the_c3d_package(exported: Path) -> None:
     sim = read_markers(exported / "sim.c3d")
     filled = read_markers(exported / "filled.c3d")
@@ -191,6 +192,7 @@ def test_filled_c3d_flags_read_the_same_in_ezc3d_and_the_c3d_package(exported: P
 
 
 @pytest.mark.integration
+@pytest.mark.xdist_group("exported")  # one worker makes the exports for all three
 def test_solved_c3d_holds_joint_centres_that_match_the_bvh(exported: Path) -> None:
     skeleton = SkeletonModel.model_validate_json((exported / "skeleton.json").read_text())
     joints = [j.name for j in skeleton.joints]
@@ -224,6 +226,7 @@ def parse_trc(path: Path) -> tuple[list[str], np.ndarray]:
 
 
 @pytest.mark.integration
+@pytest.mark.xdist_group("exported")  # one worker makes the exports for all three
 def test_trc_export_matches_the_c3d_export(exported: Path) -> None:
     c3d = read_markers(exported / "solved.c3d")
     names, values = parse_trc(exported / "solved.trc")

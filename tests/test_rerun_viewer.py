@@ -302,7 +302,8 @@ def test_bad_input_is_one_line(tmp_path: Path) -> None:
         graph.write_text(yaml.safe_dump({"name": "g", "nodes": {
             "tracker": {"plugin": "simulator"},
             "viewer": {"plugin": "rerun", "inputs": {"markers": "tracker/markers"}, "config": config}}}))
-        assert "nodes.viewer.config" in fails("validate", graph) and reason in fails("validate", graph)
+        said = fails("validate", graph)
+        assert "nodes.viewer.config" in said and reason in said
     assert not list(tmp_path.glob("*.rrd"))
     small = tmp_path / "small.c3d"
     write_markers(small, MarkerData(np.zeros((5, 2, 3)) + 100, ["A", "B"], 100.0))

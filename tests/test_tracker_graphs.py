@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import CLI, free_port
+from conftest import CLI, DATA, free_port
 from scipy.optimize import linear_sum_assignment
 from test_runtime import wait_for_frames
 from trackers import Server, graph_file, run_graph, stream_graph
@@ -80,23 +80,38 @@ def gappy_slice(data_dir: Path, path: Path) -> MarkerData:
     return cut
 
 
-@pytest.mark.parametrize("protocol", ["qtm", "natnet"])
-def test_filled_output_equals_the_c3d_replay_graph(protocol: str, tmp_path: Path, free_endpoint: str,
-                                                   data_dir: Path) -> None:
-    source = tmp_path / "slice.c3d"
-    gappy_slice(data_dir, source)
-    port = free_port()
-    pipeline = {"filler": {"plugin": "occlusion-filler", "inputs": {"markers": "tracker/markers"}},
-                "recorder": recorder(tmp_path / "live.c3d", "filler/markers")}
-    live = graph_file(tmp_path, free_endpoint, f"fl{protocol[0]}", {"tracker": tracker(protocol, port), **pipeline})
-    code, out, _ = stream_graph(protocol, source, port, live, "filler", "--speed", "2")
-    assert code == 0, out
-    pipeline["recorder"] = recorder(tmp_path / "replay.c3d", "filler/markers")
-    replay = graph_file(tmp_path, f"tcp/127.0.0.1:{free_port()}", f"fr{protocol[0]}", {
-        "tracker": {"plugin": "c3d-replay", "config": {"path": str(source), "speed": 2}}, **pipeline})
+def filling(output: Path) -> dict:
+    return {"filler": {"plugin": "occlusion-filler", "inputs": {"markers": "tracker/markers"}},
+            "recorder": recorder(output, "filler/markers")}
+
+
+@pytest.fixture(scope="module")
+def filled_by_replay(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
+    """The gappy slice, and the filler's output of it in the c3d-replay graph (once for both protocols)."""
+    if not DATA.is_dir():
+        pytest.skip(f"real data folder {DATA} is absent")
+    tmp = tmp_path_factory.mktemp("filled")
+    source = tmp / "slice.c3d"
+    gappy_slice(DATA, source)
+    replay = graph_file(tmp, f"tcp/127.0.0.1:{free_port()}", "fr", {
+        "tracker": {"plugin": "c3d-replay", "config": {"path": str(source), "speed": 2}},
+        **filling(tmp / "replay.c3d")})
     code, out, _ = run_graph(replay)
     assert code == 0, out
-    got, expected = read_markers(tmp_path / "live.c3d"), read_markers(tmp_path / "replay.c3d")
+    return source, tmp / "replay.c3d"
+
+
+@pytest.mark.xdist_group("filled_by_replay")
+@pytest.mark.parametrize("protocol", ["qtm", "natnet"])
+def test_filled_output_equals_the_c3d_replay_graph(protocol: str, tmp_path: Path, free_endpoint: str,
+                                                   filled_by_replay: tuple[Path, Path]) -> None:
+    source, replayed = filled_by_replay
+    port = free_port()
+    live = graph_file(tmp_path, free_endpoint, f"fl{protocol[0]}",
+                      {"tracker": tracker(protocol, port), **filling(tmp_path / "live.c3d")})
+    code, out, _ = stream_graph(protocol, source, port, live, "filler", "--speed", "2")
+    assert code == 0, out
+    got, expected = read_markers(tmp_path / "live.c3d"), read_markers(replayed)
     assert got.labels == expected.labels and got.first_frame == expected.first_frame
     assert (expected.flags > 1).sum() > 100  # the filler filled the gaps
     np.testing.assert_array_equal(got.flags, expected.flags)
@@ -164,26 +179,39 @@ def test_absent_server_fails_the_run_in_one_line(protocol: str, tmp_path: Path, 
     assert stats["tracker"]["state"] == "failed" and stats["tracker"]["restarts"] == 0, stats
 
 
+def labelling(output: Path) -> dict:
+    return {"labeller": {"plugin": "labeller", "inputs": {"markers": "tracker/markers"}},
+            "recorder": recorder(output, "labeller/markers")}
+
+
+@pytest.fixture(scope="module")
+def labelled_by_replay(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The labeller's output of the short capture's point cloud in the c3d-replay graph (once for both protocols)."""
+    path = DATA / SHORT
+    if not path.is_file():
+        pytest.skip(f"real data file {path} is absent")
+    tmp = tmp_path_factory.mktemp("labelled")
+    replay = graph_file(tmp, f"tcp/127.0.0.1:{free_port()}", "lr", {
+        "tracker": {"plugin": "c3d-replay", "config": {"path": str(path), "speed": 2, "unlabelled": True}},
+        **labelling(tmp / "replay.c3d")})
+    code, out, _ = run_graph(replay)
+    assert code == 0, out
+    return tmp / "replay.c3d"
+
+
+@pytest.mark.xdist_group("labelled_by_replay")
 @pytest.mark.parametrize("protocol", ["qtm", "natnet"])
 def test_labelled_point_cloud_equals_the_c3d_replay_graph(protocol: str, tmp_path: Path, free_endpoint: str,
-                                                          real_file) -> None:
+                                                          real_file, labelled_by_replay: Path) -> None:
     """Unlabelled points from the tracker, labelled by the labeller: the same tracks as from c3d-replay's point
     cloud of the same file (the point order differs, so tracks are matched by their trajectories)."""
     path = real_file(SHORT)
     port = free_port()
-    pipeline = {"labeller": {"plugin": "labeller", "inputs": {"markers": "tracker/markers"}},
-                "recorder": recorder(tmp_path / "live.c3d", "labeller/markers")}
     live = graph_file(tmp_path, free_endpoint, f"lb{protocol[0]}",
-                      {"tracker": tracker(protocol, port, unlabelled=True), **pipeline})
+                      {"tracker": tracker(protocol, port, unlabelled=True), **labelling(tmp_path / "live.c3d")})
     code, out, _ = stream_graph(protocol, path, port, live, "labeller", "--speed", "2")
     assert code == 0, out
-    pipeline["recorder"] = recorder(tmp_path / "replay.c3d", "labeller/markers")
-    replay = graph_file(tmp_path, f"tcp/127.0.0.1:{free_port()}", f"lr{protocol[0]}", {
-        "tracker": {"plugin": "c3d-replay", "config": {"path": str(path), "speed": 2, "unlabelled": True}},
-        **pipeline})
-    code, out, _ = run_graph(replay)
-    assert code == 0, out
-    got, expected = read_markers(tmp_path / "live.c3d"), read_markers(tmp_path / "replay.c3d")
+    got, expected = read_markers(tmp_path / "live.c3d"), read_markers(labelled_by_replay)
     assert got.first_frame == expected.first_frame and len(got.positions) == len(expected.positions)
     assert len(got.labels) == len(expected.labels) >= 41
     a, b = got.positions.transpose(1, 0, 2), expected.positions.transpose(1, 0, 2)  # tracks x frames x 3

@@ -6,11 +6,14 @@ occlusion filler's Kalman filters (``kalman``), the rigid fits (``rigidfit``) an
 (or in the user's cache folder where that is not writable). Loading it costs a fraction of a second; compiling it, on
 a machine that has never run it, about half a minute of CPU. A live graph must not pay that on its first frames, nor in
 four processes at once: ``compile_all`` runs every kernel once, in every form the project calls it, on a tiny
-two-segment body, and the launcher calls it before it starts a graph's nodes.
+two-segment body, and the launcher calls it before it starts a graph's nodes. A node loads, in its setup, only its own
+stage's kernels (``compile_labelling``, ``compile_filling``, ``compile_fits``): each process that restarts is that
+much sooner back on the stream.
 """
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from functools import cache
 
 import numpy as np
@@ -21,45 +24,67 @@ from mocapflow.mocap.model import Joint, Segment, SkeletonModel
 from mocapflow.mocap.rigidfit import fit_one, fit_pose, kabsch, quaternion_matrices, rotor
 from mocapflow.mocap.solve import PoseSolver
 
+SQUARE = [[0.0, 0.0, 0.0], [100.0, 0.0, 0.0], [0.0, 100.0, 0.0]]
+LAYOUT = np.array([*SQUARE, [0.0, 0.0, 100.0], [100.0, 0.0, 100.0]])  # two segments' markers, at rest
+SKELETON = SkeletonModel(
+    segments=[Segment(name="a", markers=["a1", "a2", "a3"], marker_offsets=SQUARE),
+              Segment(name="b", markers=["b1", "b2"], marker_offsets=SQUARE[:2])],
+    joints=[Joint(name="a-b", parent="a", child="b", parent_offset=[0.0, 0.0, 50.0], child_offset=[0.0, 0.0, -50.0])],
+    root="a")
+
 
 @cache
 def compile_all() -> None:
     """Run every compiled kernel once (each is then loaded from numba's cache, or compiled and cached); once a
-    process: the nodes of a group each ask for it."""
-    square = [[0.0, 0.0, 0.0], [100.0, 0.0, 0.0], [0.0, 100.0, 0.0]]
-    skeleton = SkeletonModel(
-        segments=[Segment(name="a", markers=["a1", "a2", "a3"], marker_offsets=square),
-                  Segment(name="b", markers=["b1", "b2"], marker_offsets=square[:2])],
-        joints=[Joint(name="a-b", parent="a", child="b", parent_offset=[0.0, 0.0, 50.0],
-                      child_offset=[0.0, 0.0, -50.0])],
-        root="a")
-    frames = np.array([[*square, [0.0, 0.0, 100.0], [100.0, 0.0, 100.0]]] * 3)
+    process."""
+    compile_fits()
+    compile_labelling()
+    compile_filling()
+
+
+@cache
+def compile_fits() -> None:
+    """The rigid fits and the skeleton's pose solve (the skeleton publisher, the joint estimator); once a process."""
+    frames = np.array([LAYOUT] * 3)
     frames[1, 2:] = np.nan  # the root short of markers: trilateration; the child on its line: a held rotation
-    solver = PoseSolver(skeleton, ["a1", "a2", "a3", "b1", "b2"])
+    solver = PoseSolver(SKELETON, ["a1", "a2", "a3", "b1", "b2"])
     solver(frames[:1])
     solver(frames, progress=lambda *_: None)
-    local = np.array(square)
+    local = np.array(SQUARE)
     fit_pose(local, frames[:, :3], hold=True)
     fit_pose(local[None], frames[:, None, :3], local[:1], frames[:, None, 0], hold=True)
     rotor(local, local, np.ones(3))
     fit_one(local, local, np.ones(3))
     kabsch(local[None], local[None], np.ones((1, 3)))
     quaternion_matrices(np.array([0.0, 0.0, 0.0, 1.0]))
-    _label_and_fill(skeleton, np.array([*square, [0.0, 0.0, 100.0], [100.0, 0.0, 100.0]]))
 
 
-def _label_and_fill(skeleton: SkeletonModel, layout: np.ndarray) -> None:
-    """The labeller and the filler over 3 s of the two segments turning at 100 Hz, a marker hidden for a while and a
-    new point far off meanwhile: long enough for the labeller to learn neighbours, weigh the new point against the
-    lost marker, young and confirmed, and take the marker back, and for the filler to fill it."""
+@cache
+def compile_labelling() -> None:
+    """The labeller's assignments and track statistics; once a process."""
     labeller = Labeller(LabellerConfig(), 100.0)
-    filler = GapFiller([m for seg in skeleton.segments for m in seg.markers], 100.0, FillerConfig(), skeleton)
-    for i in range(300):
-        c, s = np.cos(i / 50), np.sin(i / 50)
-        points = layout @ np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]).T + [i, 0.0, 0.0]
-        if 200 <= i < 220:
-            points[4] = np.nan
-        far = [[5000.0, 0.0, float(i)]] if 205 <= i < 215 else np.empty((0, 3))
+    for i, (points, far) in enumerate(_turning()):
         labeller.update(np.vstack([points[::-1], far]), i / 100)
+
+
+@cache
+def compile_filling() -> None:
+    """The filler's Kalman filters and its segments' rigid fits; once a process."""
+    compile_fits()
+    filler = GapFiller([m for seg in SKELETON.segments for m in seg.markers], 100.0, FillerConfig(), SKELETON)
+    for points, _ in _turning():
         filler.update(points)
         filler.predict_next()
+
+
+def _turning() -> Iterator[tuple[np.ndarray, np.ndarray]]:
+    """3 s of the two segments turning at 100 Hz, a marker hidden for a while and a new point far off meanwhile:
+    long enough for the labeller to learn neighbours, weigh the new point against the lost marker, young and
+    confirmed, and take the marker back, and for the filler to fill it. Each frame's markers and its far point (none
+    or one)."""
+    for i in range(300):
+        c, s = np.cos(i / 50), np.sin(i / 50)
+        points = LAYOUT @ np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]).T + [i, 0.0, 0.0]
+        if 200 <= i < 220:
+            points[4] = np.nan
+        yield points, (np.array([[5000.0, 0.0, float(i)]]) if 205 <= i < 215 else np.empty((0, 3)))

@@ -8,7 +8,6 @@ over all markers (numba), a few microseconds for 50 markers.
 from __future__ import annotations
 
 import numpy as np
-from filterpy.common import Q_discrete_white_noise, kinematic_kf
 from numba import njit
 
 from mocapflow.mocap.rigidfit import finite
@@ -24,6 +23,10 @@ class ConstantVelocityBank:
     def __init__(self, n: int, dt: float, accel_sd: float, initial_speed_sd: float) -> None:
         """``accel_sd`` (mm/s^2) is the white-noise acceleration driving the model; ``initial_speed_sd`` (mm/s) the
         spread of the unknown velocity when a marker is first seen."""
+        # imported here: filterpy's package loads all of its filters and scipy.stats with them (0.8 s of a process's
+        # start), which only a process that builds a filter should pay
+        from filterpy.common import Q_discrete_white_noise, kinematic_kf
+
         model = kinematic_kf(dim=1, order=1, dt=dt)
         self.F = np.asarray(model.F, dtype=float)  # (2, 2): [[1, dt], [0, 1]]
         self.H = np.asarray(model.H, dtype=float)  # (1, 2): observes the position

@@ -93,6 +93,7 @@ class _Round:
         self.sampled = [_evenly(f, cfg.poses) for f in self.frames]
         self._cfg = cfg
         self._spreads: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        self._neighbours: dict[int, np.ndarray] = {}
 
     def same_side(self, first: tuple[int, int, int], second: tuple[int, int, int]) -> int:
         """Whether two triangles of tracks (``a``, ``b``, ``c``) are alike or mirror images, seen from their first
@@ -131,6 +132,17 @@ class _Round:
             out[k] = 1 if share >= 0.9 else -1 if share <= 0.1 else 0
         return out
 
+    def neighbours(self, i: int) -> np.ndarray:
+        """The tracks that may serve as track ``i``'s neighbours (distance spread at most ``neighbour_sd_mm``),
+        steadiest first (spread plus 2 % of the distance, so that near ones win a tie)."""
+        if i not in self._neighbours:
+            mean, sd = self.spread(i)
+            score = np.where(sd <= self._cfg.neighbour_sd_mm, sd + 0.02 * mean, np.inf)  # NaN: too few frames shared
+            score[i] = np.inf
+            order = np.argsort(score, kind="stable")
+            self._neighbours[i] = order[np.isfinite(score[order])]
+        return self._neighbours[i]
+
     def spread(self, i: int) -> tuple[np.ndarray, np.ndarray]:
         """``_distance_spread`` of track ``i``."""
         if i not in self._spreads:
@@ -162,13 +174,9 @@ def _set_score(state: _Round, i: int, j: int, cfg: LabellerConfig) -> float:
     tracks, seen = state.tracks, state.seen
     fi, b = state.frames[i], state.sampled[j]
     mean, sd = state.spread(i)
-    known = np.isfinite(sd)
-    known[[i, j]] = False
     signature = _signature(state, i, j, cfg)
-    score = np.where(known, sd + 0.02 * mean, np.inf)
-    score[~(sd <= cfg.neighbour_sd_mm) | (state.overlap[j] < 3)] = np.inf
-    nb = np.argsort(score)[: cfg.neighbours]
-    nb = nb[np.isfinite(score[nb])]
+    nb = state.neighbours(i)
+    nb = nb[(nb != j) & (state.overlap[j, nb] >= 3)][: cfg.neighbours]
     placed = np.full(len(b), np.inf)
     a = _evenly(fi[seen[fi][:, nb].sum(axis=1) >= 3], cfg.poses)
     if len(nb) >= 3 and len(a):
@@ -227,8 +235,9 @@ def _junctions(state: _Round, rate: float, cfg: LabellerConfig) -> dict[tuple[in
 
 def _rigid_partners(sd: np.ndarray, cfg: LabellerConfig, *others: int) -> np.ndarray:
     """The tracks rigid with one whose distance spreads to every track are ``sd``, ``others`` left out."""
-    partners = np.flatnonzero(sd <= cfg.rigid_sd_mm)  # NaN (too few frames shared) is no partner
-    return partners[~np.isin(partners, others)]
+    rigid = sd <= cfg.rigid_sd_mm  # NaN (too few frames shared) is no partner
+    rigid[list(others)] = False
+    return np.flatnonzero(rigid)
 
 
 def _signature(state: _Round, i: int, j: int, cfg: LabellerConfig) -> np.ndarray:
