@@ -24,6 +24,7 @@ from mocapflow.mocap.filling import FillerConfig, GapFiller
 from mocapflow.mocap.kalman import ConstantVelocityBank
 from mocapflow.mocap.labelling import Labeller, LabellerConfig
 from mocapflow.mocap.labelling.model import TrackedModelLabeller
+from mocapflow.mocap.reacquire import Reacquirer
 from mocapflow.mocap.rigidfit import fit_one, kabsch
 from mocapflow.mocap.rigs import make_rig
 from mocapflow.mocap.simulator import SimulatorConfig, simulate, truth_skeleton
@@ -45,8 +46,9 @@ def _kernels() -> list[CPUDispatcher]:
 
 def _stage(stage: str) -> list[str]:
     """Load ``stage``'s kernels as its node does, then do its work over a simulated capture (the labeller on a cloud
-    with ghosts; the filler given a skeleton and learning one; the pose solve and the joint estimator's calibration;
-    the skeleton labeller on the cloud); the kernels compiled or loaded during that work."""
+    with ghosts, and its markers found again after a blackout; the filler given a skeleton and learning one; the pose
+    solve and the joint estimator's calibration; the skeleton labeller on the cloud); the kernels compiled or loaded
+    during that work."""
     for name in STAGES[stage]:
         getattr(compiled, name)()
     kernels = _kernels()
@@ -60,9 +62,13 @@ def _stage(stage: str) -> list[str]:
         assert cloud.points is not None
         if stage == "labelling":
             labeller = Labeller(LabellerConfig(), cloud.rate)
-            for f in range(720):
+            for f in range(600):
                 labeller.update(cloud.points[f], f / cloud.rate)
             assert len(labeller.labels) >= len(labelled.labels)
+            reacquire = Reacquirer(labeller)  # a blackout: the markers found again by their layouts
+            for f in range(660, 720):
+                reacquire(cloud.points[f], f / cloud.rate)
+            assert reacquire.found
         else:
             naming = TrackedModelLabeller(skeleton, cloud.rate)
             named = [naming.update(cloud.points[f], f / cloud.rate)[1] for f in range(720)]

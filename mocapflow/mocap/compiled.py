@@ -21,6 +21,7 @@ import numpy as np
 from mocapflow.mocap.filling import FillerConfig, GapFiller
 from mocapflow.mocap.labelling import Labeller, LabellerConfig
 from mocapflow.mocap.model import Joint, Segment, SkeletonModel
+from mocapflow.mocap.reacquire import Reacquirer
 from mocapflow.mocap.rigidfit import fit_one, fit_pose, kabsch, quaternion_matrices, rotor
 from mocapflow.mocap.solve import PoseSolver
 
@@ -61,10 +62,14 @@ def compile_fits() -> None:
 
 @cache
 def compile_labelling() -> None:
-    """The labeller's assignments and track statistics; once a process."""
+    """The labeller's assignments and track statistics, and the rigid fit that finds its markers again by their
+    layouts after a restart or a blackout (``reacquire``); once a process."""
     labeller = Labeller(LabellerConfig(), 100.0)
     for i, (points, far) in enumerate(_turning()):
         labeller.update(np.vstack([points[::-1], far]), i / 100)
+    reacquire = Reacquirer(labeller)
+    for i, (points, _) in zip(range(2), _turning(), strict=False):
+        reacquire(points, 4.0 + i / 100)
 
 
 @cache
