@@ -87,6 +87,7 @@ def run(args: argparse.Namespace) -> int:
     from mocapflow.io.markers import join_trials
     from mocapflow.io.skeleton import write_skeleton
     from mocapflow.mocap.calibration import calibrate
+    from mocapflow.mocap.compiled import compile_fits
     from mocapflow.mocap.outliers import wild_samples
     from mocapflow.progress import Reporter
     from mocapflow.runtime.kernels import compile_kernels
@@ -102,7 +103,7 @@ def run(args: argparse.Namespace) -> int:
     if wild.any():  # a reflection a few frames long must not decide which markers move together
         print(f"{int(wild.sum())} wild samples (a metre or more from their marker's neighbourhood in time) left out")
         data.positions = np.where(wild[..., None], np.nan, data.positions)
-    compile_kernels(sys.stderr)  # the input is read and checked: the work is to be done
+    compile_kernels(sys.stderr, compile_fits)  # the input is read and checked: the work is to be done
     start = time.perf_counter()
     skeleton = calibrate(data.positions, data.labels, data.rate, segments=args.segments, method=args.method,
                          joint_method=args.joints, name=args.name or Path(args.inputs[0]).stem, progress=Reporter())

@@ -57,6 +57,7 @@ def read_rays(path: str, shape: tuple[int, int]) -> np.ndarray:
 def run(args: argparse.Namespace) -> int:
     from mocapflow.io.markers import MarkerData, write_markers
     from mocapflow.io.skeleton import read_skeleton
+    from mocapflow.mocap.compiled import compile_filling
     from mocapflow.mocap.filling import FillCase, FillerConfig, fill_both_ways, fill_recording
     from mocapflow.progress import Reporter
     from mocapflow.runtime.kernels import compile_kernels
@@ -74,7 +75,7 @@ def run(args: argparse.Namespace) -> int:
 
     rays = read_rays(args.rays, data.positions.shape[:2]) if args.rays else None
 
-    compile_kernels(sys.stderr)  # the input is read and checked: the work is to be done
+    compile_kernels(sys.stderr, compile_filling)  # the input is read and checked: the work is to be done
     joints = [j.name for j in skeleton.joints] if args.joints and skeleton is not None else []
     fill = fill_both_ways if args.offline else fill_recording
     positions, flags, centres = fill(data.positions, data.labels, data.rate, config, skeleton, rays=rays,

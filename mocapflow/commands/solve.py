@@ -39,6 +39,7 @@ def run(args: argparse.Namespace) -> int:
     from mocapflow.io.bvh import skeleton_bvh, write_bvh
     from mocapflow.io.markers import MarkerData, write_markers
     from mocapflow.io.skeleton import read_skeleton
+    from mocapflow.mocap.compiled import compile_fits
     from mocapflow.mocap.solve import solve
     from mocapflow.progress import Reporter
     from mocapflow.runtime.kernels import compile_kernels
@@ -51,7 +52,7 @@ def run(args: argparse.Namespace) -> int:
     missing = sorted({m for s in skeleton.segments for m in s.markers} - set(data.labels))
     if len(missing) == sum(len(s.markers) for s in skeleton.segments):
         raise MocapflowError(f"{args.input}: none of the skeleton's markers is in the file")
-    compile_kernels(sys.stderr)  # the input is read and checked: the work is to be done
+    compile_kernels(sys.stderr, compile_fits)  # the input is read and checked: the work is to be done
     try:
         pose = solve(skeleton, data.positions, data.labels, progress=Reporter())
     except ValueError as exc:

@@ -1,18 +1,26 @@
-"""The numeric kernels made ready before a launcher or an agent starts nodes (``mocap.compiled``)."""
+"""The numeric kernels made ready before a launcher or an agent starts nodes, or an offline command starts its work
+(``mocap.compiled``)."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor, TimeoutError
 from typing import IO
 
 from mocapflow.mocap.compiled import compile_all
 
 
-def compile_kernels(out: IO[str]) -> None:
-    """Compile the numeric kernels (``mocap.compiled``), or load them from numba's cache, before any node starts, so
-    that the nodes all find them ready; say so when it takes long (the first run on a machine)."""
+def compile_kernels(out: IO[str], *stages: Callable[[], None]) -> None:
+    """Compile the numeric kernels of ``stages`` (``mocap.compiled``'s loaders; default every kernel, for a graph's
+    nodes), or load them from numba's cache, before the work starts, so that it finds them ready; say so when it
+    takes long (the first run on a machine)."""
+
+    def load() -> None:
+        for stage in stages or (compile_all,):
+            stage()
+
     with ThreadPoolExecutor(1) as pool:
-        done = pool.submit(compile_all)
+        done = pool.submit(load)
         try:
             done.result(timeout=2.0)
         except TimeoutError:

@@ -73,7 +73,7 @@ class Labeller:
         pts = np.asarray(points, dtype=float).reshape(-1, 3)
         finite = np.isfinite(pts)
         rows = (finite[:, 0] & finite[:, 1] & finite[:, 2]).nonzero()[0]
-        z = pts if len(rows) == len(pts) else pts[rows]
+        z = np.ascontiguousarray(pts if len(rows) == len(pts) else pts[rows])  # one compiled form for every caller
         n_tracks = len(self.labels)
         if predictions is not None:
             predictions = np.asarray(predictions, dtype=float)
