@@ -34,9 +34,9 @@ class Filler(Node[FillerNodeConfig]):
         "predictions": Output(MarkerFrame, doc="predicted positions for the next frame of the markers seen or placed "
                                                "by the body's constraints in this one (NaN for the others)"),
     }
+    kernels = (compile_filling,)
 
     def setup(self) -> None:
-        compile_filling()  # the Kalman filters' and rigid fits' kernels loaded now, not while the first frames wait
         self.model: SkeletonModel | None = read_skeleton(self.config.skeleton) if self.config.skeleton else None
         self.filler: GapFiller | None = None
 

@@ -45,9 +45,9 @@ class VarianceJoints(Node[JointsConfig]):
         "segments": Input(Segments, required=False, state=True, doc="segment model; without it no estimate is made"),
     }
     outputs = {"skeleton": Output(Skeleton, state=True, doc="the current skeleton model")}
+    kernels = (compile_fits,)
 
     def setup(self) -> None:
-        compile_fits()  # the rigid fits' kernels loaded now, not while the first estimate waits
         self.seed = read_skeleton(self.config.skeleton) if self.config.skeleton else None
         self.published = False
         self.segments: Segments | None = None

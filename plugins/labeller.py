@@ -32,9 +32,9 @@ class LabellerNode(Node[LabellerConfig]):
         "segments": Input(Segments, required=False, state=True, doc="which markers move together"),
     }
     outputs = {"markers": Output(MarkerFrame, doc="labelled markers, NaN where not seen")}
+    kernels = (compile_labelling,)
 
     def setup(self) -> None:
-        compile_labelling()  # the assignments' and track statistics' kernels loaded now, not on the first frames
         self.labeller: Labeller | None = load_state(self.run_id, self.name)
         self._saved_at = -float("inf")
         self.reacquire = Reacquirer(self.labeller) if self.labeller is not None else None

@@ -29,9 +29,9 @@ class SkeletonPublisher(Node[SkeletonConfig]):
         "skeleton": Input(Skeleton, required=False, state=True, doc="the skeleton model to fit"),
     }
     outputs = {"pose": Output(Pose, doc="joint centres and segment rotations")}
+    kernels = (compile_fits,)
 
     def setup(self) -> None:
-        compile_fits()  # the pose solve's kernels loaded now, not while the first frames wait
         self.model: SkeletonModel | None = read_skeleton(self.config.skeleton) if self.config.skeleton else None
         self.solver: PoseSolver | None = None  # compiled for self.model and the labels last seen; None when stale
         self.frames = self.posed = 0

@@ -25,10 +25,9 @@ class SkeletonLabeller(Node[SkeletonLabellerConfig]):
     Config = SkeletonLabellerConfig
     inputs = {"markers": Input(MarkerFrame, doc="raw points, unlabelled")}
     outputs = {"markers": Output(MarkerFrame, doc="the skeleton's markers, NaN where not found")}
+    kernels = (compile_fits, compile_labelling)
 
     def setup(self) -> None:
-        compile_fits()  # the fits' and assignments' kernels loaded now, not while the first frames wait
-        compile_labelling()
         self.skeleton = read_skeleton(self.config.skeleton)
         self.tolerances = ModelLabellerConfig(**self.config.model_dump(exclude={"skeleton"}))
         try:  # a skeleton it cannot use fails the node now, not at the first frame

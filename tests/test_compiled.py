@@ -1,7 +1,7 @@
-"""The compiled kernels are made ready before a live stage's first frame: after its node's ``compile_*`` (each in a
-process of its own, as a node's is), labelling, filling, posing and calibrating a capture compiles nothing and loads
-nothing more from numba's cache (``compile_all``, which the launcher and the offline commands call, runs those
-stages' loading). The kalman bank and the rigid fits give what their written-out arithmetic gives.
+"""The compiled kernels are made ready before a live stage's first frame: after its nodes' ``kernels`` are loaded
+(each stage in a process of its own, as a node's is), labelling, filling, posing and calibrating a capture compiles
+nothing and loads nothing more from numba's cache. The kalman bank and the rigid fits give what their written-out
+arithmetic gives.
 
 Run as a script (``python test_compiled.py STAGE``), this module is that fresh process: it loads the stage's kernels,
 does the stage's work and names the kernels loaded late."""
@@ -18,7 +18,6 @@ import pytest
 from numba.core.registry import CPUDispatcher
 
 import mocapflow.mocap
-from mocapflow.mocap import compiled
 from mocapflow.mocap.calibration import build_skeleton
 from mocapflow.mocap.filling import FillerConfig, GapFiller
 from mocapflow.mocap.kalman import ConstantVelocityBank
@@ -29,10 +28,12 @@ from mocapflow.mocap.rigidfit import fit_one, kabsch
 from mocapflow.mocap.rigs import make_rig
 from mocapflow.mocap.simulator import SimulatorConfig, simulate, truth_skeleton
 from mocapflow.mocap.solve import PoseSolver
+from mocapflow.runtime import plugins
 
-STAGES = {"labelling": ["compile_labelling"], "filling": ["compile_filling"], "fits": ["compile_fits"],
-          "skeleton-labelling": ["compile_fits", "compile_labelling"]}
-"""Each stage's work and what its node calls in its setup (``compile_all`` calls the first three)."""
+STAGES = {"labelling": ["labeller"], "filling": ["occlusion-filler"], "fits": ["skeleton", "joints-closed-form"],
+          "skeleton-labelling": ["labeller-skeleton"]}
+"""Each stage's work and the plugins that do it: their nodes' ``kernels`` are loaded first (``compile_all`` loads
+every stage's)."""
 
 
 def _kernels() -> list[CPUDispatcher]:
@@ -49,8 +50,9 @@ def _stage(stage: str) -> list[str]:
     with ghosts, and its markers found again after a blackout; the filler given a skeleton and learning one; the pose
     solve and the joint estimator's calibration; the skeleton labeller on the cloud); the kernels compiled or loaded
     during that work."""
-    for name in STAGES[stage]:
-        getattr(compiled, name)()
+    for plugin in STAGES[stage]:
+        for load in plugins.load(plugin).kernels:
+            load()
     kernels = _kernels()
     assert len(kernels) >= 20
     ready = {kernel: set(kernel.overloads) for kernel in kernels}
@@ -96,7 +98,7 @@ def test_after_its_compile_a_live_stage_compiles_nothing_on_its_frames(stage: st
     done = subprocess.run([sys.executable, __file__, stage], capture_output=True, text=True, timeout=600)
     assert done.returncode == 0, done.stderr
     late = done.stdout.split()
-    assert not late, f"{stage}: compiled or loaded on a frame, not by {' and '.join(STAGES[stage])}: {late}"
+    assert not late, f"{stage}: compiled or loaded on a frame, not by the kernels of {STAGES[stage]}: {late}"
 
 
 def test_the_kalman_bank_follows_its_equations() -> None:

@@ -5,10 +5,10 @@ occlusion filler's Kalman filters (``kalman``), the rigid fits (``rigidfit``) an
 (``solve``), is compiled by numba the first time it runs, and numba keeps what it compiled in a cache beside the code
 (or in the user's cache folder where that is not writable). Loading it costs a fraction of a second; compiling it, on
 a machine that has never run it, about half a minute of CPU. A live graph must not pay that on its first frames, nor in
-four processes at once: ``compile_all`` runs every kernel once, in every form the project calls it, on a tiny
-two-segment body, and the launcher calls it before it starts a graph's nodes. A node loads, in its setup, only its own
-stage's kernels (``compile_labelling``, ``compile_filling``, ``compile_fits``): each process that restarts is that
-much sooner back on the stream.
+four processes at once. Each loader here runs one stage's kernels once, in every form the project calls them, on a
+tiny two-segment body (``compile_all``: every stage's). A node names its stage's loaders (``Node.kernels``); its
+process runs them before the node's setup, and the launcher runs those of its graph's nodes before it starts any.
+Each process loads no more than its nodes use, so one that restarts is that much sooner back on the stream.
 """
 
 from __future__ import annotations

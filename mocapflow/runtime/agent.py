@@ -34,6 +34,7 @@ from typing import IO, Any
 import zenoh
 from pydantic import ValidationError
 
+from mocapflow.mocap.compiled import compile_all
 from mocapflow.runtime.kernels import compile_kernels
 from mocapflow.runtime.keys import (
     agent_key,
@@ -248,7 +249,7 @@ def run_agent(name: str, connect: list[str], security: Path | None = None, timeo
     """Serve as agent ``name`` until SIGINT or SIGTERM."""
     print(f"agent {name}: joining {', '.join(connect)}", flush=True)
     signal.signal(signal.SIGINT, signal.SIG_DFL)  # until the router answers, Ctrl-C simply ends the agent
-    compile_kernels(sys.stdout)
+    compile_kernels(sys.stdout, compile_all)  # whichever nodes it will be asked to run
     agent = Agent(name, connect, security, timeout=timeout)
     stop = threading.Event()
     with stop_on_signals(stop):

@@ -7,16 +7,13 @@ from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor, TimeoutError
 from typing import IO
 
-from mocapflow.mocap.compiled import compile_all
-
 
 def compile_kernels(out: IO[str], *stages: Callable[[], None]) -> None:
-    """Compile the numeric kernels of ``stages`` (``mocap.compiled``'s loaders; default every kernel, for a graph's
-    nodes), or load them from numba's cache, before the work starts, so that it finds them ready; say so when it
-    takes long (the first run on a machine)."""
+    """Compile the numeric kernels of ``stages`` (``mocap.compiled``'s loaders), or load them from numba's cache,
+    before the work starts, so that it finds them ready; say so when it takes long (the first run on a machine)."""
 
     def load() -> None:
-        for stage in stages or (compile_all,):
+        for stage in stages:
             stage()
 
     with ThreadPoolExecutor(1) as pool:

@@ -144,6 +144,9 @@ class Launcher:
             for name, p in all_procs.items() if name in placed
         }
         self.specs = specs
+        # the compiled kernels of the nodes run here (an agent makes every kernel ready when it starts)
+        self.kernels = tuple(dict.fromkeys(load for name in graph.nodes if name not in placed
+                                           for load in classes[name].kernels))
         self.lines = self.supervisor.lines
         self.stats: dict[str, NodeStats] = {}
         self.stop_reason: str | None = None
@@ -256,7 +259,7 @@ class Launcher:
 
     # -- main loop ------------------------------------------------------------------------------------------------
     def run(self) -> int:
-        compile_kernels(self.out)
+        compile_kernels(self.out, *self.kernels)
         session = (open_router(self.listen, self.security) if not self.connect
                    else open_client(self.connect, self.security, self.timeout))
         stop = threading.Event()

@@ -68,11 +68,15 @@ class Node(Generic[ConfigT]):
     runtime calls once per frame index at that rate, in order, starting from ``first_index``. The runtime validates
     the config once, against ``Config``, before it constructs the node; before the first message it sets ``linked``,
     the inputs the graph links, so that a node can leave to another stage what that stage is linked to give it.
+    A node whose work runs compiled kernels names their loaders (``mocap.compiled``) in ``kernels``: they run before
+    its setup, and the launcher runs those of its graph's nodes before it starts any, so that a machine compiles them
+    once, not in every process at once, and no frame waits for them.
     """
 
     Config: ClassVar[type[BaseModel]] = NoConfig
     inputs: ClassVar[dict[str, Input]] = {}
     outputs: ClassVar[dict[str, Output]] = {}
+    kernels: ClassVar[tuple[Callable[[], None], ...]] = ()
 
     rate: float = 0.0
     linked: frozenset[str] | None = None  # the input ports the graph links; None when driven outside a graph
@@ -86,6 +90,8 @@ class Node(Generic[ConfigT]):
         self.name = name
         self._publish = publish
         self.log = logging.getLogger(f"mocapflow.{name}")
+        for load in self.kernels:
+            load()
         self.setup()
 
     def setup(self) -> None:

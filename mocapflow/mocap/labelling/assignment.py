@@ -136,7 +136,7 @@ def rigid_signature(points: np.ndarray, partners: np.ndarray, mean: np.ndarray, 
     """
     if partners.ndim == 2:
         partners = np.repeat(partners[None], len(points), axis=0)
-    # one layout of every array, so that one compiled form serves every caller (``compiled.compile_all`` makes it)
+    # one layout of every array, so that one compiled form serves every caller (``mocap.compiled`` makes it)
     c = np.ascontiguousarray
     return rigid_signature_compiled(c(points, dtype=np.float64), c(partners, dtype=np.float64),
                                     c(mean, dtype=np.float64),
