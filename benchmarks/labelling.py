@@ -38,10 +38,9 @@ import numpy as np
 import yaml
 
 from mocapflow.mocap.calibration import CalibrationError, calibrate
-from mocapflow.mocap.evaluation import LabellingScore, score_labelling, unlabel
+from mocapflow.mocap.evaluation import LabellingScore, score_labelling, score_naming, unlabel
 from mocapflow.mocap.labelling import Labeller, LabellerConfig, label_sequence
 from mocapflow.mocap.labelling.model import TrackedModelLabeller, label_with_skeleton
-from mocapflow.mocap.labelling.offline import source_rows
 from mocapflow.mocap.model import SkeletonModel
 from mocapflow.mocap.simulator import SimulatorConfig, simulate
 
@@ -162,17 +161,8 @@ def _named(skeleton: SkeletonModel, points: list[np.ndarray], identity: list[np.
     else:
         named, names = label_with_skeleton(points, rate, skeleton)
     cost = (time.perf_counter() - start) / len(points) * 1e6
-    index = np.array([labels.index(n) if n in labels else -2 for n in names])
-    right = wrong = total = known = 0
-    for f, (rows, ids) in enumerate(zip(points, identity, strict=True)):
-        real = np.flatnonzero(ids >= 0)
-        total += len(real)
-        known += int(np.isin(ids[real], index).sum())
-        source = source_rows(named[f], np.asarray(rows)[real])  # the true point each marker was named on
-        hit = np.flatnonzero(source >= 0)
-        right += int((index[hit] == ids[real][source[hit]]).sum())
-        wrong += int((index[hit] != ids[real][source[hit]]).sum())
-    return right / total, wrong / total, right / known, cost
+    score = score_naming(named, names, points, identity, labels)
+    return score.right / score.total, score.wrong / score.total, score.right / score.known, cost
 
 
 def _stream(points: list[np.ndarray], rate: float) -> tuple[np.ndarray, np.ndarray]:

@@ -42,14 +42,14 @@ def free_endpoint() -> str:
     return f"tcp/127.0.0.1:{free_port()}"
 
 
-@pytest.fixture
+@pytest.fixture(scope="session")
 def data_dir() -> Path:
     if not DATA.is_dir():
         pytest.skip(f"real data folder {DATA} is absent")
     return DATA
 
 
-@pytest.fixture
+@pytest.fixture(scope="session")
 def real_file() -> Callable[[str], Path]:
     """A file of the shared data folder by name; the test is skipped when it is absent."""
 

@@ -10,7 +10,7 @@ import pytest
 from conftest import graph_file, run_cli
 
 from mocapflow.mocap.calibration import calibrate
-from mocapflow.mocap.evaluation import unlabel
+from mocapflow.mocap.evaluation import score_naming, unlabel
 from mocapflow.mocap.labelling.model import ModelLabeller, TrackedModelLabeller, _track_names, label_with_skeleton
 from mocapflow.mocap.model import SkeletonModel
 from mocapflow.mocap.simulator import Simulator, SimulatorConfig, simulate, truth_skeleton
@@ -28,16 +28,8 @@ def subject() -> SkeletonModel:
 def _named(named: np.ndarray, names: list[str], points: np.ndarray, identity: np.ndarray,
            labels: list[str]) -> tuple[int, int, int]:
     """Real points named with their own marker's name, with another's, and in all."""
-    index = np.array([labels.index(n) for n in names])
-    right = wrong = total = 0
-    for f in range(len(points)):
-        for r in np.flatnonzero(identity[f] >= 0):
-            total += 1
-            hit = np.flatnonzero(np.linalg.norm(named[f] - points[f, r], axis=1) < 1e-9)
-            if len(hit):
-                right += int(index[hit[0]] == identity[f, r])
-                wrong += int(index[hit[0]] != identity[f, r])
-    return right, wrong, total
+    score = score_naming(named, names, points, identity, labels)
+    return score.right, score.wrong, score.total
 
 
 def test_new_trial_of_the_same_subject_is_named_from_its_skeleton() -> None:

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import CLI, DATA, free_port
+from conftest import CLI, free_port
 from scipy.optimize import linear_sum_assignment
 from test_runtime import wait_for_frames
 from trackers import Server, graph_file, run_graph, stream_graph
@@ -58,15 +58,13 @@ def test_every_frame_reaches_the_recorder(protocol: str, tmp_path: Path, free_en
     np.testing.assert_allclose(live.positions, data.positions.astype(np.float32), rtol=0, atol=tolerance)
 
 
-def gappy_slice(data_dir: Path, path: Path) -> MarkerData:
-    """Five seconds of the lower-body capture with gaps cut into it, short and long."""
+def gappy_slice(data_dir: Path, path: Path) -> None:
+    """Five seconds of the lower-body capture with gaps cut into it, short and long, written to ``path``."""
     data = read_markers(data_dir / "lowerbody_clusters_knee_0401.c3d")
     positions = data.positions[1000:1500].copy()
     for label, start, stop in [("LTH2", 100, 160), ("RSH3", 200, 230), ("LSH1", 300, 320), ("RTOE", 350, 450)]:
         positions[start:stop, data.labels.index(label)] = np.nan
-    cut = MarkerData(positions, data.labels, data.rate, data.first_frame + 1000)
-    write_markers(path, cut)
-    return cut
+    write_markers(path, MarkerData(positions, data.labels, data.rate, data.first_frame + 1000))
 
 
 def filling(output: Path) -> dict:
@@ -75,13 +73,11 @@ def filling(output: Path) -> dict:
 
 
 @pytest.fixture(scope="module")
-def filled_by_replay(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
+def filled_by_replay(tmp_path_factory: pytest.TempPathFactory, data_dir: Path) -> tuple[Path, Path]:
     """The gappy slice, and the filler's output of it in the c3d-replay graph (once for both protocols)."""
-    if not DATA.is_dir():
-        pytest.skip(f"real data folder {DATA} is absent")
     tmp = tmp_path_factory.mktemp("filled")
     source = tmp / "slice.c3d"
-    gappy_slice(DATA, source)
+    gappy_slice(data_dir, source)
     replay = graph_file(tmp, f"tcp/127.0.0.1:{free_port()}", "fr", {
         "tracker": {"plugin": "c3d-replay", "config": {"path": str(source), "speed": 2}},
         **filling(tmp / "replay.c3d")})
@@ -174,11 +170,9 @@ def labelling(output: Path) -> dict:
 
 
 @pytest.fixture(scope="module")
-def labelled_by_replay(tmp_path_factory: pytest.TempPathFactory) -> Path:
+def labelled_by_replay(tmp_path_factory: pytest.TempPathFactory, real_file) -> Path:
     """The labeller's output of the short capture's point cloud in the c3d-replay graph (once for both protocols)."""
-    path = DATA / SHORT
-    if not path.is_file():
-        pytest.skip(f"real data file {path} is absent")
+    path = real_file(SHORT)
     tmp = tmp_path_factory.mktemp("labelled")
     replay = graph_file(tmp, f"tcp/127.0.0.1:{free_port()}", "lr", {
         "tracker": {"plugin": "c3d-replay", "config": {"path": str(path), "speed": 2, "unlabelled": True}},

@@ -1,5 +1,5 @@
-"""Scoring tools for tests and benchmarks: a labelling against the true identities of its points, and a labelled
-recording turned back into what a passive tracker reports."""
+"""Scoring tools for tests and benchmarks: a labelling (tracks, or markers named from a skeleton) against the true
+identities of its points, and a labelled recording turned back into what a passive tracker reports."""
 
 from __future__ import annotations
 
@@ -39,6 +39,37 @@ class LabellingScore:
                 f"ghosts rejected {100 * self.ghosts_rejected:.2f} %, {self.tracks} tracks for "
                 f"{self.markers_found}/{self.markers_true} markers ({self.fragments} fragments, "
                 f"{self.ghost_tracks} ghost tracks)")
+
+
+@dataclass
+class NamingScore:
+    """How names given from a skeleton compare with the true identities of the points: of the ``total`` real points,
+    ``right`` carry their own marker's name and ``wrong`` another's; ``known`` of them are points of markers the
+    labelling has a name for."""
+
+    right: int
+    wrong: int
+    total: int
+    known: int
+
+
+def score_naming(named: np.ndarray, names: Sequence[str], points: Sequence[np.ndarray],
+                 identity: Sequence[np.ndarray], labels: Sequence[str]) -> NamingScore:
+    """Score the named markers ``(F, N, 3)`` (``names``, NaN where unnamed) labelled from ``points`` (per frame
+    ``(M, 3)``) against ``identity`` (per frame the true marker of each row, an index into ``labels``; -1 for a
+    ghost). A named position is traced back to the input row it was copied from."""
+    index = np.array([labels.index(n) if n in labels else -2 for n in names], dtype=int)
+    right = wrong = total = known = 0
+    for f, (rows, ids) in enumerate(zip(points, identity, strict=True)):
+        ids = np.asarray(ids)
+        real = np.flatnonzero(ids >= 0)
+        total += len(real)
+        known += int(np.isin(ids[real], index).sum())
+        source = source_rows(named[f], np.asarray(rows, dtype=float)[real])  # the true point each marker was named on
+        hit = np.flatnonzero(source >= 0)
+        right += int((index[hit] == ids[real][source[hit]]).sum())
+        wrong += int((index[hit] != ids[real][source[hit]]).sum())
+    return NamingScore(right, wrong, total, known)
 
 
 def score_labelling(tracks: np.ndarray, points: Sequence[np.ndarray], identity: Sequence[np.ndarray],
