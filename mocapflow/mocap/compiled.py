@@ -34,10 +34,9 @@ SKELETON = SkeletonModel(
     root="a")
 
 
-@cache
 def compile_all() -> None:
     """Run every compiled kernel once (each is then loaded from numba's cache, or compiled and cached); once a
-    process."""
+    process, as each stage's loader runs once."""
     compile_fits()
     compile_labelling()
     compile_filling()
