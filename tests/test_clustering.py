@@ -16,6 +16,7 @@ from mocapflow.mocap.clustering import (
     cluster_spectral,
     distance_spread,
     eigengap_k,
+    partition_rigidity,
     partition_spectral,
     segment_names,
     spectral_embedding,
@@ -93,6 +94,26 @@ def test_real_lower_body_segments_match_the_expert_segmentation(data_dir: Path) 
     ]
     found = [sorted(data.labels[i] for i in group) for group in cluster_spectral(data.positions)]
     assert sorted(found) == sorted(sorted(g) for g in expert)
+
+
+@pytest.mark.parametrize("back_mm, expected", [
+    (687.0, [[0, 1, 2], [3, 4, 5, 6]]),  # the back marker is not the trunk's nearest to the thigh: no move
+    (400.0, [[0, 3], [1, 2], [4, 5, 6]]),  # it is: taken as the marker on their joint
+])
+def test_a_marker_takes_in_turn_only_the_joint_marker_of_a_group(back_mm: float, expected: list[list[int]]) -> None:
+    """A thigh marker (0) robbed of its knee marker (1) by the shank marker (2) takes in turn its most rigid partner
+    only when that one is the trunk's (3-6) nearest to it: a back marker 687 mm away that happened to keep still with
+    it (cmu_85_02's first half) stays on the trunk."""
+    spread = np.full((7, 7), 20.0)
+    for (a, b), sd in {(0, 1): 1.2, (1, 2): 2.6, (0, 2): 9.0, (0, 3): 5.4, (0, 4): 6.8, (0, 5): 9.0, (0, 6): 9.0,
+                       (3, 4): 2.0, (3, 5): 2.2, (3, 6): 3.8, (4, 5): 2.5, (4, 6): 3.0, (5, 6): 3.0}.items():
+        spread[a, b] = spread[b, a] = sd
+    np.fill_diagonal(spread, 0.0)
+    distance = np.full((7, 7), 300.0)
+    for b, mm in {3: back_mm, 4: 554.0, 5: 600.0, 6: 620.0}.items():
+        distance[0, b] = distance[b, 0] = mm
+    np.fill_diagonal(distance, 0.0)
+    assert partition_rigidity(spread, distance=distance) == expected
 
 
 def test_tracker_statistics_equal_the_batch_over_its_window() -> None:

@@ -39,6 +39,16 @@ def test_real_recording_gives_an_anatomical_skeleton(name: str, real_file: Calla
     assert len(used) >= 0.9 * len(data.labels)  # markers are left out only one by one, with a reason
 
 
+@pytest.mark.integration
+def test_a_short_trial_keeps_the_back_markers_off_the_legs(real_file: Callable[[str], Path]) -> None:
+    """cmu_85_02's first 405 frames, in which a thigh marker and a back marker 687 mm away happened to keep still
+    together: no segment holds both a leg and the trunk."""
+    data = read_markers(real_file("cmu_85_02.c3d"))
+    half = data.positions[: len(data.positions) // 2]
+    checks = check(calibrate(half, data.labels, data.rate), half, data.labels)
+    assert not checks.mixed, f"segments mixing limbs, or a leg and the trunk: {checks.mixed}"
+
+
 def test_region_map_knows_each_file(real_file: Callable[[str], Path]) -> None:
     """The checks mean something only if every limb of each full-body file is mapped."""
     for name in FILES:

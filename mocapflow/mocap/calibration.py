@@ -39,7 +39,13 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial.transform import Rotation
 
 from mocapflow.errors import CalibrationError
-from mocapflow.mocap.clustering import PARTITIONERS, distance_spread, noise_floor, segment_names
+from mocapflow.mocap.clustering import (
+    distance_spread,
+    noise_floor,
+    pair_statistics,
+    partition,
+    segment_names,
+)
 from mocapflow.mocap.cor import CoREstimate, joint_sides, joint_track, side_mean
 from mocapflow.mocap.joints import (
     ALPHA,
@@ -108,14 +114,13 @@ def calibrate(positions: np.ndarray, labels: Sequence[str], rate: float, segment
     ``cluster_options`` go to it (``neighbour``, ``threshold_mm``...); ``joint_method`` picks the joint estimator.
     """
     positions, usable = _clean(positions, labels)
-    spread = distance_spread(positions[:, usable], pair_frames(rate))
-    if method not in PARTITIONERS:
-        raise ValueError(f"unknown clustering method {method!r}; choose one of {', '.join(PARTITIONERS)}")
+    stats = pair_statistics(positions[:, usable])
+    spread = stats.spread(pair_frames(rate))
     if noise_floor(spread) > UNLABELLED_MM:
         raise CalibrationError(f"the markers keep their distances to no other marker (typical spread "
                                f"{noise_floor(spread):.0f} mm): the file looks unlabelled, its points changing "
                                "identity from frame to frame; label it first (mocapflow label)")
-    groups = PARTITIONERS[method](spread, segments, **cluster_options)
+    groups = partition(method, stats, segments, pair_frames(rate), **cluster_options)
     groups = [[int(usable[i]) for i in group] for group in groups]
     return build_skeleton(positions, labels, rate, groups, joint_method, hinge_placement=hinge_placement, name=name,
                           progress=progress)

@@ -86,22 +86,35 @@ class PairStatistics:
         """(N, N) standard deviation of each pair's distance (mm); NaN for pairs seen together too rarely."""
         n = np.maximum(self.count, 1)
         var = np.maximum(self.squares / n - (self.total / n) ** 2, 0.0)
-        sd = np.where(self.count >= min_frames, np.sqrt(var), np.nan)
+        return self._square(np.where(self.count >= min_frames, np.sqrt(var), np.nan))
+
+    def mean(self, min_frames: int = MIN_PAIR_FRAMES) -> np.ndarray:
+        """(N, N) mean of each pair's distance (mm); NaN for pairs seen together too rarely."""
+        return self._square(np.where(self.count >= min_frames, self.shift + self.total / np.maximum(self.count, 1),
+                                     np.nan))
+
+    def _square(self, pairs: np.ndarray) -> np.ndarray:
+        """The symmetric (N, N) matrix of per-pair values, zero on the diagonal."""
         out = np.zeros((self.markers, self.markers))
-        out[self.rows, self.cols] = sd
-        out[self.cols, self.rows] = sd
+        out[self.rows, self.cols] = pairs
+        out[self.cols, self.rows] = pairs
         return out
 
 
-def distance_spread(positions: np.ndarray, min_frames: int = MIN_PAIR_FRAMES, values: int = 4_000_000) -> np.ndarray:
-    """(N, N) standard deviation over time of every pairwise marker distance of (F, N, 3) trajectories (mm), in
-    chunks of frames holding about ``values`` distances each, so memory stays bounded however many markers."""
+def pair_statistics(positions: np.ndarray, values: int = 4_000_000) -> PairStatistics:
+    """The distance statistics of every marker pair of (F, N, 3) trajectories, gathered in chunks of frames holding
+    about ``values`` distances each, so memory stays bounded however many markers."""
     positions = np.asarray(positions, dtype=np.float64)
     stats = PairStatistics(positions.shape[1])
     chunk = max(1, values // max(len(stats.rows), 1))
     for start in range(0, positions.shape[0], chunk):
         stats.add(stats.distances(positions[start:start + chunk]))
-    return stats.spread(min_frames)
+    return stats
+
+
+def distance_spread(positions: np.ndarray, min_frames: int = MIN_PAIR_FRAMES, values: int = 4_000_000) -> np.ndarray:
+    """(N, N) standard deviation over time of every pairwise marker distance of (F, N, 3) trajectories (mm)."""
+    return pair_statistics(positions, values).spread(min_frames)
 
 
 def _groups(assignment: np.ndarray) -> list[list[int]]:
@@ -220,9 +233,10 @@ def noise_floor(spread: np.ndarray) -> float:
     return float(np.percentile(nearest, 75)) if len(nearest) else 1.0
 
 
-def partition_rigidity(spread: np.ndarray, k: int | None = None, *, factor: float = 3.0, bridge: float = 2.0,
-                       loose: float = 3.0, floor_mm: float = 0.1) -> list[list[int]]:
-    """Segments as the markers that keep their distances within the recording's own noise.
+def partition_rigidity(spread: np.ndarray, k: int | None = None, *, distance: np.ndarray, factor: float = 3.0,
+                       bridge: float = 2.0, loose: float = 3.0, floor_mm: float = 0.1) -> list[list[int]]:
+    """Segments as the markers that keep their distances within the recording's own noise; ``distance`` holds the
+    mean of every pairwise distance (mm), as ``spread`` their standard deviation.
 
     1. Markers are grouped so that every two of a group are rigid: complete linkage cut at ``factor`` times the
        noise floor (``noise_floor``, at least ``floor_mm``).
@@ -231,7 +245,9 @@ def partition_rigidity(spread: np.ndarray, k: int | None = None, *, factor: floa
        (their spreads to the lone marker are over ``bridge`` times larger), and the group stays rigid without it,
        that partner is a joint marker: the lone marker takes it, provided its group keeps two markers, or its
        group's other marker can take its own most rigid partner in turn (a knee marker to the thigh, the ankle
-       marker to the shank).
+       marker to the shank). A marker on the joint between two segments is, of its group, the one nearest the
+       other segment: the marker taking one in turn takes only the member of that group nearest to it (a thigh
+       marker robbed of its knee marker does not take a back marker that happened to keep still with it).
     3. Otherwise it joins the group it is most rigid with when that group's spreads to it stay under ``loose``
        times the threshold (a soft segment: shoulder markers on the trunk); a marker rigid with nothing stays
        alone.
@@ -242,6 +258,7 @@ def partition_rigidity(spread: np.ndarray, k: int | None = None, *, factor: floa
     if n <= 2 or k is not None:
         return partition_threshold(spread, k, threshold_mm=np.inf, linkage="complete") if n > 1 else [[0]] * n
     d = _unseen_as_far(spread)
+    near = np.where(np.isfinite(distance), distance, np.inf)  # pairs never seen together: as far as can be
     threshold = factor * max(noise_floor(spread), floor_mm)
     groups = partition_threshold(spread, threshold_mm=threshold, linkage="complete")
 
@@ -262,6 +279,8 @@ def partition_rigidity(spread: np.ndarray, k: int | None = None, *, factor: floa
             return None
         donor = group_of(j)
         rest = [x for x in donor if x != j]
+        if cascade and rest and near[m, j] > near[m, rest].min():
+            return None  # in turn, only the marker of its group nearest m: the one on their joint
         if len(rest) > 1 and d[np.ix_(rest, rest)].max() > threshold:
             return None  # taking j would leave its group no longer rigid: j is not a joint marker of it
         if len(donor) >= 3:
@@ -300,7 +319,18 @@ PARTITIONERS: dict[str, Callable[..., list[list[int]]]] = {
     "spectral": partition_spectral,
     "distance-threshold": partition_threshold,
 }
-"""Clustering methods by name, each taking a spread matrix and ``k``."""
+"""Clustering methods by name, each taking a spread matrix and ``k`` (``partition`` calls them)."""
+
+
+def partition(method: str, stats: PairStatistics, k: int | None = None, min_frames: int = MIN_PAIR_FRAMES,
+              **options: object) -> list[list[int]]:
+    """Markers to segments by clustering ``method`` (``PARTITIONERS``) from a recording's pair statistics (the
+    rigidity clusterer also reads the mean distances); ``options`` go to the clusterer."""
+    if method not in PARTITIONERS:
+        raise ValueError(f"unknown clustering method {method!r}; choose one of {', '.join(PARTITIONERS)}")
+    if method == "rigidity":
+        options = {"distance": stats.mean(min_frames), **options}
+    return PARTITIONERS[method](stats.spread(min_frames), k, **options)
 
 
 _BODY_WORDS: tuple[tuple[str, str], ...] = (  # (pattern on a label without its side letter, body part)
@@ -375,6 +405,7 @@ class SegmentTracker:
                  **options: object) -> None:
         if method not in PARTITIONERS:
             raise ValueError(f"unknown clustering method {method!r}; choose one of {', '.join(PARTITIONERS)}")
+        self.method = method
         self.labels = list(labels)
         self.window = window
         self.warmup = window if warmup is None else warmup
@@ -382,7 +413,6 @@ class SegmentTracker:
         self.backoff = backoff
         self.interval = every
         self.next = self.warmup
-        self.partition = PARTITIONERS[method]
         self.options = options
         self.stats = PairStatistics(len(self.labels))
         self.history: deque[np.ndarray] = deque()
@@ -418,7 +448,7 @@ class SegmentTracker:
         self.frames += 1
         if self.frames < self.next:
             return None
-        groups = self.partition(self.stats.spread(), **self.options)
+        groups = partition(self.method, self.stats, **self.options)  # type: ignore[arg-type]
         unchanged = groups == self.current
         self.interval = min(2 * self.interval, self.backoff * self.every) if unchanged else self.every
         self.next = self.frames + self.interval
