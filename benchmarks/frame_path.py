@@ -10,7 +10,9 @@ and decoded there; their costs are shown apart (they do not hold the frame back;
 they would live).
 Frames are produced as fast as they are handled, so each step's time is its cost alone, with no wait in a queue;
 Zenoh's own transport is what ``mocapflow bench`` measures next to it. Printed: per step, the wall-clock time per
-frame (p50 / p99 over the frames after the skeleton model arrived) and the sum along the frame's path.
+call (p50 / p99 over the frames after the skeleton model arrived) and per frame (all its calls' time, spread over the
+frames), then the sum of the p50s along the frame's path and the group's whole work per frame: a process that cannot
+do that work within one frame period falls behind.
 """
 
 from __future__ import annotations
@@ -94,18 +96,23 @@ def main() -> None:
         nodes["recorder"].finish()
     start = skeleton_at if skeleton_at is not None else 0
     print(f"quickstart frame path at {args.rate:g} Hz: {frames} frames, skeleton model from frame {skeleton_at}; "
-          f"wall-clock us per frame since (p50 / p99)")
-    path = 0.0
+          f"wall-clock us per call since (p50 / p99), and per frame (all its calls' time over the frames)")
+    path = work = 0.0
+    counted = frames - start
     for key, values in costs.items():
         node = key.split(":")[0]
         where = "frame group" if node in group else "own process"
-        per_frame = len(values) >= frames - start
-        tail = np.asarray(values[-(frames - start):] if per_frame else values)
+        per_frame = len(values) >= counted
+        tail = np.asarray(values[-counted:] if per_frame else values)
         p50, p99 = np.percentile(tail, [50, 99])
-        if where == "frame group" and per_frame:
-            path += p50
-        print(f"  {key:<28} {where:<12} {p50:8.0f} {p99:8.0f}" + ("" if per_frame else f"   ({len(values)} calls)"))
-    print(f"  frame group, sum of p50 per frame: {path:.0f} us (one frame every {1e6 / args.rate:.0f} us)")
+        share = tail.sum() / (counted if per_frame else frames)
+        if where == "frame group":
+            work += share
+            path += p50 if per_frame else 0.0
+        print(f"  {key:<28} {where:<12} {p50:8.0f} {p99:8.0f} {share:8.1f}"
+              + ("" if per_frame else f"   ({len(values)} calls)"))
+    print(f"  frame group, sum of p50 per frame: {path:.0f} us; all its work per frame: {work:.0f} us "
+          f"(one frame every {1e6 / args.rate:.0f} us)")
 
 if __name__ == "__main__":
     main()
