@@ -1,7 +1,10 @@
 """Markers to segments: markers on one rigid segment keep their mutual distances, markers across a joint do not.
 
-Both clusterers work on the spread (standard deviation over time) of every pairwise marker distance:
+The clusterers work on the spread (standard deviation over time) of every pairwise marker distance:
 
+- ``partition_rigidity`` (the default): markers that keep their distances within the recording's own noise, markers
+  on the joints given to the segments that need them (which also reads the mean distances: a marker on a joint is
+  its group's nearest to the other segment).
 - ``cluster_spectral`` (Schoenauer 2007, 3.4): Gaussian affinity of the spreads with the local scaling of
   Zelnik-Manor and Perona (each marker's scale is its spread to its ``neighbour``-th nearest marker), normalised
   affinity ``D^-1/2 W D^-1/2``, its leading eigenvectors with rows normalised, and k-means on those rows. The
