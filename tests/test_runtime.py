@@ -16,7 +16,9 @@ import pytest
 import zenoh
 from conftest import CLI, graph_file
 
+from mocapflow.messages import MarkerFrame
 from mocapflow.mocap.simulator import Simulator, SimulatorConfig
+from mocapflow.runtime.runner import Runner
 from mocapflow.runtime.session import open_client
 
 pytestmark = pytest.mark.integration  # every test here starts processes and Zenoh sessions
@@ -315,3 +317,49 @@ def test_a_node_runs_at_the_niceness_its_graph_sets(tmp_path: Path, free_endpoin
     assert idle == {"relay"}, idle  # 'cpu: idle'; a group only when all its members ask
     one = os.environ.get("OPENBLAS_NUM_THREADS", "1")  # the setting of whoever runs the graph, else one thread
     assert all(env == {"OPENBLAS_NUM_THREADS": one} for env in blas.values()), blas
+
+
+@pytest.mark.integration
+def test_a_paced_source_is_asked_to_prepare_each_frame_only_before_it_is_emitted(tmp_path: Path,
+                                                                                   free_endpoint: str) -> None:
+    """``Node.prepare(i)`` comes after frame i - 1 was emitted and handled and before frame i is, in the time left
+    before it is due: never for a frame already emitted (after the last frame, once: the source tells its end only
+    when asked for the frame past it)."""
+    calls = tmp_path / "calls.txt"
+    sink = tmp_path / "sink.txt"
+    path = tmp_path / "g.yaml"
+    path.write_text(
+        f"name: prepare\nzenoh: {{listen: ['{free_endpoint}']}}\nnodes:\n"
+        f"  source: {{plugin: 'prepared_source:PreparedSource', group: g, config: {{path: '{calls}', frames: 40}}}}\n"
+        f"  sink: {{plugin: 'slow_sink:SlowSink', group: g, inputs: {{markers: source/markers}},\n"
+        f"          config: {{path: '{sink}', delay_s: 0}}}}\n"
+    )
+    tests = str(Path(__file__).resolve().parent)
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [tests, os.environ.get("PYTHONPATH")]))}
+    run = subprocess.run([*CLI, "run", str(path)], capture_output=True, text=True, timeout=90, env=env, check=False)
+    assert run.returncode == 0, run.stdout + run.stderr
+    log = [line.split() for line in calls.read_text().split("\n") if line]
+    assert [int(n) for kind, n in log if kind == "emit"] == list(range(40))
+    assert [int(n) for n in sink.read_text().split()] == list(range(40))
+    emitted = -1
+    for kind, n in log:
+        if kind == "emit":
+            emitted = int(n)
+        else:
+            assert int(n) == emitted + 1, log  # the next frame, after the last one emitted
+    assert any(kind == "prepare" for kind, _ in log)  # a frame every 20 ms leaves time to spare
+
+
+def test_a_failing_prepare_is_reported_and_costs_nothing_else(tmp_path: Path) -> None:
+    from prepared_source import PreparedSource
+
+    class Failing(PreparedSource):
+        def prepare(self, index: int) -> None:
+            raise ValueError("no block")
+
+    sent: list[MarkerFrame] = []
+    runner = Runner("source", Failing, Failing.Config(path=str(tmp_path / "calls.txt")),
+                    lambda port, message: sent.append(message), set())
+    runner.prepare(3)
+    assert runner.stats.errors == 1 and runner.stats.last_error == "prepare frame 3: no block"
+    assert runner.emit(0) and [m.frame for m in sent] == [0]

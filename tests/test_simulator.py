@@ -140,6 +140,18 @@ def test_frames_are_deterministic_and_order_independent(unlabelled: bool) -> Non
     assert not np.allclose(other.true_positions, frames[2].true_positions)
 
 
+def test_a_frame_prepared_ahead_is_the_frame() -> None:
+    """``prepare`` works out a frame's block and occlusion schedules ahead; what the frame then is does not change,
+    nor does any other frame asked for after it."""
+    config = SimulatorConfig(unlabelled=True, seed=7, **BUSY)
+    prepared, plain = Simulator(config), Simulator(config)
+    for i in (64, 2400, 5, 24_000):
+        prepared.prepare(i)
+        assert prepared._block.index == i // 64
+        assert_same(prepared.frame(i), plain.frame(i))
+        assert_same(prepared.frame(i + 1), plain.frame(i + 1))
+
+
 # ---------------------------------------------------------------------------------------------------- truth
 
 

@@ -261,6 +261,13 @@ class Simulator:
                              ghosts, shuffle)
         return self._block
 
+    def prepare(self, i: int) -> None:
+        """Work out now what frame i needs beyond a few slices, its block and its occlusion schedules, so that
+        ``frame(i)`` then costs only those (a live source calls it in the time before the frame is due)."""
+        self._block_of(i)
+        for gaps in self._gaps:
+            gaps.hidden(i)
+
     def segment_poses(self, i: int) -> tuple[np.ndarray, np.ndarray]:
         """World pose of every segment's rig frame (origin at its proximal joint centre): R (S, 3, 3), t (S, 3)."""
         block, k = self._block_of(i), i % _BLOCK

@@ -135,6 +135,13 @@ class Node(Generic[ConfigT]):
         """Sources: produce frame ``index``. Return False when the source has no more frames."""
         raise NotImplementedError(f"{type(self).__name__} is a source but does not implement emit()")
 
+    def prepare(self, index: int) -> None:
+        """Sources: the runtime calls it in the time left before frame ``index`` is due, once the frame before has
+        been handled and only if there is time, so a paced source can work out ahead what ``emit(index)`` needs (a
+        simulator its next block of frames) instead of delaying that frame by it. It may come for the frame past the
+        source's last (``emit`` then says there is none), and ``emit`` must not depend on it: by default nothing is
+        done."""
+
     def due_ns(self, index: int) -> int:
         """Sources: when frame ``index`` is due on the runtime's timetable (wall clock, ns since the Unix epoch), the
         capture time of a simulated or replayed frame, so that latency also counts the time a frame was emitted late;

@@ -191,6 +191,14 @@ class Runner:
             self.stats.frame_done(self._last_capture_ns)
         return True
 
+    def prepare(self, index: int) -> None:
+        """Sources: the node's ``prepare(index)``; its failure is reported and costs nothing else (``emit`` does
+        without it)."""
+        try:
+            self.node.prepare(index)
+        except Exception as exc:
+            self.report_error(f"prepare frame {index}", exc)
+
     def finish(self) -> bool:
         """The node's ``finish()``; its failure is reported, never a crash to restart (the stream has ended)."""
         try:

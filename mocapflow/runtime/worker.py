@@ -387,6 +387,8 @@ class Worker:
                     self._end_outputs(src)
                 index += 1
                 self._drain()
+                if not src.runner.ended and src.runner.node.paced and time.monotonic() < t0 + index * period:
+                    src.runner.prepare(index)  # the next frame's work, in the time left before it is due
 
     def _waiting(self) -> dict[tuple[str, str], str]:
         """The data inputs from outside that have not ended, as (member, port), each with the node whose output it
