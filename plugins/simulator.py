@@ -29,12 +29,15 @@ class SimulatorNode(Node[SimulatorNodeConfig]):
         self.rate = self.config.rate
         self.labels = list(self.sim.rig.marker_labels)
 
+    def _past_end(self, index: int) -> bool:
+        return self.config.frames is not None and index >= self.config.frames
+
     def prepare(self, index: int) -> None:
-        if self.config.frames is None or index < self.config.frames:
+        if not self._past_end(index):
             self.sim.prepare(index)  # one frame in 64 starts a block: worked out here, it delays no frame
 
     def emit(self, index: int) -> bool:
-        if self.config.frames is not None and index >= self.config.frames:
+        if self._past_end(index):
             return False
         frame = self.sim.frame(index)
         capture_ns = self.due_ns(index)  # a late frame is late from when it was due

@@ -325,12 +325,18 @@ PARTITIONERS: dict[str, Callable[..., list[list[int]]]] = {
 """Clustering methods by name, each taking a spread matrix and ``k`` (``partition`` calls them)."""
 
 
+def known_method(method: str) -> str:
+    """``method`` when it names a clustering method (``PARTITIONERS``); a ValueError naming them otherwise."""
+    if method not in PARTITIONERS:
+        raise ValueError(f"unknown clustering method {method!r}; choose one of {', '.join(PARTITIONERS)}")
+    return method
+
+
 def partition(method: str, stats: PairStatistics, k: int | None = None, min_frames: int = MIN_PAIR_FRAMES,
               **options: object) -> list[list[int]]:
     """Markers to segments by clustering ``method`` (``PARTITIONERS``) from a recording's pair statistics (the
     rigidity clusterer also reads the mean distances); ``options`` go to the clusterer."""
-    if method not in PARTITIONERS:
-        raise ValueError(f"unknown clustering method {method!r}; choose one of {', '.join(PARTITIONERS)}")
+    known_method(method)
     if method == "rigidity":
         options = {"distance": stats.mean(min_frames), **options}
     return PARTITIONERS[method](stats.spread(min_frames), k, **options)
@@ -406,9 +412,7 @@ class SegmentTracker:
     def __init__(self, labels: Sequence[str], *, window: int = 600, warmup: int | None = None, every: int = 30,
                  backoff: int = 4, method: Literal["rigidity", "spectral", "distance-threshold"] = "spectral",
                  **options: object) -> None:
-        if method not in PARTITIONERS:
-            raise ValueError(f"unknown clustering method {method!r}; choose one of {', '.join(PARTITIONERS)}")
-        self.method = method
+        self.method = known_method(method)
         self.labels = list(labels)
         self.window = window
         self.warmup = window if warmup is None else warmup
