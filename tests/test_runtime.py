@@ -330,7 +330,8 @@ def test_a_paced_source_is_asked_to_prepare_each_frame_only_before_it_is_emitted
     path = tmp_path / "g.yaml"
     path.write_text(
         f"name: prepare\nzenoh: {{listen: ['{free_endpoint}']}}\nnodes:\n"
-        f"  source: {{plugin: 'prepared_source:PreparedSource', group: g, config: {{path: '{calls}', frames: 40}}}}\n"
+        f"  source: {{plugin: 'prepared_source:PreparedSource', group: g,\n"
+        f"           config: {{path: '{calls}', rate: 20, frames: 30}}}}\n"
         f"  sink: {{plugin: 'slow_sink:SlowSink', group: g, inputs: {{markers: source/markers}},\n"
         f"          config: {{path: '{sink}', delay_s: 0}}}}\n"
     )
@@ -339,15 +340,15 @@ def test_a_paced_source_is_asked_to_prepare_each_frame_only_before_it_is_emitted
     run = subprocess.run([*CLI, "run", str(path)], capture_output=True, text=True, timeout=90, env=env, check=False)
     assert run.returncode == 0, run.stdout + run.stderr
     log = [line.split() for line in calls.read_text().split("\n") if line]
-    assert [int(n) for kind, n in log if kind == "emit"] == list(range(40))
-    assert [int(n) for n in sink.read_text().split()] == list(range(40))
+    assert [int(n) for kind, n in log if kind == "emit"] == list(range(30))
+    assert [int(n) for n in sink.read_text().split()] == list(range(30))
     emitted = -1
     for kind, n in log:
         if kind == "emit":
             emitted = int(n)
         else:
             assert int(n) == emitted + 1, log  # the next frame, after the last one emitted
-    assert any(kind == "prepare" for kind, _ in log)  # a frame every 20 ms leaves time to spare
+    assert any(kind == "prepare" for kind, _ in log)  # 50 ms a frame for a few us of work: slack however busy
 
 
 def test_a_failing_prepare_is_reported_and_costs_nothing_else(tmp_path: Path) -> None:
