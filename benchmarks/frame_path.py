@@ -54,6 +54,7 @@ def main() -> None:
 
             nodes[name] = cls(cls.Config.model_validate(spec.get("config", {})), publish, name)
             nodes[name].linked = frozenset(spec.get("inputs", {}))  # as the runtime tells it
+            nodes[name].audience = lambda port, name=name: bool(links.get((name, port)))  # with no one watching
         links: dict[tuple[str, str], list[tuple[str, str]]] = defaultdict(list)  # (node, output) -> inputs
         for name, spec in graph.items():
             for port, link in spec.get("inputs", {}).items():

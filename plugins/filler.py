@@ -63,6 +63,8 @@ class Filler(Node[FillerNodeConfig]):
         result = self.filler.update(message.positions, message.rays)  # filled in float64, on a copy
         self.publish("markers", MarkerFrame.derive(message, positions=result.positions, labels=message.labels,
                                                    flags=result.flags))
+        if not self.listened("predictions"):  # a graph whose markers come labelled: no labeller to tell
+            return
         predicted = self.filler.predict_next()
         alone = (result.flags == CASE_MISSING) | (result.flags == CASE_KALMAN)
         predicted[alone] = np.nan  # a filter coasting alone knows no more than the labeller's own coast

@@ -45,8 +45,10 @@ class SimulatorNode(Node[SimulatorNodeConfig]):
             frame=index, capture_ns=capture_ns, rate=self.rate, positions=frame.points, labels=frame.labels,
             rays=frame.rays,
         ))
-        self.publish("truth", SimTruth(
-            frame=index, capture_ns=capture_ns, labels=self.labels, identity=frame.identity,
-            true_positions=frame.true_positions, joint_names=self.sim.joint_names, joint_centres=frame.joint_centres,
-        ))
+        if self.listened("truth"):  # an evaluation's: no graph that only runs the simulator reads it
+            self.publish("truth", SimTruth(
+                frame=index, capture_ns=capture_ns, labels=self.labels, identity=frame.identity,
+                true_positions=frame.true_positions, joint_names=self.sim.joint_names,
+                joint_centres=frame.joint_centres,
+            ))
         return True

@@ -137,3 +137,34 @@ def test_validate_checks_groups(tmp_path: Path) -> None:
                     "  c: {plugin: relay, inputs: {markers: a/markers}, group: one, machine: lab2}\n")
     with pytest.raises(GraphError, match="group 'one' has nodes placed on machines \\(c\\)"):
         load_graph(path)
+
+
+@pytest.mark.integration
+def test_an_output_nobody_reads_is_left_out_until_someone_subscribes(tmp_path: Path, free_endpoint: str) -> None:
+    """The simulator builds its truth only for a reader (``Node.listened``): without one it publishes its markers
+    alone; a subscriber from outside the graph gets every frame's truth."""
+    frames = 120
+    graph = tmp_path / "truth.yaml"
+    graph.write_text(
+        "name: truth\nnodes:\n"
+        f"  tracker: {{plugin: simulator, group: g, config: {{rig: human, rate: 60, frames: {frames}}}}}\n"
+        f"  recorder: {{plugin: recorder, group: g, inputs: {{markers: tracker/markers}},"
+        f" config: {{path: '{tmp_path / 'out.c3d'}'}}}}\n")
+    truth: list[int] = []
+    with open_router([free_endpoint]) as router:
+        for watched in (False, True):
+            sub = None
+            if watched:
+                def on_sample(sample: zenoh.Sample) -> None:
+                    if sample.kind == zenoh.SampleKind.PUT:
+                        truth.append(orjson.loads(sample.payload.to_bytes())["frame"])
+                sub = router.declare_subscriber("mocapflow/truth/tracker/truth", on_sample)
+            summary = tmp_path / f"watched-{watched}.json"
+            done = run_cli("run", graph, "--connect", free_endpoint, "--summary", summary, timeout=120)
+            assert done.returncode == 0, done.stdout + done.stderr
+            time.sleep(0.3)
+            if sub is not None:
+                sub.undeclare()
+            tracker = orjson.loads(summary.read_bytes())["tracker"]
+            assert tracker["frames_out"] == (2 * frames if watched else frames), tracker
+    assert truth == list(range(frames))

@@ -133,6 +133,8 @@ class _Block:
     ghost_rows: np.ndarray  # (B + 1,) frame k's ghosts are rows ghost_rows[k]:ghost_rows[k + 1] of ghosts
     ghosts: np.ndarray  # (G, 3)
     shuffle: np.ndarray  # (B, N + most ghosts) random keys: a frame's points are ordered by the keys of its rows
+    hidden: np.ndarray  # (B, N) True where a marker is occluded (the occlusion schedules)
+    clouds: tuple[np.ndarray, np.ndarray, np.ndarray] | None  # unlabelled without cameras: ``_clouds`` of the block
 
 
 @dataclass
@@ -187,9 +189,15 @@ class _Gaps:
             self.cache[b] = mask
         return self.cache[b]
 
-    def hidden(self, i: int) -> np.ndarray:
-        """(N,) True for markers occluded at frame i."""
-        return self._hidden_in(i // self.block)[i % self.block]
+    def hidden(self, first: int, count: int) -> np.ndarray:
+        """(count, N) True for markers occluded in frames first..first + count - 1."""
+        rows, i, end = [], first, first + count
+        while i < end:
+            b, k = divmod(i, self.block)
+            take = min(self.block - k, end - i)
+            rows.append(self._hidden_in(b)[k:k + take])
+            i += take
+        return np.concatenate(rows)
 
 
 class Simulator:
@@ -226,7 +234,7 @@ class Simulator:
         aim = np.array([0.0, 0.0, _CAMERA_AIM_MM]) - self.camera_centres
         self._camera_axes = aim / np.linalg.norm(aim, axis=1, keepdims=True)
         self.capsule_ends, self.capsule_radii = _capsules(rig)
-        self._block = _Block(-1, *(np.empty(0),) * 8)
+        self._block = _Block(-1, *(np.empty(0),) * 9, None)
 
     def _block_of(self, i: int) -> _Block:
         """The block of _BLOCK frames that frame i falls in, worked out at once (vectorised): segment poses, true and
@@ -257,16 +265,19 @@ class Simulator:
         near = rng.integers(0, n, len(direction))
         ghosts = true[np.repeat(np.arange(_BLOCK), counts), near] + direction * radius
         shuffle = rng.random((_BLOCK, n + counts.max(initial=0))) if cfg.unlabelled else np.empty((_BLOCK, 0))
-        self._block = _Block(b, rot, pos, true, observed, misses, np.concatenate([[0], np.cumsum(counts)]),
-                             ghosts, shuffle)
+        ghost_rows = np.concatenate([[0], np.cumsum(counts)])
+        hidden = np.zeros((_BLOCK, n), bool)
+        for gaps in self._gaps:
+            hidden |= gaps.hidden(b * _BLOCK, _BLOCK)
+        # without cameras what a frame shows is known now; with them, each frame works out which cameras see what
+        clouds = _clouds(observed, ~hidden, ghosts, ghost_rows, shuffle) if cfg.unlabelled and not cfg.cameras else None
+        self._block = _Block(b, rot, pos, true, observed, misses, ghost_rows, ghosts, shuffle, hidden, clouds)
         return self._block
 
     def prepare(self, i: int) -> None:
-        """Work out now what frame i needs beyond a few slices, its block and its occlusion schedules, so that
-        ``frame(i)`` then costs only those (a live source calls it in the time before the frame is due)."""
+        """Work out now what frame i needs beyond a few slices, its block, so that ``frame(i)`` then costs only those
+        (a live source calls it in the time before the frame is due)."""
         self._block_of(i)
-        for gaps in self._gaps:
-            gaps.hidden(i)
 
     def segment_poses(self, i: int) -> tuple[np.ndarray, np.ndarray]:
         """World pose of every segment's rig frame (origin at its proximal joint centre): R (S, 3, 3), t (S, 3)."""
@@ -278,10 +289,7 @@ class Simulator:
         cfg = self.config
         block, k = self._block_of(i), i % _BLOCK
         rot, pos, true, observed = block.rot[k], block.pos[k], block.true[k], block.observed[k]
-        hidden = np.zeros(len(true), bool)
-        for gaps in self._gaps:
-            hidden |= gaps.hidden(i)
-        visible = ~hidden
+        visible = ~block.hidden[k]
         rays = None
         if cfg.cameras:
             seen = self._seen(true, rot, pos) & visible[:, None]
@@ -294,15 +302,19 @@ class Simulator:
             direction /= np.linalg.norm(direction, axis=1, keepdims=True)
             rays = np.where((seen_by == 1)[:, None], np.concatenate([origin, direction], axis=1), np.nan)
         if cfg.unlabelled:
-            ghosts = block.ghosts[block.ghost_rows[k]:block.ghost_rows[k + 1]]
-            identity = np.concatenate([np.flatnonzero(visible), np.full(len(ghosts), -1)])
-            shuffle = block.shuffle[k]
-            order = np.argsort(shuffle[:len(identity)])
-            points = np.concatenate([observed[visible], ghosts])[order]
-            identity, labels = identity[order], None
+            if block.clouds is None:  # this frame's alone, its visibility known only now
+                rows = block.ghost_rows[k:k + 2]
+                clouds = _clouds(observed[None], visible[None], block.ghosts[rows[0]:rows[1]], rows - rows[0],
+                                 block.shuffle[k:k + 1])
+                row = 0
+            else:
+                clouds, row = block.clouds, k
+            count = clouds[2][row]
+            points, identity, labels = clouds[0][row, :count].copy(), clouds[1][row, :count].copy(), None
             if rays is not None:  # single-camera markers follow the points, as rows with a ray and no position
                 single = np.flatnonzero(np.isfinite(rays[:, 0]))
-                single = single[np.argsort(shuffle[::-1][:len(single)])]  # keys from the other end: no row shares
+                # ordered by keys from the other end of the frame's, which no row of points shares
+                single = single[np.argsort(block.shuffle[k, ::-1][:len(single)])]
                 rays = np.concatenate([np.full((len(points), 6), np.nan), rays[single]])
                 points = np.concatenate([points, np.full((len(single), 3), np.nan)])
                 identity = np.concatenate([identity, single])
@@ -339,6 +351,29 @@ class Simulator:
         a = np.clip(nearest, _SIGHT_CLEAR_MM, length)
         gap2 = rr - b * (2 * vr - b * vv) + a * (a - 2 * nearest)  # |m + a u - q - b v|^2
         return (in_view & ~(gap2 < self.capsule_radii[:, None, None] ** 2).any(0)).T
+
+
+def _clouds(observed: np.ndarray, visible: np.ndarray, ghosts: np.ndarray, ghost_rows: np.ndarray,
+            keys: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Frames as an unlabelled tracker reports them: each frame's visible markers (``observed`` (F, N, 3) where
+    ``visible`` (F, N)) and its ghosts (rows ``ghost_rows[k]:ghost_rows[k + 1]`` of ``ghosts`` for frame k), in the
+    order of the frame's random ``keys`` (F, W) (the visible markers' in marker order, then the ghosts'). Returns the
+    points (F, W, 3), their true marker indices (F, W), -1 for a ghost, and the rows in use in each frame (F,)."""
+    frames, n = visible.shape
+    width = keys.shape[1]
+    seen = visible.sum(1)
+    counts = seen + np.diff(ghost_rows)
+    which = np.argsort(~visible, axis=1, kind="stable")  # each frame's visible markers first, in marker order
+    used = np.arange(n)[None] < seen[:, None]
+    identity = np.full((frames, width), -1, np.intp)
+    points = np.full((frames, width, 3), np.nan)
+    identity[:, :n][used] = which[used]
+    points[:, :n][used] = np.take_along_axis(observed, which[..., None], 1)[used]
+    owner = np.repeat(np.arange(frames), np.diff(ghost_rows))  # the frame of each ghost, after its markers
+    points[owner, seen[owner] + np.arange(len(owner)) - ghost_rows[owner]] = ghosts
+    # the rows in use sorted by their keys (distinct random numbers), the rows beyond after them
+    order = np.argsort(np.where(np.arange(width)[None] < counts[:, None], keys, np.inf), axis=1)
+    return np.take_along_axis(points, order[..., None], 1), np.take_along_axis(identity, order, 1), counts
 
 
 def camera_ring(cameras: int, radius_mm: float, height_mm: float) -> np.ndarray:

@@ -80,6 +80,7 @@ class Node(Generic[ConfigT]):
 
     rate: float = 0.0
     linked: frozenset[str] | None = None  # the input ports the graph links; None when driven outside a graph
+    audience: Callable[[str], bool] | None = None  # set by the runtime: answers ``listened``
     clock_origin_ns: int | None = None  # sources: when frame 0 was due (wall clock), set by the runtime
     paced: ClassVar[bool] = True
     """Sources: False when frames are pushed by a device (a live tracker), so the runtime calls ``emit`` again at
@@ -111,6 +112,12 @@ class Node(Generic[ConfigT]):
     def publish(self, output: str, message: Message) -> None:
         """Send ``message`` on one of this node's declared outputs."""
         self._publish(output, message)
+
+    def listened(self, output: str) -> bool:
+        """Whether a message published on ``output`` now would reach anyone: a node of the graph, or a subscriber
+        such as a viewer or ``mocapflow echo`` (always, outside a graph). A node may leave out a costly message that
+        nobody would read (the simulator's truth); what it publishes must not depend on it otherwise."""
+        return self.audience is None or self.audience(output)
 
     def wanted(self, port: str) -> bool:
         """Whether the node will use the next message on data input ``port``. A stage that shows a stream at its own

@@ -140,6 +140,11 @@ class Member:
     def name(self) -> str:
         return self.spec.node
 
+    def listened(self, port: str) -> bool:
+        """Whether a message on output ``port`` would reach anyone now: a member of the group, or Zenoh (the
+        output itself, its sampled copy or its preview)."""
+        return bool(self.routes.get(port)) or self.wanted[port] or port in self.sampling or port in self.previews
+
 
 class Worker:
     def __init__(self, spec: WorkerSpec, classes: dict[str, type[Node]], configs: dict[str, BaseModel],
@@ -216,6 +221,7 @@ class Worker:
                 self._sampled(member, port, out.type.encoding())
         member.runner = Runner(spec.node, node_cls, config, lambda port, msg: self._send(member, port, msg), ends,
                                set(spec.inputs))
+        member.runner.node.audience = member.listened
         return member
 
     def _preview(self, member: Member, port: str, state: bool, encoding: str) -> None:
