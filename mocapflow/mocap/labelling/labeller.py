@@ -71,8 +71,7 @@ class Labeller:
             raise ValueError(f"frame times must increase: {time} after {self._time}")
         self._time = time
         pts = np.asarray(points, dtype=float).reshape(-1, 3)
-        finite = np.isfinite(pts)
-        rows = (finite[:, 0] & finite[:, 1] & finite[:, 2]).nonzero()[0]
+        rows = _finite_rows(np.ascontiguousarray(pts))
         z = np.ascontiguousarray(pts if len(rows) == len(pts) else pts[rows])  # one compiled form for every caller
         n_tracks = len(self.labels)
         if predictions is not None:
@@ -84,16 +83,10 @@ class Labeller:
         # 1. tracks seen in the previous frame: constant-velocity prediction, gated optimal assignment
         live, cost = _followed(tracks.pos, tracks.vel, tracks.last, tracks.streak, time, cfg.gate_mm, z)
         ti, pi = match(cost)
-        matched = live[ti]
-        cur = np.full((n_tracks, 3), np.nan)
-        cur[matched] = z[pi]
-        taken = np.full(len(z), -1, np.intp)
-        taken[pi] = matched
+        cur, taken, lost, free = _matched(live[ti], pi, z, n_tracks)
 
         # 2. the others: re-identification from rigid neighbours or outside predictions, else a short coast; with no
         # point left over (most frames) there is nothing to re-identify, and nothing to confirm in step 3 either
-        lost = np.isnan(cur[:, 0]).nonzero()[0]
-        free = (taken < 0).nonzero()[0]
         if len(free) and len(lost):
             lost_pred, lost_gate, instant = self._lost_predictions(lost, cur, time, predictions, z[free])
             self._reidentify(lost, lost_pred, lost_gate, instant, cur, z, taken, free)
@@ -272,6 +265,8 @@ class Labeller:
         """
         cfg = self.config
         tent = self._tentative
+        if len(free) == 0 and len(tent.hits) == 0:  # most frames: nothing to carry on, nothing to start
+            return free
         if len(tent.hits) == 0 or len(free) == 0:  # nothing carried on: every free point starts a tentative track
             tent.start(z[free], time, self.frame)
             return free
@@ -377,6 +372,31 @@ class Labeller:
         self.labels.append(f"M{t + 1:03d}")
         self._tracks.add()
         return t
+
+
+@njit(cache=True)
+def _finite_rows(points: np.ndarray) -> np.ndarray:  # pragma: no cover
+    """The rows of ``points`` (M, 3) with no NaN or infinity."""
+    rows = np.empty(len(points), np.intp)
+    n = 0
+    for i in range(len(points)):
+        if np.isfinite(points[i, 0]) and np.isfinite(points[i, 1]) and np.isfinite(points[i, 2]):
+            rows[n] = i
+            n += 1
+    return rows[:n]
+
+
+@njit(cache=True)
+def _matched(tracks: np.ndarray, rows: np.ndarray, points: np.ndarray,
+             n_tracks: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:  # pragma: no cover
+    """Step 1's assignment of ``points[rows]`` to ``tracks``: the tracks' positions (T, 3), NaN for the others
+    (lost), the track that took each point (-1: none, free), and the lost tracks and free points."""
+    cur = np.full((n_tracks, 3), np.nan)
+    taken = np.full(len(points), -1, np.intp)
+    for k in range(len(tracks)):
+        cur[tracks[k]] = points[rows[k]]
+        taken[rows[k]] = tracks[k]
+    return cur, taken, np.flatnonzero(np.isnan(cur[:, 0])), np.flatnonzero(taken < 0)
 
 
 @njit(cache=True)
