@@ -44,7 +44,8 @@ class LabellerNode(Node[LabellerConfig]):
             self.log.info("resuming %d tracks after a restart", len(self.labeller.labels))
         self.predictions: MarkerFrame | None = None
         self._rows_for: tuple[list[str], int] | None = None  # prediction labels and track count self._rows serves
-        self._rows = np.empty(0, np.intp), np.empty(0, np.intp)  # tracks, and their rows in the predictions
+        # tracks, and their rows in the predictions; None where the rows are the first tracks, in order
+        self._rows: tuple[np.ndarray, np.ndarray] | None = np.empty(0, np.intp), np.empty(0, np.intp)
         self.segments: Segments | None = None
 
     def process(self, port: str, message: MarkerFrame | Segments) -> None:
@@ -100,10 +101,16 @@ class LabellerNode(Node[LabellerConfig]):
         if self._rows_for != (p.labels, len(labels)):
             index = {label: i for i, label in enumerate(p.labels)}
             tracks = [t for t, label in enumerate(labels) if label in index]
-            self._rows = np.array(tracks, np.intp), np.array([index[labels[t]] for t in tracks], np.intp)
+            rows = np.array(tracks, np.intp), np.array([index[labels[t]] for t in tracks], np.intp)
+            same = len(tracks) == len(p.labels) and all(np.array_equal(r, np.arange(len(r))) for r in rows)
+            self._rows = None if same else rows
             self._rows_for = (list(p.labels), len(labels))
-        out = np.full((len(labels), 3), np.nan)
-        out[self._rows[0]] = p.positions[self._rows[1]]
+        out = np.empty((len(labels), 3))
+        out.fill(np.nan)
+        if self._rows is None:  # the same markers in the same order, the newest tracks perhaps not yet filled
+            out[:len(p.positions)] = p.positions
+        else:
+            out[self._rows[0]] = p.positions[self._rows[1]]
         return out
 
     def _apply_segments(self) -> None:

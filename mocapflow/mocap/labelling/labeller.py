@@ -341,13 +341,10 @@ class Labeller:
         or lost track fits so. That is the evidence a confirmed point needs (``_owners``), asked of a point followed
         for two frames, or pinned in one: a ghost seldom lies on a circle of distances, and seldom lives two frames.
         A returning marker is then labelled from its first or second frame rather than after ``confirm_frames``."""
-        owners = np.full(len(z), -1, np.intp)
         if len(z) == 0 or len(lost) == 0:
-            return owners
+            return np.full(len(z), -1, np.intp)
         broken, partners, _ = self._tracks.signature(lost, cur, z)
-        row = _sure_fits(broken, partners, hits)
-        owners[row >= 0] = lost[row[row >= 0]]
-        return owners
+        return _sure_fits(broken, partners, hits, lost)
 
     def _adopt(self, ready: np.ndarray, owners: np.ndarray) -> list[tuple[int, np.ndarray, np.ndarray]]:
         """Hand confirmed tentative tracks to their owners and return their earlier, so far unlabelled, points."""
@@ -492,10 +489,11 @@ def _instant_costs(pred: np.ndarray, gate: np.ndarray, instant: np.ndarray,
 
 
 @njit(cache=True)
-def _sure_fits(broken: np.ndarray, partners: np.ndarray, hits: np.ndarray) -> np.ndarray:  # pragma: no cover
-    """For each point, the one row of ``rigid_signature``'s ``broken`` and ``partners`` ``(A, B)`` it surely fits
-    (``Labeller._sure_owners``), -1 where none: no distance broken, to three partners or more (two once ``hits`` says
-    the point was followed for two frames), and no other row or point fits so."""
+def _sure_fits(broken: np.ndarray, partners: np.ndarray, hits: np.ndarray,
+               tracks: np.ndarray) -> np.ndarray:  # pragma: no cover
+    """For each point, the track (of ``tracks``, the rows of ``rigid_signature``'s ``broken`` and ``partners``
+    ``(A, B)``) it surely fits (``Labeller._sure_owners``), -1 where none: no distance broken, to three partners or
+    more (two once ``hits`` says the point was followed for two frames), and no other row or point fits so."""
     fits = np.zeros(broken.shape, np.bool_)
     rows = np.zeros(broken.shape[0], np.int64)
     cols = np.zeros(broken.shape[1], np.int64)
@@ -508,7 +506,7 @@ def _sure_fits(broken: np.ndarray, partners: np.ndarray, hits: np.ndarray) -> np
     for a in range(broken.shape[0]):
         for b in range(broken.shape[1]):
             if fits[a, b] and rows[a] == 1 and cols[b] == 1:
-                out[b] = a
+                out[b] = tracks[a]
     return out
 
 
