@@ -595,3 +595,34 @@ def test_a_labeller_resumed_after_a_gap_names_no_other_marker(rig: str, saved_at
     moved = [t for t in was.keys() & now.keys() if was[t] != now[t]]
     assert not moved, f"{len(moved)} labels name another marker after the gap"
     assert len(was.keys() & now.keys()) >= len(was) // 2  # most markers keep their label
+
+
+def test_a_lost_marker_is_placed_from_its_snapshots_leaving_out_a_neighbour_that_moved() -> None:
+    """``place_marker``: snapshots of a marker with five rigid neighbours, in twenty poses; the neighbours seen now in
+    a new pose place it within the noise. A neighbour that slid 80 mm is left out; with two neighbours seen nothing
+    is placed; a mirror image of the body (same distances) is not taken for it."""
+    from mocapflow.mocap.labelling.placement import place_marker
+
+    rng = np.random.default_rng(3)
+    body = rng.normal(0.0, 80.0, (6, 3))  # row 0: the marker
+    turns = Rotation.random(21, random_state=4).as_matrix()
+    poses = np.einsum("sij,nj->sni", turns[:20], body) + rng.normal(0, 300, (20, 1, 3)) + rng.normal(0, 0.3, (20, 6, 3))
+    truth = turns[20] @ body[0] + [100.0, -50.0, 900.0]
+    now = body[1:] @ turns[20].T + [100.0, -50.0, 900.0]
+    trust = np.ones(5)
+    place, misfit, spread = place_marker(poses[None], now[None], trust[None], 5.0)
+    assert np.linalg.norm(place[0] - truth) < 2.0 and misfit[0] < 1.5 and spread[0] < 2.0, (place, misfit, spread)
+
+    slid = now.copy()
+    slid[2] += [80.0, 0.0, 0.0]
+    place, misfit, _ = place_marker(poses[None], slid[None], trust[None], 5.0)
+    assert np.linalg.norm(place[0] - truth) < 2.0 and misfit[0] < 1.5, (place, misfit)
+
+    hidden = now.copy()
+    hidden[2:] = np.nan
+    place, misfit, spread = place_marker(poses[None], hidden[None], trust[None], 5.0)
+    assert np.isnan(place).all() and np.isnan(misfit).all() and np.isnan(spread).all()
+
+    mirrored = np.einsum("sij,nj->sni", turns[:20], body * [1.0, 1.0, -1.0])  # same distances, other handedness
+    place, misfit, _ = place_marker(mirrored[None], now[None], trust[None], 5.0)
+    assert misfit[0] > 10.0 or np.linalg.norm(place[0] - truth) > 10.0, (place, misfit)

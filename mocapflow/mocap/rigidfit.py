@@ -187,7 +187,7 @@ def fit_one(local: np.ndarray, world: np.ndarray, weight: np.ndarray) -> tuple[n
     """``kabsch`` for a single point set (M, 3), compiled; None where the points do not fix a rotation."""
     w = np.asarray(weight, dtype=np.float64)
     r, t = np.empty((3, 3)), np.empty(3)
-    if not _kabsch_one(np.asarray(local, dtype=np.float64), np.asarray(world, dtype=np.float64), w / w.sum(), r, t):
+    if not kabsch_into(np.asarray(local, dtype=np.float64), np.asarray(world, dtype=np.float64), w / w.sum(), r, t):
         return None
     return r, t
 
@@ -198,12 +198,12 @@ def _kabsch_batch(local: np.ndarray, world: np.ndarray, weight: np.ndarray
     """``kabsch`` of each point set of a batch, normalised ``weight`` (B, M)."""
     r, t, ok = np.empty((len(local), 3, 3)), np.empty((len(local), 3)), np.empty(len(local), np.bool_)
     for b in range(len(local)):
-        ok[b] = _kabsch_one(local[b], world[b], weight[b], r[b], t[b])
+        ok[b] = kabsch_into(local[b], world[b], weight[b], r[b], t[b])
     return r, t, ok
 
 
 @njit(cache=True)
-def _kabsch_one(local: np.ndarray, world: np.ndarray, w: np.ndarray, r: np.ndarray,
+def kabsch_into(local: np.ndarray, world: np.ndarray, w: np.ndarray, r: np.ndarray,
                 t: np.ndarray) -> bool:  # pragma: no cover
     """The least-squares ``world ~ r @ local + t`` for points (M, 3) with normalised weights ``w`` (zero for points
     to leave out, whose coordinates may be anything, NaN too), into ``r`` and ``t``: Horn's rotation of the
