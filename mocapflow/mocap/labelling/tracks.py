@@ -117,18 +117,7 @@ class Tracks:
         self._remember(seen, cur, time)
         if len(seen) < 2 or frame % self.stats_every:
             return
-        # with every track seen (most frames) the whole matrices are updated in place rather than through a copied
-        # block
-        every = len(seen) == len(cur)
-        block = np.s_[:, :] if every else np.ix_(seen, seen)
-        x = cur if every else cur[seen]
-        d = cdist(x, x)
-        n = self.pair_n[block] + 1.0
-        mean = self.pair_mean[block]
-        delta = d - mean
-        mean = mean + delta / n
-        self.pair_n[block], self.pair_mean[block] = n, mean
-        self.pair_m2[block] += delta * (d - mean)
+        _accumulate(seen, cur, self.pair_n, self.pair_mean, self.pair_m2)
         if time >= self.next_select:
             self._select_neighbours(seen, time)
             self.next_select = time + self.config.reselect_s
@@ -181,6 +170,25 @@ class Tracks:
         the range of its distances to each neighbour."""
         _remember(seen, cur, time, self.config.pose_interval_s, self.anchors, self.poses, self.pose_count,
                   self.pose_time, self.span)
+
+
+@njit(cache=True)
+def _accumulate(seen: np.ndarray, cur: np.ndarray, pair_n: np.ndarray, pair_mean: np.ndarray,
+                pair_m2: np.ndarray) -> None:  # pragma: no cover
+    """In place, the running statistics (Welford: count, mean, sum of squared deviations) of the distance of every
+    pair of the ``seen`` tracks, positions ``cur``, a track with itself included."""
+    for a in seen:
+        for b in seen:
+            s = 0.0
+            for c in range(3):
+                e = cur[a, c] - cur[b, c]
+                s += e * e
+            d = np.sqrt(s)
+            n = pair_n[a, b] + 1.0
+            delta = d - pair_mean[a, b]
+            mean = pair_mean[a, b] + delta / n
+            pair_n[a, b], pair_mean[a, b] = n, mean
+            pair_m2[a, b] += delta * (d - mean)
 
 
 @njit(cache=True)
