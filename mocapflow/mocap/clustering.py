@@ -24,7 +24,7 @@ import re
 import warnings
 from collections import Counter, deque
 from collections.abc import Callable, Sequence
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 from scipy.cluster.hierarchy import fcluster
@@ -411,7 +411,7 @@ class SegmentTracker:
 
     def __init__(self, labels: Sequence[str], *, window: int = 600, warmup: int | None = None, every: int = 30,
                  backoff: int = 4, method: Literal["rigidity", "spectral", "distance-threshold"] = "spectral",
-                 **options: object) -> None:
+                 **options: Any) -> None:
         self.method = known_method(method)
         self.labels = list(labels)
         self.window = window
@@ -455,7 +455,7 @@ class SegmentTracker:
         self.frames += 1
         if self.frames < self.next:
             return None
-        groups = partition(self.method, self.stats, **self.options)  # type: ignore[arg-type]
+        groups = partition(self.method, self.stats, **self.options)
         unchanged = groups == self.current
         self.interval = min(2 * self.interval, self.backoff * self.every) if unchanged else self.every
         self.next = self.frames + self.interval

@@ -377,7 +377,7 @@ def _finite_rows(points: np.ndarray) -> np.ndarray:  # pragma: no cover
     rows = np.empty(len(points), np.intp)
     n = 0
     for i in range(len(points)):
-        if np.isfinite(points[i, 0]) and np.isfinite(points[i, 1]) and np.isfinite(points[i, 2]):
+        if finite(points[i]):
             rows[n] = i
             n += 1
     return rows[:n]

@@ -7,7 +7,7 @@ from numba import njit
 
 from mocapflow.mocap.labelling.assignment import distance
 from mocapflow.mocap.labelling.config import CANDIDATES
-from mocapflow.mocap.rigidfit import kabsch_into
+from mocapflow.mocap.rigidfit import kabsch_into, place
 
 
 def place_marker(poses: np.ndarray, now: np.ndarray, trust: np.ndarray,
@@ -27,23 +27,23 @@ def place_marker(poses: np.ndarray, now: np.ndarray, trust: np.ndarray,
     others). Compiled, marker by marker: a frame that must place several lost markers pays tens of microseconds, not
     a millisecond.
     """
-    place, misfit, spread = np.full((len(poses), 3), np.nan), np.full(len(poses), np.nan), np.full(len(poses), np.nan)
+    where, misfit, spread = np.full((len(poses), 3), np.nan), np.full(len(poses), np.nan), np.full(len(poses), np.nan)
     _place(np.ascontiguousarray(poses, dtype=np.float64), np.ascontiguousarray(now, dtype=np.float64),
-           np.ascontiguousarray(trust, dtype=np.float64), float(tolerance), CANDIDATES, place, misfit, spread)
-    return place, misfit, spread
+           np.ascontiguousarray(trust, dtype=np.float64), float(tolerance), CANDIDATES, where, misfit, spread)
+    return where, misfit, spread
 
 
 @njit(cache=True)
 def _place(poses: np.ndarray, now: np.ndarray, trust: np.ndarray, tolerance: float, candidates: int,
-           place: np.ndarray, misfit: np.ndarray, spread: np.ndarray) -> None:  # pragma: no cover
-    """``place_marker`` into ``place``, ``misfit`` and ``spread`` (NaN where no snapshot fits)."""
+           where: np.ndarray, misfit: np.ndarray, spread: np.ndarray) -> None:  # pragma: no cover
+    """``place_marker`` into ``where``, ``misfit`` and ``spread`` (NaN where no snapshot fits)."""
     snapshots, k = poses.shape[1], now.shape[1]
     common = np.empty((snapshots, k), np.bool_)
     change = np.empty(snapshots)
     now_d = np.empty((k, k))
     shift, moved_by, row = np.empty((k, k)), np.empty(k), np.empty(k)
     w = np.empty(k)
-    r, t = np.empty((3, 3)), np.empty(3)
+    r, t, at = np.empty((3, 3)), np.empty(3), np.empty(3)
     moved = np.empty((candidates, 3))
     fits = np.full(candidates, np.inf)
     for b in range(len(poses)):
@@ -101,16 +101,13 @@ def _place(poses: np.ndarray, now: np.ndarray, trust: np.ndarray, tolerance: flo
             sq = 0.0
             for i in range(k):
                 if w[i] > 0:
+                    place(r, poses[b, s, 1 + i], t, at)
                     square = 0.0
                     for a in range(3):
-                        d = r[a, 0] * poses[b, s, 1 + i, 0] + r[a, 1] * poses[b, s, 1 + i, 1] + \
-                            r[a, 2] * poses[b, s, 1 + i, 2] + t[a] - now[b, i, a]
-                        square += d * d
+                        square += (at[a] - now[b, i, a]) ** 2
                     sq += w[i] * square
             fits[c] = np.sqrt(sq / total_w)
-            for a in range(3):
-                moved[c, a] = r[a, 0] * poses[b, s, 0, 0] + r[a, 1] * poses[b, s, 0, 1] + r[a, 2] * poses[b, s, 0, 2] \
-                    + t[a]
+            place(r, poses[b, s, 0], t, moved[c])
         if n_fits == 0:
             continue
         best = -1  # the best fit (a NaN fit, from points that fix no rotation, first, as numpy's argmin would)
@@ -120,7 +117,7 @@ def _place(poses: np.ndarray, now: np.ndarray, trust: np.ndarray, tolerance: flo
                 break
             if best < 0 or fits[c] < fits[best]:
                 best = c
-        place[b] = moved[best]
+        where[b] = moved[best]
         misfit[b] = fits[best]
         far = np.nan
         for c in range(len(order)):

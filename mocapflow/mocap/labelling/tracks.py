@@ -10,7 +10,7 @@ import numpy as np
 from numba import njit
 from scipy.spatial.distance import cdist
 
-from mocapflow.mocap.labelling.assignment import rigid_signature_compiled
+from mocapflow.mocap.labelling.assignment import distance, rigid_signature_compiled
 from mocapflow.mocap.labelling.config import SD_FLOOR_MM, STATS_HZ, LabellerConfig
 
 
@@ -179,11 +179,7 @@ def _accumulate(seen: np.ndarray, cur: np.ndarray, pair_n: np.ndarray, pair_mean
     pair of the ``seen`` tracks, positions ``cur``, a track with itself included."""
     for a in seen:
         for b in seen:
-            s = 0.0
-            for c in range(3):
-                e = cur[a, c] - cur[b, c]
-                s += e * e
-            d = np.sqrt(s)
+            d = distance(cur[a], cur[b])
             n = pair_n[a, b] + 1.0
             delta = d - pair_mean[a, b]
             mean = pair_mean[a, b] + delta / n
