@@ -27,4 +27,4 @@ SampleFlag = FillCase
 
 # The codes as plain ints, for per-frame array comparisons: numpy compares an IntEnum member several times slower
 CASE_MISSING, CASE_OBSERVED, CASE_KALMAN = int(FillCase.MISSING), int(FillCase.OBSERVED), int(FillCase.KALMAN)
-CASE_ONE_MISSING = int(FillCase.ONE_MISSING)
+CASE_ONE_MISSING, CASE_TWO_MISSING = int(FillCase.ONE_MISSING), int(FillCase.TWO_MISSING)

@@ -78,6 +78,14 @@ class Body:
         # per segment: (joint, neighbour, centre in this segment's frame, centre in the neighbour's frame)
         self.links = [[(j, other, self.joint_offset(j, k), self.joint_offset(j, other)) for j, other in links]
                       for k, links in enumerate(self.neighbours)]
+        # the same, padded for compiled passes: per segment, its links' count, neighbours and the two centres
+        most = max(map(len, self.links), default=0)
+        self.link_count = np.array(list(map(len, self.links)), dtype=np.int64)
+        self.link_other = np.zeros((s, most), dtype=np.int64)
+        self.link_own, self.link_theirs = np.zeros((s, most, 3)), np.zeros((s, most, 3))
+        for k, centres in enumerate(self.links):
+            for i, (_, other, own, theirs) in enumerate(centres):
+                self.link_other[k, i], self.link_own[k, i], self.link_theirs[k, i] = other, own, theirs
         self.in_segment = self.marker_seg >= 0
         self.near = np.zeros((n, s), dtype=bool)  # per marker: its segment and that segment's neighbours
         for m, k in enumerate(self.marker_seg):
@@ -170,7 +178,8 @@ class Layout:
 
     ``seg_vis``: visible markers per segment; ``target_rows``, ``target_seg``, ``target_local``: each target's row,
     segment and offset in it; ``segments``: the segments holding a target, ``by_vis`` the same from the most visible
-    markers down; ``first``: the segments posed first (``fit_first``), those holding a target, with the other ``near``
+    markers down; ``vis_slot``, ``hit_slot``: per segment and slot of ``Body.idx``, a visible marker, a target;
+    ``first``: the segments posed first (``fit_first``), those holding a target, with the other ``near``
     ones when one of those has fewer than three visible markers (it is then placed through its neighbours, so they
     are needed anyway); ``later``: the other ``near`` segments, posed when needed (``fit_later``); ``parts``: per
     segment holding a target, its ``SegmentPart``; ``anchors``: a segment's anchors through given joints.
@@ -182,7 +191,9 @@ class Layout:
         self.target_seg = body.marker_seg[self.target_rows]
         self.target_local = body.marker_local[self.target_rows]
         self.segments = np.unique(self.target_seg)
-        self.by_vis = sorted(self.segments.tolist(), key=lambda k: -self.seg_vis[k])
+        self.by_vis = np.array(sorted(self.segments.tolist(), key=lambda k: -self.seg_vis[k]), dtype=np.int64)
+        self.vis_slot = np.append(visible, False)[body.idx]  # per segment and marker slot: visible, a target
+        self.hit_slot = np.append(targets, False)[body.idx]
         rest = np.setdiff1d(near, self.segments)
         unposable = (self.seg_vis[self.segments] < 3).any()
         self.first = np.concatenate([self.segments, rest]) if unposable else self.segments

@@ -15,11 +15,18 @@ from mocapflow.mocap.filling.config import FillerConfig, FillResult
 from mocapflow.mocap.filling.geometry import nearest_on_circle, project_on_rays, slide_on_rays, swing, unit
 from mocapflow.mocap.filling.learner import SkeletonLearner, is_complete
 from mocapflow.mocap.filling.memory import MotionMemory
-from mocapflow.mocap.flags import CASE_KALMAN, CASE_MISSING, CASE_OBSERVED, CASE_ONE_MISSING, FillCase
+from mocapflow.mocap.flags import (
+    CASE_KALMAN,
+    CASE_MISSING,
+    CASE_OBSERVED,
+    CASE_ONE_MISSING,
+    CASE_TWO_MISSING,
+    FillCase,
+)
 from mocapflow.mocap.kalman import ConstantVelocityBank
 from mocapflow.mocap.markerset import added
 from mocapflow.mocap.model import SkeletonModel
-from mocapflow.mocap.rigidfit import finite, fit_one
+from mocapflow.mocap.rigidfit import finite, fit_one, kabsch_into, place
 
 
 class Hold(NamedTuple):
@@ -317,72 +324,72 @@ class GapFiller:
         first, later = layout.first, layout.later
         r_all[first], t_all[first], posed[first] = layout.fit_first(filled)  # three visible markers fix a pose
         fresh[first] = True
-        direct = posed[layout.target_seg]  # per target: its segment is fitted
-        if direct.any():
-            rows, seg = layout.target_rows[direct], layout.target_seg[direct]
-            est[rows] = (r_all[seg] @ layout.target_local[direct, :, None])[..., 0] + t_all[seg]
-            codes[rows] = CASE_ONE_MISSING
-        pending = [k for k in layout.by_vis if not posed[k]]
-        if (pending or fit_all) and len(later):
+        _place_on_poses(r_all, t_all, posed, layout.target_rows, layout.target_seg, layout.target_local, est, codes)
+        waiting = np.zeros(s, dtype=bool)  # segments holding a target not yet placed
+        waiting[layout.segments] = ~posed[layout.segments]
+        if (fit_all or waiting.any()) and len(later):
             r_all[later], t_all[later], posed[later] = layout.fit_later(filled)
             fresh[later] = True
         seen_posed = posed.copy()  # placed with at least one of their own markers visible
-        if pending:  # placed from the last frames' poses, fitted now where skipped
-            self._ensure_poses(near)
-        force = False  # set once no pending segment can be anchored: the rest keep their last rotation rate
-        while pending:
-            progress = False
-            for k in list(pending):
-                seen_rows, _, _, miss, hit = layout.parts[k]
-                nv = int(seg_vis[k])
-                links = [link for link in body.links[k] if posed[link[1]]]
-                reference = None  # a posed neighbour, preferring one placed with its own markers seen, then the
-                best = (True, np.inf)  # one whose twist relative to this segment has varied least
-                for j, other, _, _ in links:
-                    if not self._pose_ok[0, other]:
-                        continue
-                    rank = (not seen_posed[other], memory.twist.spread(k, j))
-                    if reference is None or rank < best:
-                        best, reference = rank, (other, r_all[other], self._pose_r[0, other])
-                learnt = None if nv or not cfg.kinematic_model else memory.kinematic.points(
-                    k, [other for _, other, _, _ in links if seen_posed[other]], reference and reference[0],
-                    body.offsets[k], r_all, t_all)
-                if not (nv == 0 or cfg.joint_anchors == "partial"):
-                    links = []
-                m = nv + len(links)
-                if m == 0 and not force:
-                    continue  # a hidden neighbour may be placed first and anchor this segment
-                a, w, anchors = layout.anchors(k, links, cfg.joint_weight)
-                p = np.empty((m, 3))
-                p[:nv] = filled[seen_rows]
-                for i, (_, other, _, theirs) in enumerate(links, start=nv):
-                    p[i] = r_all[other] @ theirs + t_all[other]
-                if learnt is not None:  # the learnt markers join the joints: they fix the twist the joints leave
-                    p, a = np.concatenate([p, learnt]), np.concatenate([a, body.offsets[k]])
-                    w = np.concatenate([w, np.full(len(learnt), self._kinematic_weight)])
-                via_seen = any(seen_posed[other] for _, other, _, _ in links)
-                pending.remove(k)
-                progress = True
-                placed = self._estimate_segment(k, p, a, w, anchors, reference, prior, keep)
-                if placed is None:
+        # the waiting segments are placed through their neighbours' joints, in passes from the most visible down, so
+        # that one placed can anchor the next (a pass that places none sets ``force``: the rest keep their last
+        # rotation rate); the compiled pass places those with a visible marker and three or more anchors, and hands
+        # each of the others here
+        state = np.zeros(3, dtype=np.int64)  # the pass's cursor, whether it placed one, ``force``
+        last_known = False  # the last frames' poses, fitted where skipped, which only the segments handed here need
+        while (k := _place_through_joints(
+                filled, layout.by_vis, state, waiting, seg_vis, body.idx, body.local, layout.vis_slot,
+                layout.hit_slot, body.link_count, body.link_other, body.link_own, body.link_theirs, cfg.joint_weight,
+                cfg.joint_anchors == "partial", r_all, t_all, posed, seen_posed, est, codes)) >= 0:
+            if not last_known:
+                self._ensure_poses(near)
+                last_known = True
+            waiting[k] = False
+            state[1] = True
+            seen_rows, _, _, miss, hit = layout.parts[k]
+            nv = int(seg_vis[k])
+            links = [link for link in body.links[k] if posed[link[1]]]
+            reference = None  # a posed neighbour, preferring one placed with its own markers seen, then the
+            best = (True, np.inf)  # one whose twist relative to this segment has varied least
+            for j, other, _, _ in links:
+                if not self._pose_ok[0, other]:
                     continue
-                r, t, points_on_circle = placed
-                est[miss] = (points_on_circle if points_on_circle is not None else body.offsets[k] @ r.T + t)[hit]
-                if learnt is not None:
-                    codes[miss] = FillCase.LEARNT
-                elif seg_vis[k] >= 2:
-                    codes[miss] = FillCase.ONE_MISSING
-                elif seg_vis[k] == 1:
-                    codes[miss] = FillCase.TWO_MISSING
-                elif via_seen:
-                    codes[miss] = FillCase.VIA_JOINT
-                else:
-                    codes[miss] = FillCase.CONSTANT_ROTOR
-                    self._extrapolated[miss] = len(p) == 0
-                if len(p):
-                    r_all[k], t_all[k], posed[k] = r, t, True
-                    seen_posed[k] = seg_vis[k] > 0
-            force = not progress
+                rank = (not seen_posed[other], memory.twist.spread(k, j))
+                if reference is None or rank < best:
+                    best, reference = rank, (other, r_all[other], self._pose_r[0, other])
+            learnt = None if nv or not cfg.kinematic_model else memory.kinematic.points(
+                k, [other for _, other, _, _ in links if seen_posed[other]], reference and reference[0],
+                body.offsets[k], r_all, t_all)
+            if not (nv == 0 or cfg.joint_anchors == "partial"):
+                links = []
+            a, w, anchors = layout.anchors(k, links, cfg.joint_weight)
+            p = np.empty((nv + len(links), 3))
+            p[:nv] = filled[seen_rows]
+            for i, (_, other, _, theirs) in enumerate(links, start=nv):
+                p[i] = r_all[other] @ theirs + t_all[other]
+            if learnt is not None:  # the learnt markers join the joints: they fix the twist the joints leave
+                p, a = np.concatenate([p, learnt]), np.concatenate([a, body.offsets[k]])
+                w = np.concatenate([w, np.full(len(learnt), self._kinematic_weight)])
+            via_seen = any(seen_posed[other] for _, other, _, _ in links)
+            placed = self._estimate_segment(k, p, a, w, anchors, reference, prior, keep)
+            if placed is None:
+                continue
+            r, t, points_on_circle = placed
+            est[miss] = (points_on_circle if points_on_circle is not None else body.offsets[k] @ r.T + t)[hit]
+            if learnt is not None:
+                codes[miss] = FillCase.LEARNT
+            elif seg_vis[k] >= 2:
+                codes[miss] = FillCase.ONE_MISSING
+            elif seg_vis[k] == 1:
+                codes[miss] = FillCase.TWO_MISSING
+            elif via_seen:
+                codes[miss] = FillCase.VIA_JOINT
+            else:
+                codes[miss] = FillCase.CONSTANT_ROTOR
+                self._extrapolated[miss] = len(p) == 0
+            if len(p):
+                r_all[k], t_all[k], posed[k] = r, t, True
+                seen_posed[k] = seg_vis[k] > 0
         return est, codes, (r_all, t_all, posed, fresh)
 
     def _estimate_segment(
@@ -447,6 +454,75 @@ class GapFiller:
             return last
         step = Rotation.from_matrix(last @ self._pose_r[1, k].T)  # R_{k-1} R_{k-2}^T, re-orthonormalised
         return (step * Rotation.from_matrix(last)).as_matrix()
+
+
+@njit(cache=True)
+def _place_on_poses(r: np.ndarray, t: np.ndarray, posed: np.ndarray, rows: np.ndarray, seg: np.ndarray,
+                    local: np.ndarray, est: np.ndarray, codes: np.ndarray) -> None:  # pragma: no cover
+    """Each target (``rows``, at ``local`` in segment ``seg``) of a ``posed`` segment placed by its pose (R, t), in
+    place: ``est`` and ``codes`` (``CASE_ONE_MISSING``)."""
+    for i in range(len(rows)):
+        k = seg[i]
+        if posed[k]:
+            place(r[k], local[i], t[k], est[rows[i]])
+            codes[rows[i]] = CASE_ONE_MISSING
+
+
+@njit(cache=True)
+def _place_through_joints(filled: np.ndarray, order: np.ndarray, state: np.ndarray, waiting: np.ndarray,
+                          seg_vis: np.ndarray, idx: np.ndarray, local: np.ndarray, vis_slot: np.ndarray,
+                          hit_slot: np.ndarray, link_count: np.ndarray, link_other: np.ndarray, link_own: np.ndarray,
+                          link_theirs: np.ndarray, joint_weight: float, partial: bool, r_all: np.ndarray,
+                          t_all: np.ndarray, posed: np.ndarray, seen_posed: np.ndarray, est: np.ndarray,
+                          codes: np.ndarray) -> int:  # pragma: no cover
+    """The passes of ``GapFiller._constrain`` over the ``waiting`` segments (in ``order``), in place, from where
+    ``state`` (cursor, placed one this pass, ``force``) left them. A segment with a visible marker and three or more
+    anchors (its visible markers, then the centres of its joints with posed neighbours, when ``partial`` or it has
+    no visible marker) that fix a rotation is fitted to them here: its pose, its targets' estimates and codes. The
+    first other segment to place is returned for the caller to place (-1: none left); skipped until ``force``
+    while it has no anchor."""
+    cursor, progress, force = state[0], state[1] != 0, state[2] != 0
+    width = idx.shape[1] + link_other.shape[1]
+    p, a, w = np.empty((width, 3)), np.empty((width, 3)), np.empty(width)
+    r, t = np.empty((3, 3)), np.empty(3)
+    while waiting.any():
+        while cursor < len(order):
+            k = order[cursor]
+            cursor += 1
+            if not waiting[k]:
+                continue
+            nv = seg_vis[k]
+            joints = nv == 0 or partial
+            m = nv
+            for i in range(link_count[k] if joints else 0):
+                m += posed[link_other[k, i]]
+            if m == 0 and not force:
+                continue
+            c = 0
+            if nv and m >= 3:
+                for slot in range(idx.shape[1]):
+                    if vis_slot[k, slot]:
+                        p[c], a[c], w[c] = filled[idx[k, slot]], local[k, slot], 1.0
+                        c += 1
+                for i in range(link_count[k] if joints else 0):
+                    other = link_other[k, i]
+                    if posed[other]:
+                        place(r_all[other], link_theirs[k, i], t_all[other], p[c])
+                        a[c], w[c] = link_own[k, i], joint_weight
+                        c += 1
+            if c == 0 or not kabsch_into(a[:c], p[:c], w[:c] / w[:c].sum(), r, t):
+                state[0], state[1], state[2] = cursor, progress, force
+                return k
+            for slot in range(idx.shape[1]):
+                if hit_slot[k, slot]:
+                    place(r, local[k, slot], t, est[idx[k, slot]])
+                    codes[idx[k, slot]] = CASE_ONE_MISSING if nv >= 2 else CASE_TWO_MISSING
+            r_all[k], t_all[k] = r, t
+            posed[k] = seen_posed[k] = True
+            waiting[k] = False
+            progress = True
+        cursor, force, progress = 0, not progress, False
+    return -1
 
 
 @njit(cache=True)
