@@ -37,6 +37,7 @@ class ConstantVelocityBank:
         self.vel = np.full((n, 3), np.nan)
         self.p00, self.p01, self.p11 = np.zeros(n), np.zeros(n), np.zeros(n)  # covariance [[p00, p01], [p01, p11]]
         self.started = np.zeros(n, dtype=bool)
+        self._steady = np.ones(n)  # the velocity gain that keeps the model as is
         self.all_started = n == 0  # every filter has started: no first sight left to check for
 
     def grow(self, extra: int) -> None:
@@ -45,6 +46,7 @@ class ConstantVelocityBank:
         self.vel = np.vstack([self.vel, np.full((extra, 3), np.nan)])
         self.p00, self.p01, self.p11 = (np.append(p, np.zeros(extra)) for p in (self.p00, self.p01, self.p11))
         self.started = np.append(self.started, np.zeros(extra, dtype=bool))
+        self._steady = np.ones(len(self.pos))
         self.all_started = self.all_started and extra == 0
 
     @property
@@ -56,7 +58,7 @@ class ConstantVelocityBank:
         """Time update of every filter; ``velocity_gain`` (N,) scales velocities first (1 keeps the model as is):
         x <- F x, P <- F P F^T + Q."""
         _predict(self.pos, self.vel, self.p00, self.p01, self.p11, self.dt, self.Q,
-                 np.ones(len(self.pos)) if velocity_gain is None else np.asarray(velocity_gain, dtype=np.float64))
+                 self._steady if velocity_gain is None else np.asarray(velocity_gain, dtype=np.float64))
 
     def predicted_position(self, velocity_gain: np.ndarray | None = None) -> np.ndarray:
         """(N, 3) positions one step ahead as ``predict`` would make them, without changing the state."""

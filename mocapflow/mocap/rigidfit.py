@@ -182,6 +182,13 @@ class RigidFit:
         r, t, ok = _kabsch_batch(self.local, np.ascontiguousarray(world, dtype=np.float64), self.weight)
         return r, t, self.enough & ok
 
+    def into(self, positions: np.ndarray, rows: np.ndarray, where: np.ndarray, r: np.ndarray, t: np.ndarray,
+             ok: np.ndarray) -> None:
+        """``__call__`` for the world points ``positions[rows]`` (rows (B, M) of (N, 3)), written into the rows
+        ``where`` (B,) of ``r``, ``t`` and ``ok``, in one compiled pass."""
+        _kabsch_rows(self.local, np.ascontiguousarray(positions, dtype=np.float64), rows, self.weight, self.enough,
+                     where, r, t, ok)
+
 
 def fit_one(local: np.ndarray, world: np.ndarray, weight: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
     """``kabsch`` for a single point set (M, 3), compiled; None where the points do not fix a rotation."""
@@ -200,6 +207,18 @@ def _kabsch_batch(local: np.ndarray, world: np.ndarray, weight: np.ndarray
     for b in range(len(local)):
         ok[b] = kabsch_into(local[b], world[b], weight[b], r[b], t[b])
     return r, t, ok
+
+
+@njit(cache=True)
+def _kabsch_rows(local: np.ndarray, positions: np.ndarray, rows: np.ndarray, weight: np.ndarray, enough: np.ndarray,
+                 where: np.ndarray, r: np.ndarray, t: np.ndarray, ok: np.ndarray) -> None:  # pragma: no cover
+    """``RigidFit.into``: ``kabsch`` of each point set ``positions[rows[b]]``, normalised ``weight`` (B, M), into
+    ``r``, ``t`` and ``ok`` at ``where[b]``."""
+    world = np.empty((rows.shape[1], 3))
+    for b in range(len(rows)):
+        for m in range(rows.shape[1]):
+            world[m] = positions[rows[b, m]]
+        ok[where[b]] = kabsch_into(local[b], world, weight[b], r[where[b]], t[where[b]]) and enough[b]
 
 
 @njit(cache=True)

@@ -142,6 +142,7 @@ class SegmentFit:
     def __init__(self, body: Body, use: np.ndarray, segments: np.ndarray) -> None:
         idx = body.idx[segments]
         used = np.append(use, False)[idx]
+        self.segments = np.asarray(segments, dtype=np.int64)
         self.rows = np.minimum(idx, len(use) - 1)  # (B, M) marker rows, padding on any real row (unused)
         self.rigid = RigidFit(body.local[segments], used.astype(float))
         self.complete = (used | ~body.slot[segments]).all(axis=1)
@@ -150,6 +151,10 @@ class SegmentFit:
         """R (B, 3, 3), t (B, 3) and ``ok`` (B,) of the segments fitted to ``positions`` (N, 3); ``ok`` is False where
         the pattern's markers do not fix the pose."""
         return self.rigid(positions[self.rows])  # the markers not used weigh nothing, NaN or not
+
+    def into(self, positions: np.ndarray, r: np.ndarray, t: np.ndarray, ok: np.ndarray) -> None:
+        """The same, written into the body's per-segment R (S, 3, 3), t (S, 3) and ``ok`` (S,) at its segments."""
+        self.rigid.into(positions, self.rows, self.segments, r, t, ok)
 
 
 class SegmentPart(NamedTuple):

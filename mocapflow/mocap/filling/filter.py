@@ -66,6 +66,7 @@ class GapFiller:
         # nothing is measured)
         self._unmeasured = np.zeros(n, dtype=np.int64)  # frames since a marker was last seen or anchored
         self._gain = self._velocity_gain()  # of the next prediction, set anew whenever ``_unmeasured`` changes
+        self._coasting = np.ones(n)  # where ``_filtered_out`` writes it
         self._extrapolated = np.zeros(n, dtype=bool)  # this frame: predicted from its past alone (a constant rotor
         # with no anchor, or its filter along its ray)
         self._last = np.full((2, n, 3), np.nan)  # the last two filled frames, newest first
@@ -113,6 +114,7 @@ class GapFiller:
         self.kf.grow(extra)
         self._unmeasured = np.append(self._unmeasured, np.zeros(extra, dtype=np.int64))
         self._gain = self._velocity_gain()
+        self._coasting = np.ones(len(self.labels))
         self._extrapolated = np.append(self._extrapolated, np.zeros(extra, dtype=bool))
         self._last = np.concatenate([self._last, np.full((2, extra, 3), np.nan)], axis=1)
         if self._learner is not None:
@@ -195,13 +197,15 @@ class GapFiller:
         if seen.all():  # every marker observed: each is its own measurement and its own output
             self.kf.update(z, self._variance[flags], seen)
             self._unmeasured[:] = 0
+            self._gain = None
         else:
             poses = self._fill_missing(z, seen, flags, rays)
             measured = flags >= CASE_OBSERVED
             measured &= flags != CASE_KALMAN
             self.kf.update(z, self._variance[flags], measured)
-            _filtered_out(z, flags, self.kf.position, measured, self._extrapolated, self._unmeasured)
-        self._gain = self._velocity_gain()
+            coasting = _filtered_out(z, flags, self.kf.position, measured, self._extrapolated, self._unmeasured,
+                                     self._coasting, self._coast_gain)
+            self._gain = self._coasting if coasting else None
 
         self._last[1] = self._last[0]
         self._last[0] = z
@@ -322,13 +326,13 @@ class GapFiller:
         r_all, t_all = np.zeros((s, 3, 3)), np.zeros((s, 3))
         posed, fresh = np.zeros(s, dtype=bool), np.zeros(s, dtype=bool)
         first, later = layout.first, layout.later
-        r_all[first], t_all[first], posed[first] = layout.fit_first(filled)  # three visible markers fix a pose
+        layout.fit_first.into(filled, r_all, t_all, posed)  # three visible markers fix a pose
         fresh[first] = True
         _place_on_poses(r_all, t_all, posed, layout.target_rows, layout.target_seg, layout.target_local, est, codes)
         waiting = np.zeros(s, dtype=bool)  # segments holding a target not yet placed
         waiting[layout.segments] = ~posed[layout.segments]
         if (fit_all or waiting.any()) and len(later):
-            r_all[later], t_all[later], posed[later] = layout.fit_later(filled)
+            layout.fit_later.into(filled, r_all, t_all, posed)
             fresh[later] = True
         seen_posed = posed.copy()  # placed with at least one of their own markers visible
         # the waiting segments are placed through their neighbours' joints, in passes from the most visible down, so
@@ -544,10 +548,16 @@ def _take_estimates(z: np.ndarray, flags: np.ndarray, est: np.ndarray, codes: np
 
 @njit(cache=True)
 def _filtered_out(z: np.ndarray, flags: np.ndarray, position: np.ndarray, measured: np.ndarray,
-                  extrapolated: np.ndarray, unmeasured: np.ndarray) -> None:  # pragma: no cover
+                  extrapolated: np.ndarray, unmeasured: np.ndarray, gain: np.ndarray,
+                  coast: float) -> bool:  # pragma: no cover
     """After the filters' update, in place, marker by marker: an estimated marker's output is its filter's
-    ``position``; ``unmeasured`` counts the frames since a marker was last ``measured`` (not ``extrapolated``)."""
+    ``position``; ``unmeasured`` counts the frames since a marker was last ``measured`` (not ``extrapolated``), and
+    the next prediction's velocity ``gain`` is ``coast`` for those (``GapFiller._velocity_gain``). Whether any is."""
+    coasting = False
     for i in range(len(z)):
         if flags[i] >= CASE_ONE_MISSING:
             z[i, :] = position[i]
         unmeasured[i] = 0 if measured[i] and not extrapolated[i] else unmeasured[i] + 1
+        gain[i] = coast if unmeasured[i] > 0 else 1.0
+        coasting |= unmeasured[i] > 0
+    return coasting
