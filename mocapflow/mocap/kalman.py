@@ -10,8 +10,6 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from mocapflow.mocap.rigidfit import finite
-
 
 class ConstantVelocityBank:
     """``n`` independent constant-velocity filters sharing one model; a filter starts at its marker's first sight.
@@ -65,13 +63,6 @@ class ConstantVelocityBank:
         velocity = self.vel if velocity_gain is None else self.vel * velocity_gain[:, None]
         return self.pos + self.dt * velocity
 
-    def gate(self, z: np.ndarray, limit: float, check: np.ndarray) -> np.ndarray:
-        """(N,) bool: the rows of ``z`` (N, 3) that hold a measurement (no NaN) and, where ``check`` (N,) bool, lie
-        less than ``limit`` from their filter's predicted position (a filter not started yet rejects nothing)."""
-        usable = np.empty(len(z), dtype=np.bool_)
-        _gate(self.pos, np.asarray(z, dtype=np.float64), float(limit), check, usable)
-        return usable
-
     def update(self, z: np.ndarray, variance: np.ndarray, rows: np.ndarray | None = None) -> None:
         """Measurement update with ``z`` (N, 3) for the markers selected by ``rows`` (N,) bool, by default those
         whose row holds no NaN. ``variance`` (N,): per-axis noise (mm^2).
@@ -122,15 +113,3 @@ def _update(pos: np.ndarray, vel: np.ndarray, p00: np.ndarray, p01: np.ndarray, 
         p11[i] -= k1 * p01[i]  # P <- P - K H P
         p01[i] -= k0 * p01[i]
         p00[i] -= k0 * p00[i]
-
-
-@njit(cache=True)
-def _gate(pos: np.ndarray, z: np.ndarray, limit: float, check: np.ndarray,
-          usable: np.ndarray) -> None:  # pragma: no cover
-    """``ConstantVelocityBank.gate`` into ``usable``, marker by marker."""
-    for i in range(len(z)):
-        ok = finite(z[i])
-        if ok and check[i]:
-            d0, d1, d2 = z[i, 0] - pos[i, 0], z[i, 1] - pos[i, 1], z[i, 2] - pos[i, 2]
-            ok = not np.sqrt(d0 * d0 + d1 * d1 + d2 * d2) >= limit  # NaN (filter not started): kept
-        usable[i] = ok

@@ -185,24 +185,24 @@ class GapFiller:
         if self._pending is not None:
             self._adopt(self._pending)
             self._pending = None
-        self._extrapolated[:] = False
         self.kf.predict(self._gain)
         # a marker seen in the previous frame and now ``outlier_mm`` or more from its prediction is an outlier: no
         # marker moves so in one frame, so it would only pull the filter and the segment fits off
-        seen = self.kf.gate(z, self.config.outlier_mm, self._unmeasured == 0)
-        z[~seen] = np.nan
+        seen, flags = np.empty(n, dtype=bool), np.empty(n, dtype=np.uint8)
+        every = _screened(z, self.kf.position, self.config.outlier_mm, self._unmeasured, self._extrapolated, seen,
+                          flags)
         body = self.body
-        flags = seen.astype(np.uint8)
         poses = None
-        if seen.all():  # every marker observed: each is its own measurement and its own output
-            self.kf.update(z, self._variance[flags], seen)
+        variance, measured = np.empty(n), np.empty(n, dtype=bool)
+        if every:  # every marker observed: each is its own measurement and its own output
+            _measurements(flags, self._variance, variance, measured)
+            self.kf.update(z, variance, measured)
             self._unmeasured[:] = 0
             self._gain = None
         else:
             poses = self._fill_missing(z, seen, flags, rays)
-            measured = flags >= CASE_OBSERVED
-            measured &= flags != CASE_KALMAN
-            self.kf.update(z, self._variance[flags], measured)
+            _measurements(flags, self._variance, variance, measured)
+            self.kf.update(z, variance, measured)
             coasting = _filtered_out(z, flags, self.kf.position, measured, self._extrapolated, self._unmeasured,
                                      self._coasting, self._coast_gain)
             self._gain = self._coasting if coasting else None
@@ -527,6 +527,38 @@ def _place_through_joints(filled: np.ndarray, order: np.ndarray, state: np.ndarr
             progress = True
         cursor, force, progress = 0, not progress, False
     return -1
+
+
+@njit(cache=True)
+def _screened(z: np.ndarray, predicted: np.ndarray, limit: float, unmeasured: np.ndarray, extrapolated: np.ndarray,
+              seen: np.ndarray, flags: np.ndarray) -> bool:  # pragma: no cover
+    """The start of ``GapFiller.update``, in place, marker by marker: a row of ``z`` is ``seen`` (and flagged
+    ``CASE_OBSERVED``, else ``CASE_MISSING`` and NaN) when it holds a position that, for a marker measured last frame
+    (``unmeasured`` 0), lies less than ``limit`` from its filter's ``predicted`` one (a filter not started yet
+    rejects nothing); ``extrapolated`` cleared. Whether every row is seen."""
+    every = True
+    for i in range(len(z)):
+        ok = finite(z[i])
+        if ok and unmeasured[i] == 0:
+            d0, d1, d2 = z[i, 0] - predicted[i, 0], z[i, 1] - predicted[i, 1], z[i, 2] - predicted[i, 2]
+            ok = not np.sqrt(d0 * d0 + d1 * d1 + d2 * d2) >= limit  # NaN (filter not started): kept
+        if not ok:
+            z[i, :] = np.nan
+        seen[i] = ok
+        flags[i] = CASE_OBSERVED if ok else CASE_MISSING
+        extrapolated[i] = False
+        every &= ok
+    return every
+
+
+@njit(cache=True)
+def _measurements(flags: np.ndarray, noise: np.ndarray, variance: np.ndarray,
+                  measured: np.ndarray) -> None:  # pragma: no cover
+    """What the filters take from a filled frame, marker by marker: ``measured`` (observed or estimated, not a filter
+    coasting alone) with the ``variance`` of its case (``noise``, per ``FillCase``)."""
+    for i in range(len(flags)):
+        measured[i] = flags[i] >= CASE_OBSERVED and flags[i] != CASE_KALMAN
+        variance[i] = noise[flags[i]]
 
 
 @njit(cache=True)
