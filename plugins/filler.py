@@ -14,6 +14,8 @@ from mocapflow.mocap.markerset import added
 from mocapflow.mocap.model import SkeletonModel
 from mocapflow.runtime.node import Input, Node, Output
 
+ALONE = np.isin(np.arange(256), [CASE_MISSING, CASE_KALMAN])  # per flag: no estimate but a marker's own filter's
+
 
 class FillerNodeConfig(FillerConfig):
     skeleton: str | None = Field(default=None, description="SKELETON.json to fill with from the first frame")
@@ -66,7 +68,6 @@ class Filler(Node[FillerNodeConfig]):
         if not self.listened("predictions"):  # a graph whose markers come labelled: no labeller to tell
             return
         predicted = self.filler.predict_next()
-        alone = (result.flags == CASE_MISSING) | (result.flags == CASE_KALMAN)
-        predicted[alone] = np.nan  # a filter coasting alone knows no more than the labeller's own coast
+        predicted[ALONE[result.flags]] = np.nan  # a filter coasting alone knows no more than the labeller's own coast
         self.publish("predictions", MarkerFrame.derive(message, frame=message.frame + 1, positions=predicted,
                                                        labels=message.labels))

@@ -60,8 +60,10 @@ class ConstantVelocityBank:
 
     def predicted_position(self, velocity_gain: np.ndarray | None = None) -> np.ndarray:
         """(N, 3) positions one step ahead as ``predict`` would make them, without changing the state."""
-        velocity = self.vel if velocity_gain is None else self.vel * velocity_gain[:, None]
-        return self.pos + self.dt * velocity
+        ahead = np.empty_like(self.pos)
+        _ahead(self.pos, self.vel, self.dt,
+               self._steady if velocity_gain is None else np.asarray(velocity_gain, dtype=np.float64), ahead)
+        return ahead
 
     def update(self, z: np.ndarray, variance: np.ndarray, rows: np.ndarray | None = None) -> None:
         """Measurement update with ``z`` (N, 3) for the markers selected by ``rows`` (N,) bool, by default those
@@ -94,6 +96,15 @@ def _predict(pos: np.ndarray, vel: np.ndarray, p00: np.ndarray, p01: np.ndarray,
         p00[i] += 2 * dt * p01[i] + dt * dt * p11[i] + q[0, 0]
         p01[i] += dt * p11[i] + q[0, 1]
         p11[i] += q[1, 1]
+
+
+@njit(cache=True)
+def _ahead(pos: np.ndarray, vel: np.ndarray, dt: float, gain: np.ndarray,
+           ahead: np.ndarray) -> None:  # pragma: no cover
+    """``ConstantVelocityBank.predicted_position`` into ``ahead``, marker by marker, as ``_predict`` moves them."""
+    for i in range(len(pos)):
+        for c in range(3):
+            ahead[i, c] = pos[i, c] + dt * (vel[i, c] * gain[i])
 
 
 @njit(cache=True)

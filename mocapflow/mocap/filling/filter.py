@@ -259,10 +259,11 @@ class GapFiller:
         marker of a segment was missing, else None."""
         n = len(self.labels)
         prior = self.kf.position
-        body = self.body if self.body is not None and (~seen & self.body.in_segment).any() else None
+        missing = ~seen
+        body = self.body if self.body is not None and (missing & self.body.in_segment).any() else None
         near = np.zeros(0, dtype=int)
         if body is not None:
-            near = body.around(~seen)
+            near = body.around(missing)
         visible = seen.copy()
         fit_all = False  # pose every segment near the gaps, not only those holding one (see ``_constrain``)
         if rays is not None:
@@ -318,7 +319,8 @@ class GapFiller:
         assert body is not None and memory is not None
         cfg = self.config
         n = len(self.labels)
-        est = np.full((n, 3), np.nan)
+        est = np.empty((n, 3))
+        est.fill(np.nan)  # half the cost of np.full
         codes = np.zeros(n, dtype=np.uint8)
         layout = body.layout(visible, targets, near)
         seg_vis = layout.seg_vis
