@@ -98,8 +98,10 @@ class Labeller:
         # lost marker go back to it at once
         at = self._advance_tentatives(z, free[taken[free] < 0], time)
         history: list[tuple[int, np.ndarray, np.ndarray]] = []
-        if len(at):  # some point was left over, so any lost track has its hypotheses
-            hits = self._tentative.hits
+        hits = self._tentative.hits
+        # some point was left over, so any lost track has its hypotheses; with no lost track, only a tentative track
+        # that has lived long enough can become a marker (in most frames with a ghost, none)
+        if len(at) and (len(lost) or hits.max() >= cfg.confirm_frames):
             ready, young = np.flatnonzero(hits >= cfg.confirm_frames), np.flatnonzero(hits < cfg.confirm_frames)
             still = np.isnan(cur[lost, 0])
             owners = np.empty(0, np.intp)
