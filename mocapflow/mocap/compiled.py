@@ -66,6 +66,7 @@ def compile_labelling() -> None:
     labeller = Labeller(LabellerConfig(), 100.0)
     for i, (points, far) in enumerate(_turning()):
         labeller.update(np.vstack([points[::-1], far]), i / 100)
+    labeller.update(np.vstack([points, points[:1] + 1.0]), 3.0)  # two points by a marker: the optimal assignment
     reacquire = Reacquirer(labeller)
     for i, (points, _) in zip(range(2), _turning(), strict=False):
         reacquire(points, 4.0 + i / 100)

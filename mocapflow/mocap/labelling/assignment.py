@@ -77,7 +77,7 @@ def match(cost: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
             return np.empty(0, np.intp), np.empty(0, np.intp)
         pair = np.zeros(1, np.intp), np.array([best], np.intp)
         return pair if cost.shape[0] == 1 else pair[::-1]
-    rows, cols, unique = _unambiguous(cost)
+    rows, cols, unique = unambiguous(cost)
     if unique:
         return rows, cols
     rows, cols = linear_sum_assignment(cost)
@@ -86,7 +86,7 @@ def match(cost: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 @njit(cache=True)
-def _unambiguous(cost: np.ndarray) -> tuple[np.ndarray, np.ndarray, bool]:  # pragma: no cover
+def unambiguous(cost: np.ndarray) -> tuple[np.ndarray, np.ndarray, bool]:  # pragma: no cover
     """The admissible pairs of ``cost`` and whether no row and no column holds two of them (then they are the optimal
     assignment)."""
     rows, cols = np.empty(cost.shape[0], np.intp), np.empty(cost.shape[0], np.intp)

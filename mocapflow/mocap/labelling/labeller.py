@@ -14,6 +14,7 @@ from mocapflow.mocap.labelling.assignment import (
     match,
     norm,
     screened,
+    unambiguous,
 )
 from mocapflow.mocap.labelling.config import UNGATED_MM, LabellerConfig, LabelResult
 from mocapflow.mocap.labelling.placement import place_marker
@@ -81,9 +82,11 @@ class Labeller:
         tracks = self._tracks
 
         # 1. tracks seen in the previous frame: constant-velocity prediction, gated optimal assignment
-        live, cost = _followed(tracks.pos, tracks.vel, tracks.last, tracks.streak, time, cfg.gate_mm, z)
-        ti, pi = match(cost)
-        cur, taken, lost, free = _matched(live[ti], pi, z, n_tracks)
+        live, cost, unique, cur, taken, lost, free = _step_one(tracks.pos, tracks.vel, tracks.last, tracks.streak,
+                                                               time, cfg.gate_mm, z, n_tracks)
+        if not unique:  # a track or a point with two candidates: the optimal assignment
+            ti, pi = match(cost)
+            cur, taken, lost, free = _matched(live[ti], pi, z, n_tracks)
 
         # 2. the others: re-identification from rigid neighbours or outside predictions, else a short coast; with no
         # point left over (most frames) there is nothing to re-identify, and nothing to confirm in step 3 either
@@ -396,6 +399,22 @@ def _matched(tracks: np.ndarray, rows: np.ndarray, points: np.ndarray,
         cur[tracks[k]] = points[rows[k]]
         taken[rows[k]] = tracks[k]
     return cur, taken, np.flatnonzero(np.isnan(cur[:, 0])), np.flatnonzero(taken < 0)
+
+
+@njit(cache=True)
+def _step_one(pos: np.ndarray, vel: np.ndarray, last: np.ndarray, streak: np.ndarray, time: float, gate: float,
+              points: np.ndarray, n_tracks: int) -> tuple[np.ndarray, np.ndarray, bool, np.ndarray, np.ndarray,
+                                                          np.ndarray, np.ndarray]:  # pragma: no cover
+    """Step 1 in one call where it is plain: the tracks followed and their costs (``_followed``), whether no track
+    and no point has two admissible pairs (``assignment.unambiguous``: most frames), and then at once the pairs'
+    outcome (``_matched``: positions, taken, lost, free; empty otherwise, for ``assignment.match`` to solve)."""
+    live, cost = _followed(pos, vel, last, streak, time, gate, points)
+    rows, cols, unique = unambiguous(cost)
+    if not unique:
+        empty = np.empty(0, np.intp)
+        return live, cost, False, np.empty((0, 3)), empty, empty, empty
+    cur, taken, lost, free = _matched(live[rows], cols, points, n_tracks)
+    return live, cost, True, cur, taken, lost, free
 
 
 @njit(cache=True)
