@@ -14,7 +14,7 @@ from mocapflow.mocap.markerset import added
 from mocapflow.mocap.model import SkeletonModel
 from mocapflow.runtime.node import Input, Node, Output
 
-ALONE = np.isin(np.arange(256), [CASE_MISSING, CASE_KALMAN])  # per flag: no estimate but a marker's own filter's
+ALONE = np.isin(np.arange(256), [CASE_MISSING, CASE_KALMAN])  # per flag: the marker has no estimate but its own filter
 
 
 class FillerNodeConfig(FillerConfig):
