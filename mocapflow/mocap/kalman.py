@@ -55,15 +55,17 @@ class ConstantVelocityBank:
     def predict(self, velocity_gain: np.ndarray | None = None) -> None:
         """Time update of every filter; ``velocity_gain`` (N,) scales velocities first (1 keeps the model as is):
         x <- F x, P <- F P F^T + Q."""
-        _predict(self.pos, self.vel, self.p00, self.p01, self.p11, self.dt, self.Q,
-                 self._steady if velocity_gain is None else np.asarray(velocity_gain, dtype=np.float64))
+        _predict(self.pos, self.vel, self.p00, self.p01, self.p11, self.dt, self.Q, self._gains(velocity_gain))
 
     def predicted_position(self, velocity_gain: np.ndarray | None = None) -> np.ndarray:
         """(N, 3) positions one step ahead as ``predict`` would make them, without changing the state."""
         ahead = np.empty_like(self.pos)
-        _ahead(self.pos, self.vel, self.dt,
-               self._steady if velocity_gain is None else np.asarray(velocity_gain, dtype=np.float64), ahead)
+        _ahead(self.pos, self.vel, self.dt, self._gains(velocity_gain), ahead)
         return ahead
+
+    def _gains(self, velocity_gain: np.ndarray | None) -> np.ndarray:
+        """The per-marker velocity factors of a prediction, as the compiled passes take them."""
+        return self._steady if velocity_gain is None else np.asarray(velocity_gain, dtype=np.float64)
 
     def update(self, z: np.ndarray, variance: np.ndarray, rows: np.ndarray | None = None) -> None:
         """Measurement update with ``z`` (N, 3) for the markers selected by ``rows`` (N,) bool, by default those

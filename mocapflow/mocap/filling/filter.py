@@ -193,19 +193,14 @@ class GapFiller:
                           flags)
         body = self.body
         poses = None
-        variance, measured = np.empty(n), np.empty(n, dtype=bool)
-        if every:  # every marker observed: each is its own measurement and its own output
-            _measurements(flags, self._variance, variance, measured)
-            self.kf.update(z, variance, measured)
-            self._unmeasured[:] = 0
-            self._gain = None
-        else:
+        if not every:  # else every marker observed: each is its own measurement and its own output
             poses = self._fill_missing(z, seen, flags, rays)
-            _measurements(flags, self._variance, variance, measured)
-            self.kf.update(z, variance, measured)
-            coasting = _filtered_out(z, flags, self.kf.position, measured, self._extrapolated, self._unmeasured,
-                                     self._coasting, self._coast_gain)
-            self._gain = self._coasting if coasting else None
+        variance, measured = np.empty(n), np.empty(n, dtype=bool)
+        _measurements(flags, self._variance, variance, measured)
+        self.kf.update(z, variance, measured)
+        coasting = _filtered_out(z, flags, self.kf.position, measured, self._extrapolated, self._unmeasured,
+                                 self._coasting, self._coast_gain)
+        self._gain = self._coasting if coasting else None
 
         self._last[1] = self._last[0]
         self._last[0] = z
