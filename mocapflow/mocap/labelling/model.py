@@ -20,7 +20,9 @@ whatever the point order and however long a marker was hidden:
    among the points left over, and its own markers matched so far, by its layout (``_place_layout``): points at the
    layout's distances and its joint centres where its posed neighbours put them, placed by a proper rotation, taken
    when one placement fits clearly best, or, among placements of a symmetric layout that fit alike, turns the
-   segment clearly least from its last posture to its neighbours.
+   segment clearly least from its last posture to its neighbours. With no posed neighbour it takes four points, or
+   three: near where it was lately, or, for a segment of three markers, once every segment with a triangle like its
+   own (the other foot) is surely posed elsewhere.
 
 Steps 2-4 repeat while they pose new segments, so a segment found in step 4 poses its neighbours through their
 joints. Points that fit no marker (ghosts, markers the skeleton does not know) stay unnamed.
@@ -34,7 +36,7 @@ from __future__ import annotations
 
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
-from itertools import combinations
+from itertools import combinations, permutations
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
@@ -52,8 +54,6 @@ PRIOR_WEIGHT = 1e-3
 """Weight of a segment's previous pose in its fit, against 1 for each marker or joint centre seen now."""
 JOINT_WEIGHT = 0.1
 """Weight of a joint centre in a segment's fit: a joint is less sure than a marker."""
-LAYOUT_S = 0.2
-"""Least time (s) two trajectories must be seen together for their distance to name them by a segment's layout."""
 POSTURE_DEG = 30.0
 """How much farther than the best one (degrees) from the segment's last posture a rival placement must turn it."""
 
@@ -140,6 +140,7 @@ class ModelLabeller:
             self._tol[one.markers] = one.tol
         # a marker's weight in a fit: 1 for one no looser than fit_mm, less for one known to stray
         self._weight = (self.config.fit_mm / self._tol) ** 2
+        self._look_alikes = _look_alikes(self.segments)
         self.pos = np.full((n, 3), np.nan)
         self.vel = np.zeros((n, 3))
         self.last = np.full(n, -np.inf)
@@ -392,7 +393,12 @@ class ModelLabeller:
                 continue
             dt = self._time - self._last_time[s]
             around = (self._last_seen[s], 100.0 + cfg.max_speed_mm_s * dt) if dt <= cfg.recent_s else None
-            best = _place_layout(seg.local, z[free], seg.tol, self._weight[seg.markers], anchors, around, posture)
+            # three points, its whole layout, are this segment's alone when every segment with a triangle like its
+            # own is surely posed, its points accounted for
+            alone = len(seg.markers) == 3 and all(poses[t] is not None and self._level[t] < 2
+                                                  for t in self._look_alikes[s])
+            best = _place_layout(seg.local, z[free], seg.tol, self._weight[seg.markers], anchors, around, posture,
+                                 alone)
             if best is None:
                 continue
             hits, rot, shift = best
@@ -495,7 +501,7 @@ class TrackedModelLabeller:
 def _place_layout(layout: np.ndarray, cloud: np.ndarray, tol: np.ndarray, weight: np.ndarray,
                   anchors: list[tuple[np.ndarray, np.ndarray, float, float]],
                   around: tuple[np.ndarray, float] | None = None, posture: list[np.ndarray] | None = None,
-                  ) -> tuple[dict[int, int], np.ndarray, np.ndarray] | None:
+                  alone: bool = False) -> tuple[dict[int, int], np.ndarray, np.ndarray] | None:
     """The placement of a segment's layout ``(n, 3)`` on ``cloud`` that fits clearly better than any other (more
     points, or a third of the misfit): the points it lands on by layout row, its rotation and translation; None when
     no placement is that sure. ``tol`` and ``weight`` (n,) are each layout point's tolerance (mm) and weight in the
@@ -505,7 +511,8 @@ def _place_layout(layout: np.ndarray, cloud: np.ndarray, tol: np.ndarray, weight
     two or more layout points on cloud points (within ``tol``) and every anchor within its tolerance of its world
     position. Without, it must land four or more: any three points form a triangle that also fits the mirror-image
     segment of the other side of the body, whose own markers may be the ones hidden now; three are enough when the
-    segment's centre must lie ``around`` (centre, radius) where it was lately.
+    segment's centre must lie ``around`` (centre, radius) where it was lately, or when it is ``alone``: a segment of
+    three markers whose look-alikes (``_look_alikes``), which could take those points, are all surely posed.
 
     Placements that fit equally well (a symmetric layout: two markers at the same distances from the third and from
     the joint, each hidden in turn) are told apart by ``posture``: the rotations the segment would have if it kept,
@@ -518,7 +525,7 @@ def _place_layout(layout: np.ndarray, cloud: np.ndarray, tol: np.ndarray, weight
     world_a = np.array([a[1] for a in anchors]).reshape(-1, 3)
     joint_tol = np.array([a[2] for a in anchors])
     joint_weight = np.array([a[3] for a in anchors])
-    least = (4 if around is None else 3) if not anchors else 2 if len(anchors) == 1 else 1
+    least = (4 if around is None and not alone else 3) if not anchors else 2 if len(anchors) == 1 else 1
     if len(layout) < least:
         return None
     d_cloud = cdist(cloud, cloud)
@@ -560,6 +567,30 @@ def _place_layout(layout: np.ndarray, cloud: np.ndarray, tol: np.ndarray, weight
             return None
         top = rivals[turn[0][1]]
     return top[2], top[3], top[4]
+
+
+def _look_alikes(segments: list[_Segment]) -> list[list[int]]:
+    """For each segment, the others with three markers at the distances of three of its own (within the larger of
+    the two markers' tolerances on each side): the segments whose points its layout could take when it is placed on
+    three points alone. A triangle and its mirror image are alike, so the two sides' feet or hands are each other's;
+    a segment of two markers has no triangle and no look-alike."""
+    pairs = [[0, 0, 1], [1, 2, 2]]  # a triangle's sides, by its corners
+
+    def triangles(seg: _Segment) -> tuple[np.ndarray, np.ndarray]:
+        """The sides of every triangle of the layout, its corners in every order, and each side's tolerance."""
+        corners = np.array(list(permutations(range(len(seg.local)), 3)), np.intp).reshape(-1, 3)
+        sides = norm(seg.local[corners[:, pairs[0]]] - seg.local[corners[:, pairs[1]]])
+        return sides, np.maximum(seg.tol[corners[:, pairs[0]]], seg.tol[corners[:, pairs[1]]])
+
+    shapes = [triangles(seg) for seg in segments]
+    out: list[list[int]] = [[] for _ in segments]
+    for s, t in combinations(range(len(segments)), 2):
+        (sides_s, tol_s), (sides_t, tol_t) = shapes[s], shapes[t]
+        off = np.abs(sides_s[:, None] - sides_t[None])
+        if (off <= np.maximum(tol_s[:, None], tol_t[None])).all(axis=2).any():
+            out[s].append(t)
+            out[t].append(s)
+    return out
 
 
 def _angle(rot: np.ndarray, other: np.ndarray) -> float:
@@ -612,9 +643,8 @@ def label_with_skeleton(frames: Sequence[np.ndarray] | np.ndarray, rate: float, 
     Then the names go to whole trajectories: the recording is labelled without the skeleton too
     (:func:`label_sequence`), whose trajectories keep one marker each, however often their segment had no pose, and
     each run of a trajectory takes the name the passes gave most of its points, or its trajectory's
-    (:func:`_track_names`). A segment the passes never placed is named last, by its layout's distances between
-    trajectories (:func:`_name_by_layout`). A point on no named run keeps its name from the passes. ``report`` is
-    told each pass's progress.
+    (:func:`_track_names`). A point on no named run keeps its name from the passes. ``report`` is told each pass's
+    progress.
     """
     forward = ModelLabeller(skeleton, rate, config)
     backward = ModelLabeller(skeleton, rate, config)
@@ -628,7 +658,6 @@ def label_with_skeleton(frames: Sequence[np.ndarray] | np.ndarray, rate: float, 
     tracks, _ = label_sequence(steps(clouds, n, "label trajectories", report), rate, progress=report)
     track_row = np.array([source_rows(tracks[f], clouds[f]) for f in range(n)], np.intp).reshape(tracks.shape[:2])
     owner = _track_names(track_row, named, markers)
-    _name_by_layout(tracks, owner, forward.segments, rate)
     out = np.full((n, markers, 3), np.nan)
     for f in range(n):
         rows = track_row[f]
@@ -691,89 +720,6 @@ def _track_names(track_row: np.ndarray, named: list[np.ndarray], markers: int) -
     for r in sorted(np.flatnonzero(differs), key=lambda r: -votes[r, own[r]]):
         give(int(r), int(own[r]))
     return np.where(seen, name_of[np.maximum(run_of, 0)], -1)
-
-
-def _name_by_layout(tracks: np.ndarray, owner: np.ndarray, segments: list[_Segment], rate: float) -> None:
-    """Name whole trajectories that no pass named by a segment's layout, in ``owner`` (see :func:`_track_names`).
-
-    A segment whose markers the passes never placed (its joints too poorly known to anchor it, and never three of its
-    markers seen with nothing like them around) may still be in the recording, its markers' trajectories unnamed.
-    Over the whole recording the distances between trajectories are known: those seen together for
-    ``LAYOUT_S`` or more, keeping their median distance within a marker's tolerance and varying less, are matched to
-    the segment's markers that no trajectory carries, three or more at once, when one match fits clearly better than
-    any other (as ``_place_layout`` decides among placements). A trajectory never seen with one matched (another
-    piece of the same marker) and fitting as well takes the name too.
-    """
-    least = max(3, int(LAYOUT_S * rate))
-    given = set(owner[owner >= 0].tolist())
-    seen = np.isfinite(tracks[..., 0])
-    free = [k for k in range(tracks.shape[1]) if not (owner[:, k] >= 0).any() and seen[:, k].sum() >= least]
-    if len(free) < 3:
-        return
-    together = seen[:, free].T.astype(np.int64) @ seen[:, free].astype(np.int64)
-    median = np.full((len(free), len(free)), np.nan)
-    spread = np.full((len(free), len(free)), np.nan)
-    for i, j in zip(*np.nonzero(np.triu(together >= least, 1)), strict=True):
-        both = seen[:, free[i]] & seen[:, free[j]]
-        apart = norm(tracks[both, free[i]] - tracks[both, free[j]])
-        median[i, j] = median[j, i] = np.median(apart)
-        spread[i, j] = spread[j, i] = apart.std()
-    for seg in segments:
-        rows = [r for r, m in enumerate(seg.markers) if int(m) not in given]
-        if len(rows) < 3:
-            continue
-        matches = _layout_matches(cdist(seg.local[rows], seg.local[rows]),
-                                  np.maximum(seg.tol[rows][:, None], seg.tol[rows][None, :]), median, spread)
-        if not matches:
-            continue
-        count, misfit, best = matches[0]
-        # a rival that differs only by pieces of the same markers (never seen together with the one it replaces)
-        # names those pieces too; one that puts a marker on a trajectory seen beside the best one's is a doubt
-        pieces = [{c} for c in best]
-        doubt = False
-        for other_count, other_misfit, other in matches[1:]:
-            if other_count < count or other_misfit >= 3.0 * misfit + 1.0:
-                break
-            for a, (c, d) in enumerate(zip(best, other, strict=True)):
-                if c != d and (c < 0 or d < 0 or together[c, d] > 0):
-                    doubt = True
-                elif c != d:
-                    pieces[a].add(d)
-        if doubt:
-            continue
-        for a, found in enumerate(pieces):
-            for c in found - {-1}:
-                owner[seen[:, free[c]], free[c]] = seg.markers[rows[a]]
-                given.add(int(seg.markers[rows[a]]))
-                median[c], median[:, c] = np.nan, np.nan  # named: no other segment's
-
-
-def _layout_matches(want: np.ndarray, tol: np.ndarray, median: np.ndarray,
-                    spread: np.ndarray) -> list[tuple[int, float, tuple[int, ...]]]:
-    """Every way to put three or more of a layout's markers (their distances ``want`` and pair tolerances ``tol``,
-    ``(n, n)``) on trajectories (their median distances ``median`` and its spread ``spread``, ``(c, c)``, NaN where
-    not seen together), each pair within tolerance and varying less: how many markers, the RMS misfit of their
-    distances (mm), and the trajectory of each marker (-1 for none); most markers and least misfit first."""
-    n, count = len(want), len(median)
-    fits = (np.abs(median[None, None] - want[:, :, None, None]) <= tol[:, :, None, None]) \
-        & (spread[None, None] <= tol[:, :, None, None])  # (marker, marker, trajectory, trajectory)
-    matches: list[tuple[int, float, tuple[int, ...]]] = []
-
-    def extend(chosen: tuple[int, ...]) -> None:
-        a = len(chosen)
-        if a == n:
-            placed = [(r, c) for r, c in enumerate(chosen) if c >= 0]
-            if len(placed) >= 3:
-                misfit = [median[c, d] - want[r, q] for (r, c), (q, d) in combinations(placed, 2)]
-                matches.append((len(placed), float(np.sqrt(np.mean(np.square(misfit)))), chosen))
-            return
-        extend((*chosen, -1))
-        for c in range(count):
-            if c not in chosen and all(d < 0 or fits[a, b, c, d] for b, d in enumerate(chosen)):
-                extend((*chosen, c))
-
-    extend(())
-    return sorted(matches, key=lambda m: (-m[0], m[1]))
 
 
 def _merged(one: np.ndarray, other: np.ndarray) -> np.ndarray:
