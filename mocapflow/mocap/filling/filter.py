@@ -65,8 +65,8 @@ class GapFiller:
                                    cfg.rotor_sd, cfg.ray_sd, cfg.kinematic_sd]) ** 2  # per FillCase (unused where
         # nothing is measured)
         self._unmeasured = np.zeros(n, dtype=np.int64)  # frames since a marker was last seen or anchored
-        self._gain = self._velocity_gain()  # of the next prediction, set anew whenever ``_unmeasured`` changes
-        self._coasting = np.ones(n)  # where ``_filtered_out`` writes it
+        self._coasting = np.ones(n)  # where ``_next_gain`` writes the velocity factors
+        self._gain: np.ndarray | None = None  # of the next prediction (``_next_gain``); None: 1 for every marker
         self._extrapolated = np.zeros(n, dtype=bool)  # this frame: predicted from its past alone (a constant rotor
         # with no anchor, or its filter along its ray)
         self._last = np.full((2, n, 3), np.nan)  # the last two filled frames, newest first
@@ -113,8 +113,8 @@ class GapFiller:
         self.labels = list(labels)
         self.kf.grow(extra)
         self._unmeasured = np.append(self._unmeasured, np.zeros(extra, dtype=np.int64))
-        self._gain = self._velocity_gain()
         self._coasting = np.ones(len(self.labels))
+        self._next_gain()
         self._extrapolated = np.append(self._extrapolated, np.zeros(extra, dtype=bool))
         self._last = np.concatenate([self._last, np.full((2, extra, 3), np.nan)], axis=1)
         if self._learner is not None:
@@ -172,10 +172,10 @@ class GapFiller:
         will start from it (NaN for a marker never seen)."""
         return self.kf.predicted_position(self._gain)
 
-    def _velocity_gain(self) -> np.ndarray | None:
-        """Per-marker velocity factor of the next prediction: markers without news coast to rest."""
-        coasting = self._unmeasured > 0
-        return np.where(coasting, self._coast_gain, 1.0) if coasting.any() else None
+    def _next_gain(self) -> None:
+        """The per-marker velocity factor of the next prediction, set anew whenever ``_unmeasured`` changes: markers
+        without news coast to rest."""
+        self._gain = self._coasting if _coast_gains(self._unmeasured, self._coast_gain, self._coasting) else None
 
     def update(self, positions: np.ndarray, rays: np.ndarray | None = None) -> FillResult:
         """Fill one frame. ``positions`` (N, 3) in label order, NaN where missing; ``rays`` (N, 6) optional origin
@@ -198,9 +198,8 @@ class GapFiller:
         variance, measured = np.empty(n), np.empty(n, dtype=bool)
         _measurements(flags, self._variance, variance, measured)
         self.kf.update(z, variance, measured)
-        coasting = _filtered_out(z, flags, self.kf.position, measured, self._extrapolated, self._unmeasured,
-                                 self._coasting, self._coast_gain)
-        self._gain = self._coasting if coasting else None
+        _filtered_out(z, flags, self.kf.position, measured, self._extrapolated, self._unmeasured)
+        self._next_gain()
 
         self._last[1] = self._last[0]
         self._last[0] = z
@@ -577,16 +576,21 @@ def _take_estimates(z: np.ndarray, flags: np.ndarray, est: np.ndarray, codes: np
 
 @njit(cache=True)
 def _filtered_out(z: np.ndarray, flags: np.ndarray, position: np.ndarray, measured: np.ndarray,
-                  extrapolated: np.ndarray, unmeasured: np.ndarray, gain: np.ndarray,
-                  coast: float) -> bool:  # pragma: no cover
+                  extrapolated: np.ndarray, unmeasured: np.ndarray) -> None:  # pragma: no cover
     """After the filters' update, in place, marker by marker: an estimated marker's output is its filter's
-    ``position``; ``unmeasured`` counts the frames since a marker was last ``measured`` (not ``extrapolated``), and
-    the next prediction's velocity ``gain`` is ``coast`` for those (``GapFiller._velocity_gain``). Whether any is."""
-    coasting = False
+    ``position``; ``unmeasured`` counts the frames since a marker was last ``measured`` (not ``extrapolated``)."""
     for i in range(len(z)):
         if flags[i] >= CASE_ONE_MISSING:
             z[i, :] = position[i]
         unmeasured[i] = 0 if measured[i] and not extrapolated[i] else unmeasured[i] + 1
+
+
+@njit(cache=True)
+def _coast_gains(unmeasured: np.ndarray, coast: float, gain: np.ndarray) -> bool:  # pragma: no cover
+    """``GapFiller._next_gain`` into ``gain``, marker by marker: ``coast`` for a marker ``unmeasured`` since one
+    frame or more, 1 for the others. Whether any is."""
+    coasting = False
+    for i in range(len(unmeasured)):
         gain[i] = coast if unmeasured[i] > 0 else 1.0
         coasting |= unmeasured[i] > 0
     return coasting
