@@ -213,6 +213,21 @@ def test_a_marker_seen_briefly_beside_one_rigid_mate_is_kept() -> None:
     assert score.accuracy == 1.0 and score.swaps == 0 and score.tracks == 10
 
 
+def test_a_brief_run_of_a_marker_is_kept_when_its_mate_is_seen_with_it_part_of_the_time() -> None:
+    """As above, but the mate is itself hidden for most of the brief run (seen with it in 17 of its 31 frames): an
+    unbroken run is one object throughout, so the frames they share vouch for all of it."""
+    truth = _clusters(5.0)
+    hidden = np.zeros(truth.shape[:2], bool)
+    hidden[:, 2:4] = True
+    hidden[:200, 0] = hidden[231:, 0] = True
+    hidden[206:220, 1] = True
+    points = [frame[~h] for frame, h in zip(truth, hidden, strict=True)]
+    identity = [np.flatnonzero(~h) for h in hidden]
+    tracks, _ = label_sequence(points, RATE)
+    score = score_labelling(tracks, points, identity, truth.shape[1])
+    assert score.accuracy == 1.0 and score.swaps == 0 and score.tracks == 10  # 9: the brief run dropped as a ghost
+
+
 def test_hidden_marker_without_neighbours_is_a_new_track() -> None:
     """Control for the test above: with no rigid neighbour and no segment the lost marker cannot be found."""
     truth = _clusters(5.0)
@@ -269,6 +284,20 @@ def test_a_foot_hidden_whole_comes_back_to_its_own_tracks_offline() -> None:
     score = score_labelling(tracks, points, identity, len(rec.labels))
     assert score.accuracy == 1.0 and score.swaps == 0
     assert score.tracks == len(rec.labels)  # 55 when the foot's new tracks stay apart
+
+
+def test_fragments_of_the_quadruped_under_stress_are_merged_by_their_triangles_offline() -> None:
+    """Under the stress damage, the quadruped's leg clusters (three markers each) are often hidden whole and come
+    back as new tracks, with fragments for partners. A leg's triangle has two sides 13 mm apart (61, 93 and 106 mm),
+    more than the 7 mm within which a distance matches, so it cannot be matched the wrong way round, and the
+    fragments are merged by it."""
+    rec = simulate(SimulatorConfig(rig="quadruped", rate=120, noise_mm=0.5, seed=7), 1500)
+    points, identity = unlabel(rec.positions, 120.0, seed=1, gaps_per_s=np.log(1.5) / 1.1, long_fraction=1.0,
+                               long_s=(0.2, 2.0), ghosts=0.2, ghost_frames=1)
+    tracks, _ = label_sequence(list(points), 120.0)
+    score = score_labelling(tracks, list(points), list(identity), len(rec.labels))
+    assert score.accuracy > 0.995
+    assert score.tracks <= 1.3 * len(rec.labels)  # 1.78 tracks per marker with sides twice the tolerance apart
 
 
 def test_a_mirrored_cluster_on_the_other_leg_is_not_merged_with_a_lost_one_offline() -> None:

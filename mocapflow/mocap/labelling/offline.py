@@ -294,7 +294,7 @@ def _triangle_score(state: _Round, i: int, j: int, cfg: LabellerConfig) -> float
             t3 = cfg.rigid_tolerance_mm + 3.0 * max(sd_p[p2], sd_q[q2])
             e3 = abs(mean_p[p2] - mean_q[q2]) / t3
             sides = np.sort([mean_i[p1], mean_i[p2], mean_p[p2]])
-            if not e3 <= 1.0 or np.diff(sides).min() <= 2.0 * max(t1, t2, t3):
+            if not e3 <= 1.0 or np.diff(sides).min() <= max(t1, t2, t3):
                 continue
             side = state.same_side((i, p1, p2), (j, q1, q2))
             if side < 0 or (side == 0 and p1 != q1 and p2 != q2):
@@ -303,21 +303,27 @@ def _triangle_score(state: _Round, i: int, j: int, cfg: LabellerConfig) -> float
     return best
 
 
-def _explained(tracks: np.ndarray, seen: np.ndarray, k: int, rigid_sd: float) -> bool:
-    """Whether track ``k`` moves (its positions spread by more than ``rigid_sd`` mm, RMS) and keeps its distances to
-    other tracks, seen in every one of its frames, within ``rigid_sd`` (mm, SD): a real marker on a rigid body,
-    however briefly seen, not a ghost. One such partner vouches for a track seen in one unbroken run; a track merged
-    from fragments across gaps needs two, since fragments of ghosts merge too. Distances that hold while nothing
-    moves more than they may vary prove nothing: a reflection that stands still keeps its distances to other still
-    reflections, and over a few frames to any slow marker."""
+def _explained(tracks: np.ndarray, seen: np.ndarray, k: int, rigid_sd: float, least: int) -> bool:
+    """Whether track ``k`` keeps its distances to other tracks within ``rigid_sd`` (mm, SD) while it moves (its
+    positions spread by more than ``rigid_sd`` mm, RMS, over the frames they share): a real marker on a rigid body,
+    however briefly seen, not a ghost. A track seen in one unbroken run is one object throughout, so one partner seen
+    with it for ``least`` frames vouches for it; a track merged from fragments across gaps needs two, seen in every
+    one of its frames, since fragments of ghosts merge too. Distances that hold while nothing moves prove nothing: a
+    reflection that stands still keeps its distances to other still reflections, and over a few frames to any slow
+    marker."""
     frames = np.flatnonzero(seen[:, k])
-    own = tracks[frames, k]
-    if np.sqrt(((own - own.mean(axis=0)) ** 2).sum(axis=1).mean()) <= rigid_sd:
-        return False
-    _, sd = _distance_spread(tracks, seen, k, len(own))
-    sd[k] = np.nan
     whole = frames[-1] - frames[0] + 1 == len(frames)
-    return int((sd <= rigid_sd).sum()) >= (1 if whole else 2)
+    shared = seen[frames].astype(float)  # (n, T): frames each track shares with k
+    shared[:, k] = 0.0
+    count = shared.sum(axis=0)
+    own = tracks[frames, k]
+    d = np.where(shared > 0, norm(np.nan_to_num(tracks[frames]) - own[:, None]), 0.0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        sd = np.sqrt(np.maximum((shared * d**2).sum(axis=0) / count - ((shared * d).sum(axis=0) / count) ** 2, 0.0))
+        centre = shared.T @ own / count[:, None]  # (T, 3): k's mean position over the frames shared with each
+        motion = np.sqrt(np.maximum(shared.T @ (own**2).sum(axis=1) / count - (centre**2).sum(axis=1), 0.0))
+    enough = count >= (min(len(frames), least) if whole else len(frames))
+    return int((enough & (sd <= rigid_sd) & (motion > rigid_sd)).sum()) >= (1 if whole else 2)
 
 
 def _rigid_sd(tracks: np.ndarray, seen: np.ndarray, markers: np.ndarray, cfg: LabellerConfig) -> float:
@@ -372,7 +378,8 @@ def label_sequence(frames: Iterable[np.ndarray], rate: float, config: LabellerCo
     seen = np.isfinite(joined[..., 0])
     long = seen.sum(axis=0) >= cfg.min_track_s * rate
     rigid_sd = _rigid_sd(joined, seen, np.flatnonzero(long), cfg) if not long.all() else cfg.rigid_sd_mm
-    markers = [m for k, m in enumerate(merged) if long[k] or _explained(joined, seen, k, rigid_sd)]
+    markers = [m for k, m in enumerate(merged)
+               if long[k] or _explained(joined, seen, k, rigid_sd, cfg.confirm_frames)]
     markers.sort(key=lambda m: np.flatnonzero(np.isfinite(m[:, 0]))[0])
     out = np.stack(markers, axis=1) if markers else np.full((len(rows), 0, 3), np.nan)
     return out, [f"M{k + 1:03d}" for k in range(out.shape[1])]
