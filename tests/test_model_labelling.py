@@ -92,6 +92,24 @@ def test_trajectories_carry_the_name_most_of_their_points_were_given() -> None:
     assert (names[:12, 2] == 2).all() and (names[16:, 2] == 3).all() and (names[12:16, 2] == -1).all()
 
 
+def test_a_run_that_takes_its_own_name_frees_its_trajectorys_for_the_run_it_held_back() -> None:
+    """Trajectory 0 followed marker 0 for 50 frames, then took marker 1's points for 10 (a swap while streaming):
+    its trajectory's name, 0, first goes to both runs. Trajectory 1 is marker 0 from frame 55, its points named 0
+    but in frames 60-64, which the passes left unnamed: it cannot take name 0 while the swapped run holds it. Once
+    that run takes its own points' name, 1, trajectory 1 takes 0, and its unnamed frames with it."""
+    frames = 100
+    track_row = np.full((frames, 2), -1, np.intp)
+    track_row[:50, 0] = track_row[60:70, 0] = 0
+    track_row[55:, 1] = 1
+    named = [np.full(2, -1, np.intp) for _ in range(frames)]
+    for f in range(frames):
+        named[f][0] = 0 if f < 50 else 1
+        named[f][1] = -1 if 60 <= f < 65 else 0
+    names = _track_names(track_row, named, 2)
+    assert (names[:50, 0] == 0).all() and (names[60:70, 0] == 1).all()
+    assert (names[55:, 1] == 0).all()  # -1 when not tried again: frames 60-64 would end with no name
+
+
 def _footless_trial(gone: list[tuple[list[str], slice]],
                     feet: tuple[str, ...] = ("right_foot",)) -> tuple[SkeletonModel, np.ndarray, np.ndarray, list[str]]:
     """The subject's skeleton with no joint to its ``feet`` (as where calibration could not locate them), and a

@@ -679,8 +679,10 @@ def _track_names(track_row: np.ndarray, named: list[np.ndarray], markers: int) -
     Each run first takes its trajectory's name: the name given most of the trajectory's points, if given to most of
     them; the trajectories with most votes first, and never a name to two runs that share a frame. A run whose own
     points were mostly given another name then takes that one, if no other run holds it in any of its frames: its
-    trajectory was joined to it across a gap. Where the names of a whole segment were given turned (a layout that
-    fits a quarter turn), the other runs of that segment hold them, and the trajectories' names stand."""
+    trajectory was joined to it across a gap. The name it leaves is tried again by the runs it held back (a run of
+    a trajectory that took another marker's points for a while holds that marker's name until it takes its own).
+    Where the names of a whole segment were given turned (a layout that fits a quarter turn), the other runs of that
+    segment hold them, and the trajectories' names stand."""
     frames, count = track_row.shape
     seen = track_row >= 0
     starts = seen & ~np.vstack([np.zeros((1, count), bool), seen[:-1]])
@@ -701,24 +703,27 @@ def _track_names(track_row: np.ndarray, named: list[np.ndarray], markers: int) -
     name_of = np.full(runs, -1, np.intp)
     holder = np.full((frames, markers), -1, np.intp)  # the run holding each name in each frame
 
-    def give(r: int, m: int) -> None:
-        """Name run ``r`` marker ``m`` unless another run holds ``m`` in one of its frames."""
+    def give(r: int, m: int) -> bool:
+        """Name run ``r`` marker ``m`` unless another run holds ``m`` in one of its frames; whether it was."""
         during = slice(first[r], first[r] + length[r])
         if ((holder[during, m] >= 0) & (holder[during, m] != r)).any():
-            return
+            return False
         if name_of[r] >= 0:
             holder[during, name_of[r]] = -1
         name_of[r] = m
         holder[during, m] = r
+        return True
 
     for k in np.argsort(-top, kind="stable"):
         if top[k] > 0 and 2 * top[k] > pooled[k].sum():
             for r in np.flatnonzero(track == k):
                 give(int(r), int(best[k]))
     own = votes.argmax(axis=1)
-    differs = (2 * votes[np.arange(runs), own] > length) & (own != name_of)
-    for r in sorted(np.flatnonzero(differs), key=lambda r: -votes[r, own[r]]):
-        give(int(r), int(own[r]))
+    mostly = 2 * votes[np.arange(runs), own] > length
+    given = True
+    while given:  # a run taking its own name frees its trajectory's for a run it held back
+        differs = np.flatnonzero(mostly & (own != name_of))
+        given = any([give(int(r), int(own[r])) for r in sorted(differs, key=lambda r: -votes[r, own[r]])])
     return np.where(seen, name_of[np.maximum(run_of, 0)], -1)
 
 
