@@ -55,10 +55,10 @@ class LabellerConfig(BaseModel):
     pose_interval_s: float = Field(0.1, gt=0, description="time between two snapshots of a marker and its neighbours")
     min_track_s: float = Field(0.5, ge=0, description="offline only: tracks seen for less than this in all, once "
                                "merged, are dropped as ghosts (the thesis drops Marker Sets under half a second) "
-                               "unless they move and keep their distances to rigid partners seen with them "
-                               "throughout: one for a track seen in one unbroken run, two for one merged across gaps "
-                               "(rigid at this recording's own noise: three times its noise floor, at least "
-                               "rigid_sd_mm; moving by more than that, RMS)")
+                               "unless they move and keep their distances to rigid partners seen with them: one "
+                               "seen with it for confirm_frames frames for a track seen in one unbroken run, two "
+                               "seen throughout for one merged across gaps (rigid at this recording's own noise: "
+                               "three times its noise floor, at least rigid_sd_mm; moving by more than that, RMS)")
     expected_markers: int | None = Field(None, ge=1, description="number of physical markers, when known: at most "
                                          "this many tracks; beyond it new points can only re-identify lost tracks")
 

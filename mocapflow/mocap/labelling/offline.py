@@ -267,8 +267,9 @@ def _triangle_score(state: _Round, i: int, j: int, cfg: LabellerConfig) -> float
     came back as new tracks (a foot hidden whole) is known again by its shape, where its neighbours across the joints
     place a marker too loosely to say.
 
-    Only a triangle whose three sides differ counts: in one with two like sides the markers could be matched the
-    other way round, and its mirror image is the same triangle with two partners swapped. And the markers across
+    Only a triangle whose three sides differ by more than the tolerance of a match counts: in one with two like sides
+    the markers could be matched the other way round, and its mirror image is the same triangle with two partners
+    swapped; sides further apart than the tolerance cannot match the wrong way round. And the markers across
     their joints must lie on the same side of both triangles (``_Round.same_side``): the other leg's cluster may
     have the same shape, mirrored. A pair with no partner in common must show that side plainly; one with a partner
     in common is held by that partner where the side changes with the pose (a hand turning over)."""
