@@ -16,6 +16,7 @@ from mocapflow.mocap.labelling import (
     label_sequence,
     merge_tracks,
 )
+from mocapflow.mocap.labelling.offline import split_doubtful_joins
 from mocapflow.mocap.simulator import Simulator, SimulatorConfig, simulate
 
 RATE = 100.0
@@ -297,7 +298,7 @@ def test_fragments_of_the_quadruped_under_stress_are_merged_by_their_triangles_o
     tracks, _ = label_sequence(list(points), 120.0)
     score = score_labelling(tracks, list(points), list(identity), len(rec.labels))
     assert score.accuracy > 0.995
-    assert score.tracks <= 1.3 * len(rec.labels)  # 1.78 tracks per marker with sides twice the tolerance apart
+    assert score.tracks <= 1.4 * len(rec.labels)  # 1.78 tracks per marker with sides twice the tolerance apart
 
 
 def test_a_mirrored_cluster_on_the_other_leg_is_not_merged_with_a_lost_one_offline() -> None:
@@ -313,6 +314,23 @@ def test_a_mirrored_cluster_on_the_other_leg_is_not_merged_with_a_lost_one_offli
     score = score_labelling(tracks, list(points), list(identity), len(rec.labels))
     assert score.swaps == 0 and score.accuracy > 0.999
     assert score.tracks <= 1.25 * len(rec.labels)  # 1.44 tracks per marker by the neighbours' placement alone
+
+
+def test_a_join_across_a_gap_onto_another_marker_is_cut_offline() -> None:
+    """Two tracks that streaming carried across a 0.2 s gap onto each other's marker (marker 0 of one cluster and
+    marker 5 of the next, 0.6 m away), and one carried across a later gap onto its own marker: the first two are
+    cut where their run after the gap starts, the third stands."""
+    truth = _clusters(5.0)
+    tracks = truth.copy()
+    tracks[200:220, [0, 5]] = tracks[300:320, 1] = np.nan
+    tracks[220:, 0], tracks[220:, 5] = truth[220:, 5], truth[220:, 0]
+    out = split_doubtful_joins(tracks)
+    assert out.shape[1] == 14
+    pieces = [np.flatnonzero(np.isfinite(out[:, k, 0])) for k in range(14)]
+    for k, frames in enumerate(pieces):  # each column is one marker now
+        marker = np.flatnonzero(np.isclose(truth[frames[0]], out[frames[0], k]).all(axis=1))[0]
+        assert np.allclose(out[frames, k], truth[frames, marker])
+    assert len(pieces[1]) == len(truth) - 20  # marker 1's join stands
 
 
 def test_merge_tracks_joins_fragments_only() -> None:

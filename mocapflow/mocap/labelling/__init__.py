@@ -29,7 +29,8 @@ A placement from a rigid neighbourhood re-identifies at once; a looser one (neig
 point that has lived ``confirm_frames`` frames, so that a passing ghost cannot steal the track. Points that match no
 track start tentative tracks, which become markers (or re-identify a lost one) when they live ``confirm_frames``
 frames, or go back to a lost marker sooner when its rigid partners pin them (three from a point's first frame, two
-from its second); the rest, short-lived ghosts, are dropped. Offline, :func:`label_sequence` also merges what
+from its second); the rest, short-lived ghosts, are dropped. Offline, :func:`label_sequence` also cuts the tracks
+that streaming carried across a gap onto another marker (:func:`~.offline.split_doubtful_joins`), merges what
 streaming could not (the thesis's *Marker Set* merging, :func:`merge_tracks`) and drops tracks too short to be
 markers.
 

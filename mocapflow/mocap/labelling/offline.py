@@ -1,5 +1,6 @@
-"""Offline labelling of a whole recording: streaming, then filling in what tentative tracks collected, merging the
-tracks of one marker (the thesis's *Marker Set* merging) and dropping tracks too short to be markers."""
+"""Offline labelling of a whole recording: streaming, then filling in what tentative tracks collected, cutting the
+tracks streaming carried onto another marker, merging the tracks of one marker (the thesis's *Marker Set* merging)
+and dropping tracks too short to be markers."""
 
 from __future__ import annotations
 
@@ -94,6 +95,19 @@ class _Round:
         self._cfg = cfg
         self._spreads: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         self._neighbours: dict[int, np.ndarray] = {}
+
+    def refresh(self, columns: list[int]) -> None:
+        """Take in the ``columns`` of ``tracks`` changed in place: what is seen, the overlaps and frames; the
+        distance statistics are worked out again as asked."""
+        for c in columns:
+            self.seen[:, c] = np.isfinite(self.tracks[:, c, 0])
+            self.frames[c] = np.flatnonzero(self.seen[:, c])
+            self.sampled[c] = _evenly(self.frames[c], self._cfg.poses)
+        rows = self.seen[:, columns].T.astype(np.int64) @ self.seen
+        self.overlap[columns] = rows
+        self.overlap[:, columns] = rows.T
+        self._spreads.clear()
+        self._neighbours.clear()
 
     def same_side(self, first: tuple[int, int, int], second: tuple[int, int, int]) -> int:
         """Whether two triangles of tracks (``a``, ``b``, ``c``) are alike or mirror images, seen from their first
@@ -200,6 +214,54 @@ def _set_score(state: _Round, i: int, j: int, cfg: LabellerConfig) -> float:
     best = np.minimum(placed, signature)
     best = best[np.isfinite(best)]
     return _median(best) if len(best) else np.inf
+
+
+def split_doubtful_joins(tracks: np.ndarray, config: LabellerConfig | None = None) -> np.ndarray:
+    """Tracks ``(F, T, 3)`` cut where a run after a gap is surely another marker than the track before it.
+
+    Streaming re-identifies a lost track on a point that fits its hypotheses then; now and then the point is another
+    marker's (a segment mate, a marker of the other side), and the track goes on as that marker. Offline, each run
+    after a gap is compared with the track's frames before it (since its last cut) as fragments are
+    (``_set_score``, both ways, the other tracks whole): where the neighbours of either place the other ``LOOSE``
+    gates off or more, both ways, the run starts a new track, for merging to join to its own marker. Where either
+    way has nothing to place, the join stands.
+    """
+    cfg = config or LabellerConfig()
+    seen = np.isfinite(tracks[..., 0])
+    starts = seen & ~np.vstack([np.zeros((1, seen.shape[1]), bool), seen[:-1]])
+    ends = seen & ~np.vstack([seen[1:], np.zeros((1, seen.shape[1]), bool)])
+    joined = np.flatnonzero(starts.sum(axis=0) >= 2)
+    if not len(joined):
+        return tracks
+    count = tracks.shape[1]
+    work = np.concatenate([tracks, np.full((len(tracks), 1, 3), np.nan)], axis=1)  # the last column: a run
+    state = _Round(work, cfg)
+    cuts: dict[int, list[int]] = {}
+    for t in joined.tolist():
+        first, last = np.flatnonzero(starts[:, t]), np.flatnonzero(ends[:, t]) + 1
+        begin = first[0]
+        for run in range(1, len(first)):
+            work[:, t] = np.nan
+            work[begin:first[run], t] = tracks[begin:first[run], t]
+            work[:, count] = np.nan
+            work[first[run]:last[run], count] = tracks[first[run]:last[run], t]
+            state.refresh([t, count])
+            scores = (_set_score(state, t, count, cfg), _set_score(state, count, t, cfg))
+            if LOOSE <= min(scores) and max(scores) < np.inf:
+                cuts.setdefault(t, []).append(int(first[run]))
+                begin = first[run]
+        work[:, t] = tracks[:, t]  # the other joins are judged against the tracks as streamed
+    work[:, count] = np.nan
+    out = work[:, :count]
+    pieces = []
+    for t, at in cuts.items():
+        bounds = [*at, len(tracks)]
+        out[at[0]:, t] = np.nan
+        for begin, end in zip(bounds[:-1], bounds[1:], strict=True):
+            piece = np.full((len(tracks), 3), np.nan)
+            piece[begin:end] = tracks[begin:end, t]
+            pieces.append(piece)
+    return np.concatenate([out, *[p[:, None] for p in pieces]], axis=1)
 
 
 def _junctions(state: _Round, rate: float, cfg: LabellerConfig) -> dict[tuple[int, int], float]:
@@ -355,7 +417,8 @@ def label_sequence(frames: Iterable[np.ndarray], rate: float, config: LabellerCo
     """Label a whole recording of point clouds: ``(F, T, 3)`` trajectories of the ``T`` markers found, and labels.
 
     Knowing the whole recording allows more than streaming: points a track collected while still tentative are
-    filled in, tracks of one marker are merged (:func:`merge_tracks`), and tracks seen for less than ``min_track_s``
+    filled in, tracks carried across a gap onto another marker are cut there (:func:`split_doubtful_joins`), tracks
+    of one marker are merged (:func:`merge_tracks`), and tracks seen for less than ``min_track_s``
     in all are dropped unless rigid partners explain them (``_explained``, at this recording's rigidity:
     ``_rigid_sd``). Markers are labelled ``M001``... in order of first appearance. ``progress`` is told how the
     merging goes (its cost grows with the square of the number of tracks).
@@ -373,6 +436,7 @@ def label_sequence(frames: Iterable[np.ndarray], rate: float, config: LabellerCo
         tracks[i, : len(row)] = row
     for track, idx, pos in late:
         tracks[idx, track] = pos
+    tracks = split_doubtful_joins(tracks, cfg)
     # the tracks of a group never share a frame
     merged = [np.fmax.reduce(tracks[:, group], axis=1) for group in merge_tracks(tracks, rate, cfg, progress)]
     joined = np.stack(merged, axis=1) if merged else np.full((len(rows), 0, 3), np.nan)
