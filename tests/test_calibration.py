@@ -519,7 +519,7 @@ def test_older_skeleton_files_still_read(tmp_path: Path) -> None:
 
 @pytest.mark.integration
 def test_calibrating_fragmented_labels_of_a_harsh_capture_gives_a_skeleton() -> None:
-    """The offline labels of a simulated quadruped hidden a third of the time in 0.2-2 s gaps, with ghosts: many
+    """The offline labels of a simulated quadruped hidden a third of the time in 0.2-2 s gaps, with ghosts: a dozen
     markers come in several fragments, and some segments are posed together in fewer than two frames. Calibration
     gives a skeleton (such segments get no centre of rotation between them) and warns of nothing."""
     import math
@@ -532,7 +532,7 @@ def test_calibrating_fragmented_labels_of_a_harsh_capture_gives_a_skeleton() -> 
     points, _ = unlabel(rec.positions, 120, seed=1, gaps_per_s=math.log(1.5) / 1.1, long_fraction=1.0,
                         long_s=(0.2, 2.0), ghosts=0.2, ghost_frames=1)
     tracks, labels = label_sequence(points, 120)
-    assert len(labels) > 1.5 * len(rec.labels)  # fragments
+    assert len(labels) > 1.2 * len(rec.labels)  # fragments: 49 tracks of 37 markers
     with warnings.catch_warnings():
         warnings.simplefilter("error", RuntimeWarning)
         skeleton = calibrate(tracks, labels, 120)
