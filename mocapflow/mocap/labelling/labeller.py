@@ -34,8 +34,8 @@ class Labeller:
         self.frame = 0
         self._time = -np.inf
         self._tracks = Tracks(config, self.rate)
-        # tentative tracks and the points they have collected
-        self._tentative = Tentatives()
+        # tentative tracks and the points they have collected, a second of them at most
+        self._tentative = Tentatives(int(self.rate))
 
     @property
     def tracks(self) -> Tracks:
@@ -279,16 +279,9 @@ class Labeller:
         zf = z[free]
         # a point seen once has no velocity yet: its first step may be as long as the fastest marker moves
         ui, pi = match(_tentative_costs(tent.pos, tent.vel, tent.hits, zf, dt, cfg.gate_mm, cfg.max_speed_mm_s * dt))
-        kept = [tent.points[u] for u in ui]
-        for points, p in zip(kept, zf[pi], strict=True):
-            points.append((self.frame, p))
-            if len(points) > self.rate:  # only a tentative track held back by expected_markers grows this long
-                del points[0]
         # the carried tracks, then new ones on the unclaimed points
-        tent.pos, tent.vel, tent.hits, order = _carry(tent.pos, tent.vel, tent.hits, zf, ui, pi, dt,
-                                                      cfg.velocity_smoothing)
-        tent.points = kept + [[(self.frame, p)] for p in tent.pos[len(ui):]]
-        tent.time = time
+        pos, vel, hits, order = _carry(tent.pos, tent.vel, tent.hits, zf, ui, pi, dt, cfg.velocity_smoothing)
+        tent.step(pos, vel, hits, ui, time, self.frame)
         return free[order]
 
     def _owners(self, z: np.ndarray, cur: np.ndarray, lost: np.ndarray, pred: np.ndarray,
@@ -357,8 +350,7 @@ class Labeller:
         tent = self._tentative
         done = owners >= 0
         for u, track in zip(ready[done], owners[done], strict=True):
-            frames = np.array([f for f, _ in tent.points[u]])
-            pos = np.array([p for _, p in tent.points[u]])
+            frames, pos = tent.points(int(u))
             tracks = self._tracks
             tracks.pos[track], tracks.vel[track], tracks.last[track] = tent.pos[u], tent.vel[u], tent.time
             tracks.streak[track] = tent.hits[u]

@@ -4,7 +4,7 @@ tentative ones, points not yet believed to be markers."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from collections import deque
 
 import numpy as np
 from numba import njit
@@ -277,26 +277,50 @@ def _remember(seen: np.ndarray, cur: np.ndarray, time: float, interval: float, a
                 span[t, j, 1] = d
 
 
-@dataclass
 class Tentatives:
-    """Tentative tracks, in step with each other: last position, velocity and consecutive frames seen, and the points
-    each has collected so far as ``(frame, position)``; all were last seen at ``time`` (one missing a frame dies)."""
+    """Tentative tracks, in step with each other: last position, velocity and consecutive frames seen, all last seen
+    at ``time`` (one missing a frame dies), and the trail of the points they collected: per frame, oldest first, the
+    frame, the tentative tracks' positions in it and the row of each in the frame before (-1: started then), for at
+    most ``frames`` frames (a tentative track held back by ``expected_markers`` keeps its last ``frames`` points)."""
 
-    pos: np.ndarray = field(default_factory=lambda: np.empty((0, 3)))
-    vel: np.ndarray = field(default_factory=lambda: np.empty((0, 3)))
-    hits: np.ndarray = field(default_factory=lambda: np.empty(0, np.int64))
-    points: list[list[tuple[int, np.ndarray]]] = field(default_factory=list)
-    time: float = -np.inf
+    def __init__(self, frames: int) -> None:
+        self.pos = np.empty((0, 3))
+        self.vel = np.empty((0, 3))
+        self.hits = np.empty(0, np.int64)
+        self.time = -np.inf
+        self.trail: deque[tuple[int, np.ndarray, np.ndarray]] = deque(maxlen=max(1, frames))
 
     def start(self, pos: np.ndarray, time: float, frame: int) -> None:
         """Replace the tentative tracks by new ones on the points ``pos`` ``(N, 3)`` seen at ``time`` in ``frame``."""
         self.pos = pos
         self.vel = np.zeros((len(pos), 3))
         self.hits = np.ones(len(pos), np.int64)
-        self.points = [[(frame, p)] for p in pos]
         self.time = time
+        self.trail.clear()
+        self.trail.append((frame, pos, np.full(len(pos), -1, np.intp)))
+
+    def step(self, pos: np.ndarray, vel: np.ndarray, hits: np.ndarray, carried: np.ndarray, time: float,
+             frame: int) -> None:
+        """The tentative tracks seen at ``time`` in ``frame``: positions, velocities and frames seen, the first
+        ``len(carried)`` carried on from the tentative tracks ``carried``, the others new."""
+        back = np.full(len(pos), -1, np.intp)
+        back[: len(carried)] = carried
+        self.pos, self.vel, self.hits, self.time = pos, vel, hits, time
+        self.trail.append((frame, pos, back))
+
+    def points(self, u: int) -> tuple[np.ndarray, np.ndarray]:
+        """The frames and positions ``(K, 3)`` of the points tentative track ``u`` collected, oldest first."""
+        frames, pos = [], []
+        for frame, at, back in reversed(self.trail):
+            frames.append(frame)
+            pos.append(at[u])
+            u = int(back[u])
+            if u < 0:
+                break
+        return np.array(frames[::-1]), np.array(pos[::-1])
 
     def keep(self, mask: np.ndarray) -> None:
         """Keep the tentative tracks selected by ``mask`` (T,) bool, drop the others."""
         self.pos, self.vel, self.hits = self.pos[mask], self.vel[mask], self.hits[mask]
-        self.points = [h for h, k in zip(self.points, mask, strict=True) if k]
+        frame, _, back = self.trail.pop()
+        self.trail.append((frame, self.pos, back[mask]))
