@@ -45,7 +45,7 @@ from scipy.spatial.distance import cdist
 from mocapflow.mocap.labelling.assignment import assign, gated_cost, match, norm
 from mocapflow.mocap.labelling.config import LabellerConfig
 from mocapflow.mocap.labelling.labeller import Labeller
-from mocapflow.mocap.labelling.offline import label_sequence, source_rows
+from mocapflow.mocap.labelling.offline import label_sequence, run_starts, source_rows
 from mocapflow.mocap.model import SkeletonModel
 from mocapflow.mocap.report import Progress, steps
 from mocapflow.mocap.rigidfit import fit_one, kabsch
@@ -685,7 +685,7 @@ def _track_names(track_row: np.ndarray, named: list[np.ndarray], markers: int) -
     segment hold them, and the trajectories' names stand."""
     frames, count = track_row.shape
     seen = track_row >= 0
-    starts = seen & ~np.vstack([np.zeros((1, count), bool), seen[:-1]])
+    starts = run_starts(seen)
     # runs numbered trajectory by trajectory: a run's points follow its start in its trajectory's column
     run_of = np.where(seen, np.cumsum(starts.T.ravel()).reshape(count, frames).T - 1, -1)
     runs = int(starts.sum())

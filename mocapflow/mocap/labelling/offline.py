@@ -228,8 +228,7 @@ def split_doubtful_joins(tracks: np.ndarray, config: LabellerConfig | None = Non
     """
     cfg = config or LabellerConfig()
     seen = np.isfinite(tracks[..., 0])
-    starts = seen & ~np.vstack([np.zeros((1, seen.shape[1]), bool), seen[:-1]])
-    ends = seen & ~np.vstack([seen[1:], np.zeros((1, seen.shape[1]), bool)])
+    starts, ends = run_starts(seen), run_starts(seen[::-1])[::-1]
     joined = np.flatnonzero(starts.sum(axis=0) >= 2)
     if not len(joined):
         return tracks
@@ -262,6 +261,11 @@ def split_doubtful_joins(tracks: np.ndarray, config: LabellerConfig | None = Non
             piece[begin:end] = tracks[begin:end, t]
             pieces.append(piece)
     return np.concatenate([out, *[p[:, None] for p in pieces]], axis=1)
+
+
+def run_starts(seen: np.ndarray) -> np.ndarray:
+    """``(F, T)``: where each track's runs of frames seen in a row (``seen`` ``(F, T)``) begin."""
+    return seen & ~np.vstack([np.zeros((1, seen.shape[1]), bool), seen[:-1]])
 
 
 def _junctions(state: _Round, rate: float, cfg: LabellerConfig) -> dict[tuple[int, int], float]:
@@ -376,17 +380,15 @@ def _explained(tracks: np.ndarray, seen: np.ndarray, k: int, rigid_sd: float, le
     marker."""
     frames = np.flatnonzero(seen[:, k])
     whole = frames[-1] - frames[0] + 1 == len(frames)
-    shared = seen[frames].astype(float)  # (n, T): frames each track shares with k
-    shared[:, k] = 0.0
+    _, sd = _distance_spread(tracks, seen, k, least if whole else len(frames))
+    sd[k] = np.nan
+    shared = seen[frames].astype(float)  # (n, T): the frames k shares with each track
     count = shared.sum(axis=0)
     own = tracks[frames, k]
-    d = np.where(shared > 0, norm(np.nan_to_num(tracks[frames]) - own[:, None]), 0.0)
     with np.errstate(invalid="ignore", divide="ignore"):
-        sd = np.sqrt(np.maximum((shared * d**2).sum(axis=0) / count - ((shared * d).sum(axis=0) / count) ** 2, 0.0))
         centre = shared.T @ own / count[:, None]  # (T, 3): k's mean position over the frames shared with each
         motion = np.sqrt(np.maximum(shared.T @ (own**2).sum(axis=1) / count - (centre**2).sum(axis=1), 0.0))
-    enough = count >= (min(len(frames), least) if whole else len(frames))
-    return int((enough & (sd <= rigid_sd) & (motion > rigid_sd)).sum()) >= (1 if whole else 2)
+    return int(((sd <= rigid_sd) & (motion > rigid_sd)).sum()) >= (1 if whole else 2)
 
 
 def _rigid_sd(tracks: np.ndarray, seen: np.ndarray, markers: np.ndarray, cfg: LabellerConfig) -> float:
