@@ -332,7 +332,7 @@ def _kept_distances(state: _Round, i: int, j: int, cfg: LabellerConfig) -> float
     return _median(told) if len(told) else 0.0
 
 
-def _triangle_score(state: _Round, i: int, j: int, cfg: LabellerConfig, near: bool = False) -> float:
+def _triangle_score(state: _Round, i: int, j: int, cfg: LabellerConfig, in_doubt: bool = False) -> float:
     """How well two tracks never seen together stand in one rigid triangle with two partners each: below 1 when
     ``i`` with two of its rigid partners and ``j`` with two of its own keep the same three distances (within
     ``rigid_tolerance_mm`` plus three spreads), each partner of ``i`` being the matching partner of ``j`` or a track
@@ -344,7 +344,7 @@ def _triangle_score(state: _Round, i: int, j: int, cfg: LabellerConfig, near: bo
     the markers could be matched the other way round, and its mirror image is the same triangle with two partners
     swapped; sides further apart than the tolerance cannot match the wrong way round. And the markers across
     their joints must lie on the same side of both triangles (``_Round.same_side``): the other leg's cluster may
-    have the same shape, mirrored. A pair with no partner in common must show that side plainly, unless ``near``
+    have the same shape, mirrored. A pair with no partner in common must show that side plainly, unless ``in_doubt``
     (the neighbours leave it in doubt both ways) and its three distances agree within ``UNSIDED`` of their
     tolerance; one with a partner in common is held by that partner where the side changes with the pose (a hand
     turning over)."""
@@ -374,7 +374,7 @@ def _triangle_score(state: _Round, i: int, j: int, cfg: LabellerConfig, near: bo
                 continue
             side = state.same_side((i, p1, p2), (j, q1, q2))
             error = max(e1, e2, e3)
-            if side < 0 or (side == 0 and p1 != q1 and p2 != q2 and not (near and error <= UNSIDED)):
+            if side < 0 or (side == 0 and p1 != q1 and p2 != q2 and not (in_doubt and error <= UNSIDED)):
                 continue
             best = min(best, error)
     return best
