@@ -332,7 +332,7 @@ def _kept_distances(state: _Round, i: int, j: int, cfg: LabellerConfig) -> float
     return _median(told) if len(told) else 0.0
 
 
-def _triangle_score(state: _Round, i: int, j: int, cfg: LabellerConfig, in_doubt: bool = False) -> float:
+def _triangle_score(state: _Round, i: int, j: int, cfg: LabellerConfig, in_doubt: bool) -> float:
     """How well two tracks never seen together stand in one rigid triangle with two partners each: below 1 when
     ``i`` with two of its rigid partners and ``j`` with two of its own keep the same three distances (within
     ``rigid_tolerance_mm`` plus three spreads), each partner of ``i`` being the matching partner of ``j`` or a track
