@@ -23,7 +23,8 @@ Body occlusions often hide several markers of one segment at once, which then co
 returning point keeps the distances to its lost partners that come back beside it, so rigid partners seen and lost
 ones count together, and where none is seen the looser neighbours must at least allow the point. A point that more
 than one lost marker fits so, or that another lost marker fits by its distance to a rigid partner alone (two markers
-of one segment at one distance from a third), is left to a new track rather than risk a swap.
+of one segment at one distance from a third), is left to a new track rather than risk a swap; so is one whose lost
+marker may already be back under another track (a marker seen now, never seen with it, fits it as loosely).
 
 A placement from a rigid neighbourhood re-identifies at once; a looser one (neighbours across a joint) only takes a
 point that has lived ``confirm_frames`` frames, so that a passing ghost cannot steal the track. Points that match no
