@@ -20,6 +20,9 @@ from mocapflow.mocap.labelling.offline import split_doubtful_joins
 from mocapflow.mocap.simulator import Simulator, SimulatorConfig, simulate
 
 RATE = 100.0
+# the labelling benchmark's stress damage: each marker hidden a third of the time in 0.2-2 s gaps, one-frame ghosts
+STRESS = {"gaps_per_s": np.log(1.5) / 1.1, "long_fraction": 1.0, "long_s": (0.2, 2.0), "ghosts": 0.2,
+          "ghost_frames": 1}
 
 
 def _clusters(seconds: float = 5.0, noise: float = 0.3, seed: int = 0) -> np.ndarray:
@@ -41,6 +44,14 @@ def _wanderers(seconds: float = 4.0) -> np.ndarray:
     t = np.arange(int(seconds * RATE)) / RATE
     return np.stack([np.stack([500 * k + 250 * np.cos((2.0 + 0.7 * k) * t), 250 * np.sin((2.0 + 0.7 * k) * t),
                                1000 + 150 * np.sin((1.1 + 0.9 * k) * t)], 1) for k in range(4)], axis=1)
+
+
+def _stacked(rows: list[np.ndarray]) -> np.ndarray:
+    """Streamed rows (each ``(T, 3)``, T growing as tracks are confirmed) as trajectories ``(F, T, 3)``."""
+    tracks = np.full((len(rows), max((len(r) for r in rows), default=0), 3), np.nan)
+    for i, row in enumerate(rows):
+        tracks[i, : len(row)] = row
+    return tracks
 
 
 def _stream(labeller: Labeller, truth: np.ndarray, hidden: np.ndarray, start: int = 0,
@@ -170,8 +181,7 @@ def test_a_point_two_lost_markers_fit_by_one_rigid_partner_is_not_given_to_eithe
     so it fits both lost tracks, and the looser neighbours (across the knee) happened to allow only the third's. The
     labeller now leaves the point to a new track: no track of the 420 frames holds two markers."""
     rec = simulate(SimulatorConfig(rig="quadruped", rate=120.0, noise_mm=0.5, seed=7), 1500)
-    points, identity = unlabel(rec.positions, rec.rate, seed=1, gaps_per_s=np.log(1.5) / 1.1, long_fraction=1.0,
-                               long_s=(0.2, 2.0), ghosts=0.2, ghost_frames=1)
+    points, identity = unlabel(rec.positions, rec.rate, seed=1, **STRESS)
     first, third = rec.labels.index("RFL1"), rec.labels.index("RFL3")
     assert not np.isin([first, third], identity[330]).any()  # both hidden
     assert first in identity[410] and third not in identity[410]  # the first back alone
@@ -293,8 +303,7 @@ def test_fragments_of_the_quadruped_under_stress_are_merged_by_their_triangles_o
     more than the 7 mm within which a distance matches, so it cannot be matched the wrong way round, and the
     fragments are merged by it."""
     rec = simulate(SimulatorConfig(rig="quadruped", rate=120, noise_mm=0.5, seed=7), 1500)
-    points, identity = unlabel(rec.positions, 120.0, seed=1, gaps_per_s=np.log(1.5) / 1.1, long_fraction=1.0,
-                               long_s=(0.2, 2.0), ghosts=0.2, ghost_frames=1)
+    points, identity = unlabel(rec.positions, 120.0, seed=1, **STRESS)
     tracks, _ = label_sequence(list(points), 120.0)
     score = score_labelling(tracks, list(points), list(identity), len(rec.labels))
     assert score.accuracy > 0.995
@@ -306,8 +315,7 @@ def human_under_stress() -> tuple[int, LabellingScore]:
     """The simulated human under the stress damage of the labelling benchmark (each marker hidden a third of the time
     in 0.2-2 s gaps, one-frame ghosts), labelled offline: its marker count and the score of its labels."""
     rec = simulate(SimulatorConfig(rig="human", rate=120, noise_mm=0.5, seed=7), 1500)
-    points, identity = unlabel(rec.positions, 120.0, seed=1, gaps_per_s=np.log(1.5) / 1.1, long_fraction=1.0,
-                               long_s=(0.2, 2.0), ghosts=0.2, ghost_frames=1)
+    points, identity = unlabel(rec.positions, 120.0, seed=1, **STRESS)
     tracks, _ = label_sequence(list(points), 120.0)
     return len(rec.labels), score_labelling(tracks, list(points), list(identity), len(rec.labels))
 
@@ -424,8 +432,7 @@ def test_a_short_sprint_keeps_its_briefly_seen_markers(data_dir: Path) -> None:
     from mocapflow.io.markers import read_markers
 
     data = read_markers(data_dir / "sprinter_JA1Gait35.c3d")
-    points, identity = unlabel(data.positions, data.rate, seed=1, gaps_per_s=np.log(1.5) / 1.1, long_fraction=1.0,
-                               long_s=(0.2, 2.0), ghosts=0.2, ghost_frames=1)
+    points, identity = unlabel(data.positions, data.rate, seed=1, **STRESS)
     tracks, _ = label_sequence(points, data.rate)
     score = score_labelling(tracks, points, identity, data.n_markers)
     _report("sprint", score)
@@ -443,8 +450,7 @@ def test_a_lost_track_whose_marker_came_back_under_another_takes_no_point_on_loo
     too, its claim is void. Counted here: a confirmed track that takes a point again while the marker it has held
     most is seen under another track (5 such on this stream without the rule), and the stream's swaps (9 without)."""
     rec = simulate(SimulatorConfig(rig="human", rate=120, noise_mm=0.5, seed=7), 4800)
-    points, identity = unlabel(rec.positions, 120.0, seed=1, gaps_per_s=np.log(1.5) / 1.1, long_fraction=1.0,
-                               long_s=(0.2, 2.0), ghosts=0.2, ghost_frames=1)
+    points, identity = unlabel(rec.positions, 120.0, seed=1, **STRESS)
     labeller = Labeller(LabellerConfig(), 120.0)
     held: dict[int, np.ndarray] = {}  # per track: how often it has held each marker
     before: set[int] = set()
@@ -461,10 +467,7 @@ def test_a_lost_track_whose_marker_came_back_under_another_takes_no_point_on_loo
                 stale += own >= 0 and own != marker and own in {m for t, m in now.items() if t != track}
             counts[marker + 1] += 1
         before = set(now)
-    tracks = np.full((len(rows), len(labeller.labels), 3), np.nan)
-    for i, row in enumerate(rows):
-        tracks[i, : len(row)] = row
-    score = score_labelling(tracks, list(points), list(identity), len(rec.labels))
+    score = score_labelling(_stacked(rows), list(points), list(identity), len(rec.labels))
     assert stale <= 2
     assert score.swaps <= 7
 
@@ -493,10 +496,7 @@ def test_streaming_through_the_camera_model(cameras: int, seed: int, accuracy: f
     assert rec.points is not None and rec.identity is not None
     labeller = Labeller(LabellerConfig(), rec.rate)
     rows = [labeller.update(points, i / rec.rate).positions for i, points in enumerate(rec.points)]
-    tracks = np.full((len(rows), len(labeller.labels), 3), np.nan)
-    for i, row in enumerate(rows):
-        tracks[i, : len(row)] = row
-    score = score_labelling(tracks, rec.points, rec.identity, len(rec.labels))
+    score = score_labelling(_stacked(rows), rec.points, rec.identity, len(rec.labels))
     _report(f"streaming, {cameras} cameras", score)
     assert score.accuracy >= accuracy
     assert score.swaps <= 1
