@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import STRESS
 from scipy.spatial.transform import Rotation
 
 from mocapflow.mocap.evaluation import LabellingScore, score_labelling, unlabel
@@ -20,9 +21,6 @@ from mocapflow.mocap.labelling.offline import split_doubtful_joins
 from mocapflow.mocap.simulator import Simulator, SimulatorConfig, simulate
 
 RATE = 100.0
-# the labelling benchmark's stress damage: each marker hidden a third of the time in 0.2-2 s gaps, one-frame ghosts
-STRESS = {"gaps_per_s": np.log(1.5) / 1.1, "long_fraction": 1.0, "long_s": (0.2, 2.0), "ghosts": 0.2,
-          "ghost_frames": 1}
 
 
 def _clusters(seconds: float = 5.0, noise: float = 0.3, seed: int = 0) -> np.ndarray:

@@ -436,7 +436,8 @@ class TrackedModelLabeller:
     A point then takes, the surest first and never a name another point of the frame took: its run's name (given to
     more than half of the run's points), else its track's (given to more than half of the named ones), else the name
     :class:`ModelLabeller` gave it. The same rules as over a whole recording (:func:`label_with_skeleton`), known
-    only up to the current frame."""
+    only up to the current frame. A run whose name the poses give for a while to another run, which they name so
+    throughout, and its own point another name, starts afresh (``_break_contested``)."""
 
     def __init__(self, skeleton: SkeletonModel, rate: float, config: ModelLabellerConfig | None = None) -> None:
         self.model = ModelLabeller(skeleton, rate, config)
@@ -448,6 +449,7 @@ class TrackedModelLabeller:
         self._run = np.zeros((0, markers), np.int64)  # per track: the same over its current run
         self._run_length = np.zeros(0, np.int64)
         self._seen = np.zeros(0, bool)  # per track: seen in the last frame
+        self._contested = np.zeros(0, np.int64)  # per track: frames in a row another run took its run's name
 
     @property
     def time(self) -> float:
@@ -467,16 +469,18 @@ class TrackedModelLabeller:
             self._run = np.vstack([self._run, np.zeros((grow, len(self.labels)), np.int64)])
             self._run_length = np.concatenate([self._run_length, np.zeros(grow, np.int64)])
             self._seen = np.concatenate([self._seen, np.zeros(grow, bool)])
+            self._contested = np.concatenate([self._contested, np.zeros(grow, np.int64)])
         rows = np.flatnonzero(point_track >= 0)
         track = point_track[rows]
         fresh = track[~self._seen[track]]
-        self._run[fresh], self._run_length[fresh] = 0, 0
+        self._run[fresh], self._run_length[fresh], self._contested[fresh] = 0, 0, 0
         self._seen[:] = False
         self._seen[track] = True
         named = given[rows] >= 0
         self._votes[track[named], given[rows[named]]] += 1  # a track holds one point a frame
         self._run[track[named], given[rows[named]]] += 1
         self._run_length[track] += 1
+        self._break_contested(track, given[rows])
         marker = np.full(len(pts), -1, np.intp)
         held = np.zeros(len(self.labels), bool)
         run, votes = self._run[track], self._votes[track]
@@ -496,6 +500,26 @@ class TrackedModelLabeller:
         found = np.flatnonzero(marker >= 0)
         positions[marker[found]] = pts[found]
         return positions, marker
+
+    def _break_contested(self, track: np.ndarray, given: np.ndarray) -> None:
+        """Start afresh the runs of ``track`` (this frame's tracks, their points named ``given`` by the poses) whose
+        name the poses have given, for ``confirm_frames`` frames in a row, to the point of a run that claims it too
+        and that they have named so in every frame of it, and their own point another name. Such a run took its name
+        while its segment was posed wrong (a mate hidden, the layout fitted one marker over), and the marker whose
+        name it is has come back: without this, the run's votes would hold the name as long as the run lasts, and
+        that marker would go unnamed. A run the poses name otherwise for a while with no such rival keeps its name
+        (a segment posed wrong for a moment)."""
+        run = self._run[track]
+        claim = np.where(2 * run.max(axis=1, initial=0) > self._run_length[track], run.argmax(axis=1), -1)
+        whole = run.max(axis=1, initial=0) == self._run_length[track]  # the poses named every point of the run so
+        backed = np.zeros(len(self.labels) + 1, np.int64)  # per name: runs claiming it, named so in every frame
+        np.add.at(backed, np.where((claim >= 0) & (given == claim) & whole, claim, len(self.labels)), 1)
+        contested = (claim >= 0) & (given >= 0) & (given != claim) & (backed[claim] > 0)
+        self._contested[track] = np.where(contested, self._contested[track] + 1, 0)
+        broken = track[self._contested[track] >= self.tracks.config.confirm_frames]
+        named = given[self._contested[track] >= self.tracks.config.confirm_frames]
+        self._run[broken], self._run_length[broken], self._contested[broken] = 0, 1, 0
+        self._run[broken, named] = 1
 
 
 def _place_layout(layout: np.ndarray, cloud: np.ndarray, tol: np.ndarray, weight: np.ndarray,
