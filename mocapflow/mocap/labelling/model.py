@@ -516,10 +516,10 @@ class TrackedModelLabeller:
         np.add.at(backed, np.where((claim >= 0) & (given == claim) & whole, claim, len(self.labels)), 1)
         contested = (claim >= 0) & (given >= 0) & (given != claim) & (backed[claim] > 0)
         self._contested[track] = np.where(contested, self._contested[track] + 1, 0)
-        broken = track[self._contested[track] >= self.tracks.config.confirm_frames]
-        named = given[self._contested[track] >= self.tracks.config.confirm_frames]
+        due = self._contested[track] >= self.tracks.config.confirm_frames
+        broken = track[due]
         self._run[broken], self._run_length[broken], self._contested[broken] = 0, 1, 0
-        self._run[broken, named] = 1
+        self._run[broken, given[due]] = 1  # the run starts at this frame, with its name in it
 
 
 def _place_layout(layout: np.ndarray, cloud: np.ndarray, tol: np.ndarray, weight: np.ndarray,
