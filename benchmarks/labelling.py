@@ -29,7 +29,6 @@ markers the skeleton has (a marker alone on its segment is left out of it).
 from __future__ import annotations
 
 import argparse
-import math
 import time
 from pathlib import Path
 
@@ -38,7 +37,7 @@ import numpy as np
 import yaml
 
 from mocapflow.mocap.calibration import CalibrationError, calibrate
-from mocapflow.mocap.evaluation import LabellingScore, score_labelling, score_naming, unlabel
+from mocapflow.mocap.evaluation import STRESS, LabellingScore, score_labelling, score_naming, unlabel
 from mocapflow.mocap.labelling import Labeller, LabellerConfig, label_sequence
 from mocapflow.mocap.labelling.model import TrackedModelLabeller, label_with_skeleton
 from mocapflow.mocap.model import SkeletonModel
@@ -50,10 +49,6 @@ LEVELS = {
     "heavy": ({"dropout_rate": 0.5, "long_gaps": 4.0, "ghosts": 5.0}, (0.2, 3.0)),
 }
 CAMERAS = (4, 8)  # camera counts of the camera-model cases
-# stress damage: independent gaps of 0.2-2 s (mean 1.1 s) starting at a rate that hides a marker a third of the time
-# (1 - exp(-rate * 1.1 s) = 1/3), and one-frame ghosts, Poisson 0.2 per frame (one or more in 18 % of frames)
-STRESS = {"gaps_per_s": math.log(1.5) / 1.1, "long_fraction": 1.0, "long_s": (0.2, 2.0), "ghosts": 0.2,
-          "ghost_frames": 1}
 STRESS_RIGS = (("human", 120.0), ("quadruped", 120.0))
 # still ghosts (a reflection, a lamp) living up to 20 frames, longer than a new track needs to be believed, 0.3 new a
 # frame, with gaps as the mild damage's; 600 frames of each stress capture
@@ -133,7 +128,7 @@ def _stress(frames: int, data: Path) -> list[tuple[Case, SkeletonModel | None, l
         except CalibrationError as exc:
             print(f"(no skeleton for {name}: {exc})")
             skeleton = None
-        points, identity = unlabel(trial, rate, seed=1, **STRESS)  # type: ignore[arg-type]
+        points, identity = unlabel(trial, rate, seed=1, **STRESS)
         cases.append(((f"{name}, stress", list(points), list(identity), rate, len(labels)), skeleton, labels))
     return cases
 

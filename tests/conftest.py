@@ -3,7 +3,6 @@ command line run as a subprocess."""
 
 from __future__ import annotations
 
-import math
 import socket
 import subprocess
 import sys
@@ -16,11 +15,6 @@ DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 
 CLI = [sys.executable, "-m", "mocapflow.cli"]
 """``mocapflow`` as a subprocess runs it."""
-
-STRESS = {"gaps_per_s": math.log(1.5) / 1.1, "long_fraction": 1.0, "long_s": (0.2, 2.0), "ghosts": 0.2,
-          "ghost_frames": 1}
-"""The labelling benchmark's stress damage (``unlabel``'s arguments): each marker hidden a third of the time in 0.2-2 s
-gaps, one-frame ghosts in a fifth of the frames."""
 
 
 def run_cli(*args: str | Path, timeout: float = 120) -> subprocess.CompletedProcess[str]:

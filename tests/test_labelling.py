@@ -6,10 +6,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import STRESS
 from scipy.spatial.transform import Rotation
 
-from mocapflow.mocap.evaluation import LabellingScore, score_labelling, unlabel
+from mocapflow.mocap.evaluation import STRESS, LabellingScore, score_labelling, unlabel
 from mocapflow.mocap.labelling import (
     Labeller,
     LabellerConfig,

@@ -7,10 +7,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import STRESS, graph_file, run_cli
+from conftest import graph_file, run_cli
 
 from mocapflow.mocap.calibration import calibrate
-from mocapflow.mocap.evaluation import score_naming, unlabel
+from mocapflow.mocap.evaluation import STRESS, score_naming, unlabel
 from mocapflow.mocap.labelling.model import ModelLabeller, TrackedModelLabeller, _track_names, label_with_skeleton
 from mocapflow.mocap.model import SkeletonModel
 from mocapflow.mocap.simulator import Simulator, SimulatorConfig, simulate, truth_skeleton
@@ -253,7 +253,7 @@ def test_a_name_a_track_took_while_its_marker_was_hidden_goes_back_to_that_marke
     calibration = simulate(SimulatorConfig(rig="human", rate=RATE, noise_mm=0.5, seed=3), 1500)
     skeleton = calibrate(calibration.positions, calibration.labels, RATE)
     trial = simulate(SimulatorConfig(rig="human", rate=RATE, noise_mm=0.5, seed=7), 1500)
-    points, identity = unlabel(trial.positions, RATE, seed=1, **STRESS)  # type: ignore[arg-type]
+    points, identity = unlabel(trial.positions, RATE, seed=1, **STRESS)
     live, poses = TrackedModelLabeller(skeleton, RATE), ModelLabeller(skeleton, RATE)  # poses: the names live uses
     own = np.array([live.labels.index(name) if name in live.labels else -1 for name in trial.labels])
     named, held_elsewhere = [], 0

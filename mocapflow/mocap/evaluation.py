@@ -3,8 +3,10 @@ identities of its points, and a labelled recording turned back into what a passi
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -111,6 +113,13 @@ def score_labelling(tracks: np.ndarray, points: Sequence[np.ndarray], identity: 
         ghost_tracks=int((majority < 0).sum()), fragments=len(found) - len(set(found.tolist())),
         markers_found=len(set(found.tolist())), markers_true=markers, unlabelled_at_first=before / max(real, 1),
     )
+
+
+STRESS: dict[str, Any] = {"gaps_per_s": math.log(1.5) / 1.1, "long_fraction": 1.0, "long_s": (0.2, 2.0),
+                          "ghosts": 0.2, "ghost_frames": 1}
+"""The labelling benchmark's stress damage, ``unlabel``'s arguments: independent gaps of 0.2-2 s (mean 1.1 s) starting
+at a rate that hides a marker a third of the time (1 - exp(-rate * 1.1 s) = 1/3), and one-frame ghosts, Poisson 0.2
+per frame (one or more in 18 % of frames)."""
 
 
 def unlabel(positions: np.ndarray, rate: float, seed: int, gaps_per_s: float = 0.05, long_fraction: float = 0.3,

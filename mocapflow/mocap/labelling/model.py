@@ -509,9 +509,10 @@ class TrackedModelLabeller:
         name it is has come back: without this, the run's votes would hold the name as long as the run lasts, and
         that marker would go unnamed. A run the poses name otherwise for a while with no such rival keeps its name
         (a segment posed wrong for a moment)."""
-        run = self._run[track]
-        claim = np.where(2 * run.max(axis=1, initial=0) > self._run_length[track], run.argmax(axis=1), -1)
-        whole = run.max(axis=1, initial=0) == self._run_length[track]  # the poses named every point of the run so
+        run, length = self._run[track], self._run_length[track]
+        top = run.max(axis=1, initial=0)
+        claim = np.where(2 * top > length, run.argmax(axis=1), -1)
+        whole = top == length  # the poses named every point of the run so
         backed = np.zeros(len(self.labels) + 1, np.int64)  # per name: runs claiming it, named so in every frame
         np.add.at(backed, np.where((claim >= 0) & (given == claim) & whole, claim, len(self.labels)), 1)
         contested = (claim >= 0) & (given >= 0) & (given != claim) & (backed[claim] > 0)
