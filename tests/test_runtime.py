@@ -5,6 +5,7 @@ from __future__ import annotations
 import os
 import signal
 import subprocess
+import sys
 import threading
 import time
 from pathlib import Path
@@ -18,6 +19,7 @@ from conftest import CLI, graph_file
 
 from mocapflow.messages import MarkerFrame
 from mocapflow.mocap.simulator import Simulator, SimulatorConfig
+from mocapflow.runtime.cpus import REALTIME_PRIORITY
 from mocapflow.runtime.runner import Runner
 from mocapflow.runtime.session import open_client
 
@@ -280,16 +282,20 @@ def test_a_node_that_asks_runs_on_a_core_of_its_own(tmp_path: Path, free_endpoin
 
 def test_a_node_runs_at_the_niceness_its_graph_sets(tmp_path: Path, free_endpoint: str) -> None:
     """A node runs at the niceness its graph sets, the others at 0; a group at its most favoured member's. A node
-    with 'cpu: idle' runs on CPU time nothing else wants (SCHED_IDLE). Every node process runs BLAS on one thread,
-    whose spinning helpers would take CPU from the other processes."""
+    with 'cpu: idle' runs on CPU time nothing else wants (SCHED_IDLE); one with 'cpu: realtime', and a group one of
+    whose members asks, at a real-time priority (SCHED_FIFO) where this machine gives the right to, else as any
+    other, saying so. Every node process runs BLAS on one thread, whose spinning helpers would take CPU from the
+    other processes."""
     path, prefix = graph_file(tmp_path, "nc", free_endpoint, f"""
-  tracker: {{plugin: simulator, config: {{rig: rods, rate: {RATE}, seed: 3}}}}
+  tracker: {{plugin: simulator, config: {{rig: rods, rate: {RATE}, seed: 3}}, cpu: realtime}}
   clusterer: {{plugin: clusterer-spectral, inputs: {{markers: tracker/markers}}, nice: 10}}
   relay: {{plugin: relay, inputs: {{markers: tracker/markers}}, nice: 4, cpu: idle}}
   other: {{plugin: relay, inputs: {{markers: relay/markers}}, nice: 12, group: pair, cpu: idle}}
   recorder: {{plugin: recorder, inputs: {{markers: other/markers}}, config: {{path: {tmp_path / 'o.c3d'}}},
-             group: pair}}
+             group: pair, cpu: realtime}}
 """)
+    fifo = f"import os; os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param({REALTIME_PRIORITY}))"
+    allowed = subprocess.run([sys.executable, "-c", fifo], capture_output=True, check=False).returncode == 0
     run = start(["run", str(path), "--duration", "60"], tmp_path)
     pids: dict[str, int] = {}
     try:
@@ -307,6 +313,7 @@ def test_a_node_runs_at_the_niceness_its_graph_sets(tmp_path: Path, free_endpoin
                     for node, pid in dict(pids).items()}
             nice = {node: int(fields[16]) for node, fields in stat.items()}
             idle = {node for node, fields in stat.items() if int(fields[38]) == os.SCHED_IDLE}
+            realtime = {node: int(fields[37]) for node, fields in stat.items() if int(fields[38]) == os.SCHED_FIFO}
             blas = {node: dict(v.split("=", 1) for v in Path(f"/proc/{pid}/environ").read_text().split("\0")
                                if v.startswith("OPENBLAS_NUM_THREADS="))
                     for node, pid in dict(pids).items()}
@@ -315,6 +322,11 @@ def test_a_node_runs_at_the_niceness_its_graph_sets(tmp_path: Path, free_endpoin
         out, _ = run.communicate(timeout=60)
     assert nice == {"tracker": 0, "clusterer": 10, "relay": 4, "other": 0, "recorder": 0}, (nice, out)
     assert idle == {"relay"}, idle  # 'cpu: idle'; a group only when all its members ask
+    if allowed:  # 'cpu: realtime', at its priority; a group when one of its members asks
+        assert realtime == dict.fromkeys(("tracker", "other", "recorder"), REALTIME_PRIORITY), realtime
+    else:
+        assert realtime == {}, realtime
+        assert out.count("'cpu: realtime' needs the right to real-time priority") == 2, out  # tracker, group
     one = os.environ.get("OPENBLAS_NUM_THREADS", "1")  # the setting of whoever runs the graph, else one thread
     assert all(env == {"OPENBLAS_NUM_THREADS": one} for env in blas.values()), blas
 

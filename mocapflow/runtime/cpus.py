@@ -14,9 +14,17 @@ ONE_THREAD = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
 BLAS library's worker threads only spin; at 1000 Hz they took the frame group from 0.8 to 1.03 cores. Only effective
 before numpy loads: this module imports nothing that loads it."""
 
-CpuPolicy = Literal["shared", "own", "idle"]
+CpuPolicy = Literal["shared", "own", "idle", "realtime"]
 """``shared``: the cores no process asked for; ``own``: a core of its own; ``idle``: the shared cores, but only the
-CPU time nothing else wants (Linux's SCHED_IDLE), so that a sink such as a viewer never delays the pipeline."""
+CPU time nothing else wants (Linux's SCHED_IDLE), so that a sink such as a viewer never delays the pipeline;
+``realtime``: the shared cores, at a real-time priority (Linux's SCHED_FIFO at ``REALTIME_PRIORITY``): the process
+runs as soon as it is ready, ahead of every ordinary process, so that the frame path is not kept waiting while the
+model stages solve. It takes the right to (root, CAP_SYS_NICE or an ``rtprio`` limit); without it the process runs
+as ``shared`` and says so."""
+
+REALTIME_PRIORITY = 10
+"""SCHED_FIFO priority of a ``cpu: realtime`` process: low among real-time ones (1-99), above every ordinary process;
+the kernel's own threads that must come first run higher."""
 
 
 def assign_cores(own: Mapping[str, bool],

@@ -60,7 +60,10 @@ class NodeSpec(RestartPolicy):
                            "group's, if a member asks), no other process of the graph on that machine running there, "
                            "when the machine has a core to spare; 'shared': the cores left; 'idle': the cores left, "
                            "but only the CPU time no other process wants (a viewer: it never delays the pipeline, "
-                           "and on a machine with no time to spare it draws nothing)")
+                           "and on a machine with no time to spare it draws nothing); 'realtime': the cores left, at "
+                           "a real-time priority, ahead of every ordinary process (the frame path: a group's, if a "
+                           "member asks and none asks 'own'; it needs root, CAP_SYS_NICE or an rtprio limit, and "
+                           "without it runs as 'shared', with a warning)")
     queue: dict[str, QueuePolicy] = Field(
         default_factory=dict, description="input port -> 'all' (every message), 'latest' (the newest) or 'preview' "
         "(the newest of the output's preview, at most 60 a second: for viewers) or 'sampled' (every frame of the "

@@ -128,6 +128,7 @@ class Launcher:
                     "node": group, "plugin": "group", "members": [specs[m] for m in members], "inputs": {},
                     "queue": {}, "queue_size": max(n.queue_size for n in nodes),
                     "cpu": "own" if any(n.cpu == "own" for n in nodes) else
+                    "realtime" if any(n.cpu == "realtime" for n in nodes) else
                     "idle" if all(n.cpu == "idle" for n in nodes) else "shared"}),
                 source=any(classes[m].is_source() for m in members),
                 restart="never" if any(n.restart == "never" for n in nodes) else "on-failure",

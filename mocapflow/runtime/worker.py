@@ -41,7 +41,7 @@ from pydantic import BaseModel, Field, ValidationError
 
 from mocapflow.messages import DecodeError, Message, NodeStats, decode, encode
 from mocapflow.runtime import keys
-from mocapflow.runtime.cpus import CpuPolicy
+from mocapflow.runtime.cpus import REALTIME_PRIORITY, CpuPolicy
 from mocapflow.runtime.inbox import DEFAULT_CAPACITY, Entry, Inbox, QueuePolicy
 from mocapflow.runtime.integrity import InputGuard, Refused, StreamLimits, new_identity
 from mocapflow.runtime.node import RUN_ENV, Node
@@ -88,7 +88,7 @@ class WorkerSpec(BaseModel):
     queue_size: int = Field(default=DEFAULT_CAPACITY, ge=1, description="messages an 'all' inbox holds at most")
     nice: int = Field(default=0, ge=0, le=19, description="CPU niceness of the process")
     cpu: CpuPolicy = Field(default="shared", description="'own': asks for a CPU core of its own; 'idle': runs on "
-                           "CPU time no other process wants")
+                           "CPU time no other process wants; 'realtime': runs at a real-time priority")
     cpus: list[int] | None = Field(default=None, description="the CPU cores the process runs on, as the launcher or "
                                    "agent that starts it assigned them; none: wherever it was started")
     wait_for: dict[str, float] = Field(
@@ -589,6 +589,12 @@ def run_worker(spec: WorkerSpec) -> int:
             os.sched_setaffinity(0, spec.cpus)
         if spec.cpu == "idle":
             os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
+        elif spec.cpu == "realtime":  # before the session opens, so that its threads run so too
+            try:
+                os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(REALTIME_PRIORITY))
+            except PermissionError:
+                log.warning("node %s: 'cpu: realtime' needs the right to real-time priority (root, CAP_SYS_NICE or "
+                            "an rtprio limit): running at normal priority", spec.node)
         session = open_client(spec.connect, spec.security)
     except (PluginNotFound, ValidationError, SecurityError) as exc:
         log.error("node %s: %s", spec.node, exc)
