@@ -326,7 +326,7 @@ def test_a_node_runs_at_the_niceness_its_graph_sets(tmp_path: Path, free_endpoin
         assert realtime == dict.fromkeys(("tracker", "other", "recorder"), REALTIME_PRIORITY), realtime
     else:
         assert realtime == {}, realtime
-        assert out.count("'cpu: realtime' needs the right to real-time priority") == 2, out  # tracker, group
+        assert out.count("'cpu: realtime' needs Linux and the right to real-time priority") == 2, out  # tracker, group
     one = os.environ.get("OPENBLAS_NUM_THREADS", "1")  # the setting of whoever runs the graph, else one thread
     assert all(env == {"OPENBLAS_NUM_THREADS": one} for env in blas.values()), blas
 

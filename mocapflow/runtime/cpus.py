@@ -19,12 +19,12 @@ CpuPolicy = Literal["shared", "own", "idle", "realtime"]
 CPU time nothing else wants (Linux's SCHED_IDLE), so that a sink such as a viewer never delays the pipeline;
 ``realtime``: the shared cores, at a real-time priority (Linux's SCHED_FIFO at ``REALTIME_PRIORITY``): the process
 runs as soon as it is ready, ahead of every ordinary process, so that the frame path is not kept waiting while the
-model stages solve. It takes the right to (root, CAP_SYS_NICE or an ``rtprio`` limit); without it the process runs
+model stages solve. It needs the right to (root, CAP_SYS_NICE or an ``rtprio`` limit); without it the process runs
 as ``shared`` and says so."""
 
 REALTIME_PRIORITY = 10
-"""SCHED_FIFO priority of a ``cpu: realtime`` process: low among real-time ones (1-99), above every ordinary process;
-the kernel's own threads that must come first run higher."""
+"""SCHED_FIFO priority of a ``cpu: realtime`` process: low among real-time priorities (1-99), so that the kernel's
+most urgent threads still come first; any real-time priority comes before every ordinary process."""
 
 
 def assign_cores(own: Mapping[str, bool],

@@ -592,9 +592,9 @@ def run_worker(spec: WorkerSpec) -> int:
         elif spec.cpu == "realtime":  # before the session opens, so that its threads run so too
             try:
                 os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(REALTIME_PRIORITY))
-            except PermissionError:
-                log.warning("node %s: 'cpu: realtime' needs the right to real-time priority (root, CAP_SYS_NICE or "
-                            "an rtprio limit): running at normal priority", spec.node)
+            except (OSError, AttributeError):  # no right to it, or a system without it (Linux's only)
+                log.warning("node %s: 'cpu: realtime' needs Linux and the right to real-time priority (root, "
+                            "CAP_SYS_NICE or an rtprio limit): running at normal priority", spec.node)
         session = open_client(spec.connect, spec.security)
     except (PluginNotFound, ValidationError, SecurityError) as exc:
         log.error("node %s: %s", spec.node, exc)
