@@ -196,8 +196,10 @@ class NodeStats(BaseModel):
     frames_in: int = 0
     frames_out: int = 0
     rate_hz: float = 0.0
-    latency_p50_ms: float | None = None
-    latency_p99_ms: float | None = None
+    latency_p50_ms: float | None = Field(default=None, description=(
+        "from the tracker's capture timestamp to the frame handled (ms): over the latest 4096 frames while the node "
+        "runs, over its whole run once it has ended (to within 1 %)"))
+    latency_p99_ms: float | None = Field(default=None, description="as latency_p50_ms, the 99th percentile")
     drops: int = Field(default=0, description="frames lost: missing frame numbers, or refused by a full inbox")
     skipped: int = Field(default=0, description="messages passed over: for a newer one ('queue: latest' inputs), or "
                          "not wanted (a model stage sampling its input)")

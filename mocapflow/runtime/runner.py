@@ -8,6 +8,7 @@ encode. Either way the node sees the same calls, so a graph gives the same resul
 from __future__ import annotations
 
 import logging
+import math
 import os
 import time
 from collections import deque
@@ -23,8 +24,39 @@ from mocapflow.runtime.node import Node
 log = logging.getLogger("mocapflow.worker")
 
 
+RECENT = 4096
+"""How many of the latest frames the live latency figures cover (a few seconds at a tracker's rate)."""
+_FLOOR_MS = 1e-3
+_STEP = math.log(1.01)
+_BINS = int(math.log(1e7 / _FLOOR_MS) / _STEP) + 1  # magnitudes from a microsecond to about three hours
+
+
+class LatencyHistogram:
+    """Every latency of a run, in bins 1 % wide, for percentiles over the whole run at a fixed cost a frame and in
+    fixed memory. Signed: across machines the tracker's clock and this one's may disagree by more than a latency."""
+
+    def __init__(self) -> None:
+        self.counts = [0] * (2 * _BINS + 1)  # bin _BINS: under a microsecond either way; above it positive values
+
+    def add(self, ms: float) -> None:
+        size = abs(ms)
+        k = 0 if not size >= _FLOOR_MS else min(int(math.log(size / _FLOOR_MS) / _STEP) + 1, _BINS)
+        self.counts[_BINS + k if ms > 0 else _BINS - k] += 1
+
+    def percentiles(self, qs: list[float]) -> list[float] | None:
+        """The value at each percentile in ``qs`` (to within 1 %, or a microsecond), None before any value."""
+        cum = np.cumsum(self.counts)
+        if cum[-1] == 0:
+            return None
+        rank = np.maximum(np.ceil(np.asarray(qs) / 100 * cum[-1]), 1)
+        k = np.searchsorted(cum, rank) - _BINS
+        size = np.where(k == 0, 0.0, _FLOOR_MS * np.exp((np.abs(k) - 0.5) * _STEP))  # a bin's middle
+        return [float(v) for v in np.sign(k) * size]
+
+
 class Stats:
-    """Counters and a latency window; latency is measured from the tracker's capture timestamp."""
+    """Counters and latency; latency is measured from the tracker's capture timestamp, over the latest ``RECENT``
+    frames while the node runs and over the whole run once it has ended."""
 
     def __init__(self) -> None:
         self.frames_in = 0
@@ -36,7 +68,8 @@ class Stats:
         self.unpaired = 0
         self.passed = 0  # passed over: the node did not want them (``Node.wanted``), or a stream's copy left them out
         self.last_error: str | None = None
-        self.latencies_ms: deque[float] = deque(maxlen=4096)
+        self.latencies_ms: deque[float] = deque(maxlen=RECENT)
+        self.run_latency = LatencyHistogram()
         self._rate_mark = (time.monotonic(), 0)
         self._first_done: float | None = None
         self._last_done = 0.0
@@ -47,7 +80,9 @@ class Stats:
         self._last_done = time.monotonic()
         if self._first_done is None:
             self._first_done = self._last_done
-        self.latencies_ms.append((time.time_ns() - capture_ns) / 1e6)
+        latency = (time.time_ns() - capture_ns) / 1e6
+        self.latencies_ms.append(latency)
+        self.run_latency.add(latency)
 
     def snapshot(self, node: str, state: str, **inbox: Any) -> NodeStats:
         """``inbox``: the node's inbox figures (``drops`` refused, ``skipped``, ``backlog``...)."""
@@ -59,7 +94,9 @@ class Stats:
             self.rate_hz = (self.handled - n0) / (now - t0)
         self._rate_mark = (now, self.handled)
         p50 = p99 = None
-        if self.latencies_ms:
+        if state in ("finished", "stopping", "failed"):
+            p50, p99 = self.run_latency.percentiles([50, 99]) or (None, None)
+        elif self.latencies_ms:
             p50, p99 = (float(v) for v in np.percentile(np.fromiter(self.latencies_ms, float), [50, 99]))
         return NodeStats(
             node=node, pid=os.getpid(), state=state, frames_in=self.frames_in, frames_out=self.frames_out,
