@@ -34,7 +34,7 @@ class SimulatorNode(Node[SimulatorNodeConfig]):
 
     def prepare(self, index: int) -> None:
         if not self._past_end(index):
-            self.sim.prepare(index)  # one frame in 64 starts a block: worked out here, it delays no frame
+            self.sim.prepare(index)  # a step of the next block of 64 frames: a frame waits for a step, not a block
 
     def emit(self, index: int) -> bool:
         if self._past_end(index):

@@ -20,7 +20,7 @@ from conftest import CLI, graph_file
 from mocapflow.messages import MarkerFrame
 from mocapflow.mocap.simulator import Simulator, SimulatorConfig
 from mocapflow.runtime.cpus import REALTIME_PRIORITY
-from mocapflow.runtime.runner import Runner
+from mocapflow.runtime.runner import RECENT, LatencyHistogram, Runner, Stats
 from mocapflow.runtime.session import open_client
 
 pytestmark = pytest.mark.integration  # every test here starts processes and Zenoh sessions
@@ -284,8 +284,8 @@ def test_a_node_runs_at_the_niceness_its_graph_sets(tmp_path: Path, free_endpoin
     """A node runs at the niceness its graph sets, the others at 0; a group at its most favoured member's. A node
     with 'cpu: idle' runs on CPU time nothing else wants (SCHED_IDLE); one with 'cpu: realtime', and a group one of
     whose members asks, at a real-time priority (SCHED_FIFO) where this machine gives the right to, else as any
-    other, saying so. Every node process runs BLAS on one thread, whose spinning helpers would take CPU from the
-    other processes."""
+    other, saying so; so do the embedded router's threads then, and only they in the launcher's process. Every node
+    process runs BLAS on one thread, whose spinning helpers would take CPU from the other processes."""
     path, prefix = graph_file(tmp_path, "nc", free_endpoint, f"""
   tracker: {{plugin: simulator, config: {{rig: rods, rate: {RATE}, seed: 3}}, cpu: realtime}}
   clusterer: {{plugin: clusterer-spectral, inputs: {{markers: tracker/markers}}, nice: 10}}
@@ -317,16 +317,26 @@ def test_a_node_runs_at_the_niceness_its_graph_sets(tmp_path: Path, free_endpoin
             blas = {node: dict(v.split("=", 1) for v in Path(f"/proc/{pid}/environ").read_text().split("\0")
                                if v.startswith("OPENBLAS_NUM_THREADS="))
                     for node, pid in dict(pids).items()}
+            threads = {pid: {int(task.name): task.joinpath("stat").read_text().rsplit(")", 1)[1].split()
+                             for task in Path(f"/proc/{pid}/task").iterdir()}
+                       for pid in [run.pid, *pids.values()]}  # the launcher's (the router's among them), the nodes'
     finally:
         run.send_signal(signal.SIGINT)
         out, _ = run.communicate(timeout=60)
     assert nice == {"tracker": 0, "clusterer": 10, "relay": 4, "other": 0, "recorder": 0}, (nice, out)
     assert idle == {"relay"}, idle  # 'cpu: idle'; a group only when all its members ask
-    if allowed:  # 'cpu: realtime', at its priority; a group when one of its members asks
+    fifo = {pid: {tid: int(fields[37]) for tid, fields in tasks.items() if int(fields[38]) == os.SCHED_FIFO}
+            for pid, tasks in threads.items()}
+    if allowed:  # 'cpu: realtime', at its priority; a group when one of its members asks; the embedded router's threads
         assert realtime == dict.fromkeys(("tracker", "other", "recorder"), REALTIME_PRIORITY), realtime
+        for node in realtime:  # the frame loop's thread and Zenoh's
+            assert len(fifo[pids[node]]) == len(threads[pids[node]]), threads[pids[node]]
+        assert fifo[run.pid] and set(fifo[run.pid].values()) == {REALTIME_PRIORITY}, fifo[run.pid]
+        assert run.pid not in fifo[run.pid]  # the launcher's own thread (and the nodes it starts) as before
     else:
-        assert realtime == {}, realtime
-        assert out.count("'cpu: realtime' needs Linux and the right to real-time priority") == 2, out  # tracker, group
+        assert realtime == {} and not any(fifo.values()), (realtime, fifo)
+        warning = "'cpu: realtime' needs Linux and the right to real-time priority"
+        assert out.count(warning) == 3 and f"router: {warning}" in out, out  # tracker, group, router
     one = os.environ.get("OPENBLAS_NUM_THREADS", "1")  # the setting of whoever runs the graph, else one thread
     assert all(env == {"OPENBLAS_NUM_THREADS": one} for env in blas.values()), blas
 
@@ -334,9 +344,8 @@ def test_a_node_runs_at_the_niceness_its_graph_sets(tmp_path: Path, free_endpoin
 @pytest.mark.integration
 def test_a_paced_source_is_asked_to_prepare_each_frame_only_before_it_is_emitted(tmp_path: Path,
                                                                                    free_endpoint: str) -> None:
-    """``Node.prepare(i)`` comes after frame i - 1 was emitted and handled and before frame i is, in the time left
-    before it is due: never for a frame already emitted (after the last frame, once: the source tells its end only
-    when asked for the frame past it)."""
+    """``Node.prepare(i)`` comes after frame i - 1 was emitted and handled and before frame i is: never for a frame
+    already emitted (after the last frame, once: the source tells its end only when asked for the frame past it)."""
     calls = tmp_path / "calls.txt"
     sink = tmp_path / "sink.txt"
     path = tmp_path / "g.yaml"
@@ -360,7 +369,7 @@ def test_a_paced_source_is_asked_to_prepare_each_frame_only_before_it_is_emitted
             emitted = int(n)
         else:
             assert int(n) == emitted + 1, log  # the next frame, after the last one emitted
-    assert any(kind == "prepare" for kind, _ in log)  # 50 ms a frame for a few us of work: slack however busy
+    assert [int(n) for kind, n in log if kind == "prepare"] == list(range(1, 31))  # after every frame
 
 
 def test_a_failing_prepare_is_reported_and_costs_nothing_else(tmp_path: Path) -> None:
@@ -376,3 +385,31 @@ def test_a_failing_prepare_is_reported_and_costs_nothing_else(tmp_path: Path) ->
     runner.prepare(3)
     assert runner.stats.errors == 1 and runner.stats.last_error == "prepare frame 3: no block"
     assert runner.emit(0) and [m.frame for m in sent] == [0]
+
+
+def test_latency_covers_the_latest_frames_while_a_node_runs_and_its_whole_run_once_ended() -> None:
+    stats = Stats()
+    for i in range(RECENT + 200):  # the first 200 frames a second late, the others a millisecond
+        stats.frame_done(time.time_ns() - (1_000_000_000 if i < 200 else 1_000_000))
+    live, ended = stats.snapshot("n", "running"), stats.snapshot("n", "finished")
+    assert live.latency_p99_ms is not None and 1.0 <= live.latency_p99_ms < 2.0
+    assert ended.latency_p99_ms is not None and 990 < ended.latency_p99_ms < 1011
+    assert ended.latency_p50_ms is not None and 0.99 < ended.latency_p50_ms < 1.5
+
+
+def test_the_whole_run_latency_percentiles_are_right_to_one_percent_either_side_of_zero() -> None:
+    histogram = LatencyHistogram()
+    assert histogram.percentiles([50]) is None
+    rng = np.random.default_rng(5)
+    values = rng.lognormal(0.0, 2.0, 5000) * rng.choice([-1.0, 1.0], 5000, p=[0.1, 0.9])  # skewed clocks: some < 0
+    for value in values:
+        histogram.add(float(value))
+    qs = [1.0, 5.0, 10.0, 50.0, 90.0, 99.0, 99.9]
+    got = histogram.percentiles(qs)
+    assert got is not None
+    # to within 1 %, or a microsecond (under which a latency counts as 0)
+    assert np.allclose(got, np.percentile(values, qs, method="inverted_cdf"), rtol=0.01, atol=1e-3)
+    tiny = LatencyHistogram()
+    for value in (1e-5, -1e-5, float("nan")):
+        tiny.add(value)
+    assert tiny.percentiles([50]) == [0.0]

@@ -141,15 +141,21 @@ def test_frames_are_deterministic_and_order_independent(unlabelled: bool) -> Non
 
 
 def test_a_frame_prepared_ahead_is_the_frame() -> None:
-    """``prepare`` works out a frame's block and occlusion schedules ahead; what the frame then is does not change,
-    nor does any other frame asked for after it."""
+    """``prepare`` works out a frame's block ahead a step at a time, and the next block once the frame's own is done;
+    what a frame then is does not change, whatever steps were taken, nor does any frame asked for after it."""
     config = SimulatorConfig(unlabelled=True, seed=7, **BUSY)
     prepared, plain = Simulator(config), Simulator(config)
-    for i in (64, 2400, 5, 24_000):
-        prepared.prepare(i)
-        assert prepared._block.index == i // 64
+    for steps, i in zip((1, 3, 10, 2), (64, 2400, 5, 24_000), strict=True):
+        for _ in range(steps):
+            prepared.prepare(i)
         assert_same(prepared.frame(i), plain.frame(i))
         assert_same(prepared.frame(i + 1), plain.frame(i + 1))
+    live, plain = Simulator(config), Simulator(config)
+    for i in range(200):  # as a live source: a step after each frame
+        live.prepare(i)
+        assert_same(live.frame(i), plain.frame(i))
+        if i % 64 == 10:  # the next block is ready ten frames into this one
+            assert live._ready is not None and live._ready.index == i // 64 + 1
 
 
 # ---------------------------------------------------------------------------------------------------- truth

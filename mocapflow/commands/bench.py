@@ -150,7 +150,8 @@ def _pipeline(graph: str, rate: float, seconds: float, separate: bool) -> dict[s
     start once the skeleton is learnt), with every node's drops and backlog from ``--summary``. ``separate``: every
     node in its own process (the graph's groups removed)."""
     endpoint = _free_endpoint()
-    prefix = load_graph(graph).key_prefix
+    loaded = load_graph(graph)
+    prefix = loaded.key_prefix
     frames = int(seconds * rate)
     seen: dict[str, list[tuple[int, float]]] = {"filler/markers": [], "skeleton/pose": []}
 
@@ -162,7 +163,8 @@ def _pipeline(graph: str, rate: float, seconds: float, separate: bool) -> dict[s
                 seen[key].append((head["frame"], (now - head["capture_ns"]) / 1e6))
         return on_sample
 
-    with tempfile.TemporaryDirectory() as tmp, open_router([endpoint]) as router:
+    realtime = any(spec.cpu == "realtime" for spec in loaded.nodes.values())  # a router as `mocapflow run`'s own
+    with tempfile.TemporaryDirectory() as tmp, open_router([endpoint], realtime=realtime) as router:
         subs = [router.declare_subscriber(f"{prefix}/{key}", listener(key)) for key in seen]
         if separate:
             raw = yaml.safe_load(Path(graph).read_text())
@@ -189,6 +191,8 @@ def _pipeline(graph: str, rate: float, seconds: float, separate: bool) -> dict[s
         "drops": sum(int(n.get("drops", 0)) for n in nodes.values()),
         "skipped": sum(int(n.get("skipped", 0)) for n in nodes.values()),
         "latency": [lat for _, lat in seen["skeleton/pose"]],
+        "filled": [lat for _, lat in seen["filler/markers"]],
+        "filler": (nodes.get("filler", {}).get("latency_p50_ms"), nodes.get("filler", {}).get("latency_p99_ms")),
         "backlog_max_ms": {n: v["backlog_max_ms"] for n, v in nodes.items() if v.get("backlog_max_ms")},
     }
 
@@ -209,6 +213,9 @@ def run_pipeline(args: argparse.Namespace) -> int:
             result = _pipeline(args.graph, rate, args.seconds, separate=layout == "separate")
             print(f"  {layout:<9} pose         {_percentiles(result['latency'])}   poses {result['poses']} of frames "
                   f"{result['pose_frames']} since the first")
+            print(f"{'':12}filled       {_percentiles(result['filled'])}" + (
+                "" if None in result["filler"] else  # the rest is the way out: Zenoh's threads and the router
+                f"   as the filler put them: p50 {result['filler'][0]:.3f} ms, p99 {result['filler'][1]:.3f} ms"))
             print(f"{'':12}filled markers: frames {result['delivered']}/{result['frames']}"
                   f"{'' if result['in_order'] else ' (OUT OF ORDER)'}, drops {result['drops']}, skipped "
                   f"{result['skipped']}; longest wait in an inbox: " +

@@ -24,6 +24,7 @@ or offline, and a restarted simulator resumes exactly where it stopped.
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from dataclasses import dataclass
 
 import numpy as np
@@ -235,25 +236,50 @@ class Simulator:
         self._camera_axes = aim / np.linalg.norm(aim, axis=1, keepdims=True)
         self.capsule_ends, self.capsule_radii = _capsules(rig)
         self._block = _Block(-1, *(np.empty(0),) * 9, None)
+        self._ahead: tuple[int, Iterator[_Block | None]] | None = None  # a block being worked out, step by step
+        self._ready: _Block | None = None  # ... and once it is
 
     def _block_of(self, i: int) -> _Block:
-        """The block of _BLOCK frames that frame i falls in, worked out at once (vectorised): segment poses, true and
-        noisy marker positions, and every random draw of its frames, from a generator seeded by (seed, block). So
-        frame i is the same whatever was asked before it, and a frame costs a few slices."""
+        """The block of _BLOCK frames that frame i falls in (``_work``), worked out now if it was not ahead."""
         if i < 0:
             raise ValueError(f"frame index must be >= 0, got {i}")
         b = i // _BLOCK
-        if self._block.index == b:
-            return self._block
+        if self._block.index != b:
+            self._step(b, whole=True)
+            assert self._ready is not None
+            self._block, self._ready = self._ready, None
+        return self._block
+
+    def _step(self, b: int, whole: bool) -> None:
+        """Work out block b: one step of it, or (``whole``) all that is left; done, it is ``self._ready``."""
+        if self._ready is not None and self._ready.index == b:
+            return
+        if self._ahead is None or self._ahead[0] != b:
+            self._ahead = (b, self._work(b))
+        for done in self._ahead[1]:
+            if done is not None:
+                self._ready, self._ahead = done, None
+                return
+            if not whole:
+                return
+
+    def _work(self, b: int) -> Iterator[_Block | None]:
+        """Block b worked out at once (vectorised), in steps of a few tenths of a millisecond each (None between
+        them, the block last): segment poses, true and noisy marker positions, and every random draw of its frames,
+        from a generator seeded by (seed, block). So frame i is the same whatever was asked before it, and a frame
+        costs a few slices."""
         cfg, rig = self.config, self.rig
         root, rotvec = self._motion(np.arange(b * _BLOCK, (b + 1) * _BLOCK) / cfg.rate)
         local = Rotation.from_rotvec(rotvec.reshape(-1, 3)).as_matrix().reshape(*rotvec.shape, 3)
+        yield None
         rot, pos = forward_kinematics(rig, local, root)
+        yield None
         offsets = np.broadcast_to(rig.marker_offsets, (_BLOCK, *rig.marker_offsets.shape))
         if self._skin is not None:
             offsets = offsets + (np.sin(rotvec.reshape(_BLOCK, -1)) @ self._skin.T).reshape(_BLOCK, -1, 3)
         seg = rig.marker_segment
         true = (rot[:, seg] @ offsets[..., None])[..., 0] + pos[:, seg]
+        yield None
         rng = np.random.default_rng([cfg.seed, _FRAME, b])
         observed = true + rng.standard_normal(true.shape) * cfg.noise_mm
         n = len(seg)
@@ -269,15 +295,17 @@ class Simulator:
         hidden = np.zeros((_BLOCK, n), bool)
         for gaps in self._gaps:
             hidden |= gaps.hidden(b * _BLOCK, _BLOCK)
+        yield None
         # without cameras what a frame shows is known now; with them, each frame works out which cameras see what
         clouds = _clouds(observed, ~hidden, ghosts, ghost_rows, shuffle) if cfg.unlabelled and not cfg.cameras else None
-        self._block = _Block(b, rot, pos, true, observed, misses, ghost_rows, ghosts, shuffle, hidden, clouds)
-        return self._block
+        yield _Block(b, rot, pos, true, observed, misses, ghost_rows, ghosts, shuffle, hidden, clouds)
 
     def prepare(self, i: int) -> None:
-        """Work out now what frame i needs beyond a few slices, its block, so that ``frame(i)`` then costs only those
-        (a live source calls it in the time before the frame is due)."""
-        self._block_of(i)
+        """One step of the work ahead (``_work``): frame i's block if not worked out yet, else the next one. A live
+        source calls it after each frame, so that a block's few milliseconds are spread over its first frames
+        instead of delaying one of them by all of it."""
+        b = i // _BLOCK
+        self._step(b if self._block.index != b else b + 1, whole=False)
 
     def segment_poses(self, i: int) -> tuple[np.ndarray, np.ndarray]:
         """World pose of every segment's rig frame (origin at its proximal joint centre): R (S, 3, 3), t (S, 3)."""

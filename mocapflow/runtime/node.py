@@ -143,11 +143,11 @@ class Node(Generic[ConfigT]):
         raise NotImplementedError(f"{type(self).__name__} is a source but does not implement emit()")
 
     def prepare(self, index: int) -> None:
-        """Sources: the runtime calls it in the time left before frame ``index`` is due, once the frame before has
-        been handled and only if there is time, so a paced source can work out ahead what ``emit(index)`` needs (a
-        simulator its next block of frames) instead of delaying that frame by it. It may come for the frame past the
-        source's last (``emit`` then says there is none), and ``emit`` must not depend on it: by default nothing is
-        done."""
+        """Sources: the runtime calls it once the frame before ``index`` has been handled, before frame ``index`` is
+        emitted (in the time left before it is due, or at once when the process is behind), so a paced source can
+        work out ahead what its frames need, a step at a time (a simulator its next block of frames), instead of
+        delaying one frame by all of it. It may come for the frame past the source's last (``emit`` then says there
+        is none), and ``emit`` must not depend on it: by default nothing is done."""
 
     def due_ns(self, index: int) -> int:
         """Sources: when frame ``index`` is due on the runtime's timetable (wall clock, ns since the Unix epoch), the
