@@ -150,8 +150,7 @@ def _pipeline(graph: str, rate: float, seconds: float, separate: bool) -> dict[s
     start once the skeleton is learnt), with every node's drops and backlog from ``--summary``. ``separate``: every
     node in its own process (the graph's groups removed)."""
     endpoint = _free_endpoint()
-    loaded = load_graph(graph)
-    prefix = loaded.key_prefix
+    prefix = load_graph(graph).key_prefix
     frames = int(seconds * rate)
     seen: dict[str, list[tuple[int, float]]] = {"filler/markers": [], "skeleton/pose": []}
 
@@ -163,8 +162,7 @@ def _pipeline(graph: str, rate: float, seconds: float, separate: bool) -> dict[s
                 seen[key].append((head["frame"], (now - head["capture_ns"]) / 1e6))
         return on_sample
 
-    realtime = any(spec.cpu == "realtime" for spec in loaded.nodes.values())  # a router as `mocapflow run`'s own
-    with tempfile.TemporaryDirectory() as tmp, open_router([endpoint], realtime=realtime) as router:
+    with tempfile.TemporaryDirectory() as tmp, open_router([endpoint]) as router:
         subs = [router.declare_subscriber(f"{prefix}/{key}", listener(key)) for key in seen]
         if separate:
             raw = yaml.safe_load(Path(graph).read_text())

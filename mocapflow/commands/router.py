@@ -23,10 +23,6 @@ def register(sub: argparse._SubParsersAction) -> None:
                              "a certificate)")
     parser.add_argument("--config", metavar="FILE", default=None,
                         help="security settings: TLS certificate, users, access rules (default $MOCAPFLOW_SECURITY)")
-    parser.add_argument("--realtime", action="store_true",
-                        help="run the router's threads at a real-time priority, as a graph's frame path with 'cpu: "
-                             "realtime', so that its frames are not kept waiting behind ordinary work (needs root, "
-                             "CAP_SYS_NICE or an rtprio limit; without, a warning and normal priority)")
     parser.set_defaults(func=run)
 
 
@@ -56,7 +52,7 @@ def run(args: argparse.Namespace) -> int:
         what = "joined" if event.kind == zenoh.SampleKind.PUT else "left"
         print(f"mocapflow router: {event.transport.whatami} {event.transport.zid} {what}", flush=True)
 
-    with stop_on_signals(stop), open_router(listen, args.config, args.realtime) as session:
+    with stop_on_signals(stop), open_router(listen, args.config) as session:
         security = "no security settings" if chosen is None else ", ".join([
             "TLS" if chosen.tls_listener else "no TLS",
             f"{len(chosen.accepted_users())} user(s)" if chosen.accepted_users() else "no authentication",

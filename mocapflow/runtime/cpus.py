@@ -5,10 +5,8 @@ as much again (docs/ARCHITECTURE.md, Speed)."""
 
 from __future__ import annotations
 
-import logging
 import os
-from collections.abc import Iterator, Mapping
-from contextlib import contextmanager
+from collections.abc import Mapping
 from typing import Literal
 
 ONE_THREAD = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
@@ -27,29 +25,6 @@ as ``shared`` and says so."""
 REALTIME_PRIORITY = 10
 """SCHED_FIFO priority of a ``cpu: realtime`` process: low among real-time priorities (1-99), so that the kernel's
 most urgent threads still come first; any real-time priority comes before every ordinary process."""
-
-log = logging.getLogger("mocapflow.cpus")
-
-
-@contextmanager
-def realtime_threads(who: str, keep: bool = False) -> Iterator[None]:
-    """The threads started within (those of a Zenoh session opened here, and the ones they start later) at the
-    real-time priority. After, the calling thread keeps it if ``keep`` (a node's frame loop), else runs at its own
-    policy again (a launcher, whose node processes and own threads are ordinary). Where this machine gives no right to
-    real-time priority, or has no SCHED_FIFO, nothing changes but one warning line naming ``who``."""
-    policy, param = os.sched_getscheduler(0), os.sched_getparam(0)
-    try:
-        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(REALTIME_PRIORITY))
-    except (OSError, AttributeError):  # no right to it, or a system without it (Linux's only)
-        log.warning("%s: 'cpu: realtime' needs Linux and the right to real-time priority (root, CAP_SYS_NICE or an "
-                    "rtprio limit): running at normal priority", who)
-        yield
-        return
-    try:
-        yield
-    finally:
-        if not keep:
-            os.sched_setscheduler(0, policy, param)
 
 
 def assign_cores(own: Mapping[str, bool],

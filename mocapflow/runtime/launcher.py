@@ -261,9 +261,7 @@ class Launcher:
     # -- main loop ------------------------------------------------------------------------------------------------
     def run(self) -> int:
         compile_kernels(self.out, *self.kernels)
-        # the embedded router carries the frame path's messages to the other processes: at its priority
-        realtime = any(spec.cpu == "realtime" for spec in self.graph.nodes.values())
-        session = (open_router(self.listen, self.security, realtime) if not self.connect
+        session = (open_router(self.listen, self.security) if not self.connect
                    else open_client(self.connect, self.security, self.timeout))
         stop = threading.Event()
 

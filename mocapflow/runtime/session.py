@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import json
 from collections.abc import Callable, Sequence
-from contextlib import nullcontext
 from pathlib import Path
 from typing import Any, Literal
 
@@ -17,7 +16,6 @@ import zenoh
 import zenoh.ext as zext
 
 from mocapflow.errors import MocapflowError
-from mocapflow.runtime.cpus import realtime_threads
 from mocapflow.runtime.security import SecuritySettings, load_security, security_path
 
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
@@ -91,20 +89,16 @@ def open_client(connect: Sequence[str], security: str | Path | None = None,
                              "(--timeout S to wait longer)") from None
 
 
-def open_router(listen: Sequence[str], security: str | Path | None = None, realtime: bool = False) -> zenoh.Session:
+def open_router(listen: Sequence[str], security: str | Path | None = None) -> zenoh.Session:
     """A Zenoh router listening on ``listen``: the lab's router, or the launcher's embedded one. An endpoint that is
-    taken (another run or router on the same port) is a one-line error saying how to choose another. ``realtime``:
-    the router's threads run at a real-time priority (``cpu: realtime``), so that what a real-time frame path sends
-    to other processes is not kept waiting behind the ordinary ones (the model stages' solves); the caller's threads
-    do not."""
+    taken (another run or router on the same port) is a one-line error saying how to choose another."""
     chosen = settings(security)
     endpoints = list(listen) or [DEFAULT_ENDPOINT]
     try:
-        with realtime_threads("router") if realtime else nullcontext():
-            if chosen is None:
-                return zenoh.open(zenoh_config("router", listen=endpoints))
-            with chosen.users_dictionary() as users_file:
-                return zenoh.open(zenoh_config("router", listen=endpoints, security=chosen, users_file=users_file))
+        if chosen is None:
+            return zenoh.open(zenoh_config("router", listen=endpoints))
+        with chosen.users_dictionary() as users_file:
+            return zenoh.open(zenoh_config("router", listen=endpoints, security=chosen, users_file=users_file))
     except zenoh.ZError as exc:
         if "already in use" not in str(exc):
             raise

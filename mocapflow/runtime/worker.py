@@ -32,7 +32,6 @@ import sys
 import threading
 import time
 from collections import deque
-from contextlib import nullcontext
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -42,7 +41,7 @@ from pydantic import BaseModel, Field, ValidationError
 
 from mocapflow.messages import DecodeError, Message, NodeStats, decode, encode
 from mocapflow.runtime import keys
-from mocapflow.runtime.cpus import CpuPolicy, realtime_threads
+from mocapflow.runtime.cpus import REALTIME_PRIORITY, CpuPolicy
 from mocapflow.runtime.inbox import DEFAULT_CAPACITY, Entry, Inbox, QueuePolicy
 from mocapflow.runtime.integrity import InputGuard, Refused, StreamLimits, new_identity
 from mocapflow.runtime.node import RUN_ENV, Node
@@ -590,9 +589,13 @@ def run_worker(spec: WorkerSpec) -> int:
             os.sched_setaffinity(0, spec.cpus)
         if spec.cpu == "idle":
             os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
-        # 'realtime': before the session opens, so that its threads run so too
-        with realtime_threads(f"node {spec.node}", keep=True) if spec.cpu == "realtime" else nullcontext():
-            session = open_client(spec.connect, spec.security)
+        elif spec.cpu == "realtime":  # before the session opens, so that its threads run so too
+            try:
+                os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(REALTIME_PRIORITY))
+            except (OSError, AttributeError):  # no right to it, or a system without it (Linux's only)
+                log.warning("node %s: 'cpu: realtime' needs Linux and the right to real-time priority (root, "
+                            "CAP_SYS_NICE or an rtprio limit): running at normal priority", spec.node)
+        session = open_client(spec.connect, spec.security)
     except (PluginNotFound, ValidationError, SecurityError) as exc:
         log.error("node %s: %s", spec.node, exc)
         return EXIT_CONFIG
