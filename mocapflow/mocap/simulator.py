@@ -264,10 +264,10 @@ class Simulator:
                 return
 
     def _work(self, b: int) -> Iterator[_Block | None]:
-        """Block b worked out at once (vectorised), in steps of a few tenths of a millisecond each (None between
-        them, the block last): segment poses, true and noisy marker positions, and every random draw of its frames,
-        from a generator seeded by (seed, block). So frame i is the same whatever was asked before it, and a frame
-        costs a few slices."""
+        """Block b, vectorised over its frames, worked out in steps of a few tenths of a millisecond (None after each,
+        the block last): segment poses, true and noisy marker positions, and every random draw of its frames, from a
+        generator seeded by (seed, block). So frame i is the same whatever was asked before it, and a frame costs a
+        few slices."""
         cfg, rig = self.config, self.rig
         root, rotvec = self._motion(np.arange(b * _BLOCK, (b + 1) * _BLOCK) / cfg.rate)
         local = Rotation.from_rotvec(rotvec.reshape(-1, 3)).as_matrix().reshape(*rotvec.shape, 3)

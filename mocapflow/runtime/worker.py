@@ -394,7 +394,7 @@ class Worker:
                 index += 1
                 self._drain()
                 if not src.runner.ended and src.runner.node.paced:
-                    src.runner.prepare(index)  # work ahead, in the time left before the next frame is due, if any
+                    src.runner.prepare(index)  # a step of work ahead, in the time left before the frame is due, if any
 
     def _waiting(self) -> dict[tuple[str, str], str]:
         """The data inputs from outside that have not ended, as (member, port), each with the node whose output it
