@@ -190,7 +190,7 @@ def _pipeline(graph: str, rate: float, seconds: float, separate: bool) -> dict[s
         "skipped": sum(int(n.get("skipped", 0)) for n in nodes.values()),
         "latency": [lat for _, lat in seen["skeleton/pose"]],
         "filled": [lat for _, lat in seen["filler/markers"]],
-        "filler": (nodes.get("filler", {}).get("latency_p50_ms"), nodes.get("filler", {}).get("latency_p99_ms")),
+        "filler": tuple(nodes.get("filler", {}).get(f"latency_{p}_ms") for p in ("p50", "p99")),
         "backlog_max_ms": {n: v["backlog_max_ms"] for n, v in nodes.items() if v.get("backlog_max_ms")},
     }
 
