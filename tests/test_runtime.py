@@ -375,4 +375,3 @@ def test_a_failing_prepare_is_reported_and_costs_nothing_else(tmp_path: Path) ->
     runner.prepare(3)
     assert runner.stats.errors == 1 and runner.stats.last_error == "prepare frame 3: no block"
     assert runner.emit(0) and [m.frame for m in sent] == [0]
-
