@@ -3,10 +3,11 @@ command line run as a subprocess."""
 
 from __future__ import annotations
 
+import os
 import socket
 import subprocess
 import sys
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pytest
@@ -31,10 +32,37 @@ def graph_file(folder: Path, stem: str, endpoint: str, nodes: str) -> tuple[Path
     return path, f"mocapflow/{name}"
 
 
+def _port_block() -> Iterator[int]:
+    """This test process's own ports, in turn: a block per pytest-xdist worker, below the range from which the system
+    takes the local ports of outgoing connections. A port the system picks (bound to 0) is free only until some Zenoh
+    session's connection takes it as its local port, which may happen before the server the test starts listens on
+    it ("address already in use")."""
+    try:
+        low = int(Path("/proc/sys/net/ipv4/ip_local_port_range").read_text().split()[0])
+    except (OSError, ValueError, IndexError):
+        low = 0
+    workers = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
+    worker = int(os.environ.get("PYTEST_XDIST_WORKER", "gw0").removeprefix("gw") or 0)
+    size = (low - 10000) // max(workers, 1)
+    if size < 100:  # no room below that range: the system's own choice
+        while True:
+            yield 0
+    yield from range(10000 + worker * size, 10000 + (worker + 1) * size)
+
+
+_PORTS = _port_block()
+
+
 def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+    """A loopback TCP port free now, for a server that a test starts later (``_port_block``)."""
+    for port in _PORTS:
+        with socket.socket() as s:
+            try:
+                s.bind(("127.0.0.1", port))
+            except OSError:  # in use, or still closing
+                continue
+            return s.getsockname()[1]
+    raise RuntimeError("no free loopback port left in this test process's block")
 
 
 @pytest.fixture
