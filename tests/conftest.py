@@ -14,6 +14,9 @@ import pytest
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 
+LOWEST_PORT = 10000
+"""Test servers listen on this port or above: below it lie the well-known and most registered services' ports."""
+
 CLI = [sys.executable, "-m", "mocapflow.cli"]
 """``mocapflow`` as a subprocess runs it."""
 
@@ -43,11 +46,11 @@ def _port_block() -> Iterator[int]:
         low = 0
     workers = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
     worker = int(os.environ.get("PYTEST_XDIST_WORKER", "gw0").removeprefix("gw") or 0)
-    size = (low - 10000) // max(workers, 1)
+    size = (low - LOWEST_PORT) // max(workers, 1)
     if size < 100:  # no room below that range: the system's own choice
         while True:
             yield 0
-    yield from range(10000 + worker * size, 10000 + (worker + 1) * size)
+    yield from range(LOWEST_PORT + worker * size, LOWEST_PORT + (worker + 1) * size)
 
 
 _PORTS = _port_block()
