@@ -8,6 +8,7 @@ import socket
 import subprocess
 import sys
 from collections.abc import Callable, Iterator
+from itertools import repeat
 from pathlib import Path
 
 import pytest
@@ -48,9 +49,8 @@ def _port_block() -> Iterator[int]:
     worker = int(os.environ.get("PYTEST_XDIST_WORKER", "gw0").removeprefix("gw") or 0)
     size = (low - LOWEST_PORT) // max(workers, 1)
     if size < 100:  # no room below that range: the system's own choice
-        while True:
-            yield 0
-    yield from range(LOWEST_PORT + worker * size, LOWEST_PORT + (worker + 1) * size)
+        return repeat(0)
+    return iter(range(LOWEST_PORT + worker * size, LOWEST_PORT + (worker + 1) * size))
 
 
 _PORTS = _port_block()
