@@ -307,6 +307,15 @@ def test_a_marker_seen_too_rarely_is_left_out_of_its_segment(caplog: pytest.LogC
     assert skeleton.model_dump() == truth.model_dump()
 
 
+def test_calibrate_names_a_rarely_seen_marker_once(caplog: pytest.LogCaptureFixture) -> None:
+    rec = _recording("rods")
+    rare = np.full((len(rec.positions), 1, 3), np.nan)
+    rare[:50, 0] = rec.positions[:50, 0] + 40.0
+    with caplog.at_level("WARNING"):
+        calibrate(np.concatenate([rec.positions, rare], axis=1), [*rec.labels, "GHOST"], rec.rate)
+    assert len([r for r in caplog.records if "GHOST" in r.getMessage()]) == 1
+
+
 def test_a_joint_with_too_little_motion_is_reported_and_placed_between_the_segments(
         caplog: pytest.LogCaptureFixture) -> None:
     rec = _recording("rods")
