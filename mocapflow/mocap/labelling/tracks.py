@@ -8,7 +8,6 @@ from collections import deque
 
 import numpy as np
 from numba import njit
-from scipy.spatial.distance import cdist
 
 from mocapflow.mocap.labelling.assignment import distance, rigid_signature_compiled
 from mocapflow.mocap.labelling.config import SD_FLOOR_MM, STATS_HZ, LabellerConfig
@@ -83,13 +82,7 @@ class Tracks:
         """``(T, B)``: where point ``z[b]`` can be the marker of ``tracks[t]``: its distances to three of the track's
         neighbours seen now (all, if fewer; one at least) are ones the snapshots have shown, give or take
         ``reid_gate_mm``."""
-        anchors = self.anchors[tracks]
-        now = np.where((anchors >= 0)[..., None], cur[anchors], np.nan)
-        d = cdist(now.reshape(-1, 3), z).reshape(*now.shape[:2], len(z))
-        span = self.span[tracks]
-        fits = (d >= span[..., :1] - self.config.reid_gate_mm) & (d <= span[..., 1:] + self.config.reid_gate_mm)
-        seen = np.isfinite(d[:, :, 0]).sum(axis=1)[:, None]
-        return (fits.sum(axis=1) >= np.minimum(seen, 3)) & (seen >= 1)
+        return _plausible(self.anchors, self.span, tracks, cur, z, self.config.reid_gate_mm)
 
     def rigid(self, tracks: np.ndarray, others: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Learnt mean (NaN where the two are not one rigid body) and standard deviation of the distance between
@@ -185,6 +178,31 @@ def _accumulate(seen: np.ndarray, cur: np.ndarray, pair_n: np.ndarray, pair_mean
             mean = pair_mean[a, b] + delta / n
             pair_n[a, b], pair_mean[a, b] = n, mean
             pair_m2[a, b] += delta * (d - mean)
+
+
+@njit(cache=True)
+def _plausible(anchors: np.ndarray, span: np.ndarray, tracks: np.ndarray, cur: np.ndarray, z: np.ndarray,
+               gate: float) -> np.ndarray:  # pragma: no cover
+    """``Tracks.plausible``, track by track: it runs in most frames where a marker is lost."""
+    out = np.zeros((len(tracks), len(z)), dtype=np.bool_)
+    for i in range(len(tracks)):
+        neighbours = anchors[tracks[i]]
+        seen = 0
+        for k in range(len(neighbours)):
+            if neighbours[k] >= 0 and np.isfinite(cur[neighbours[k]]).all():
+                seen += 1
+        if seen == 0:
+            continue
+        for b in range(len(z)):
+            fits = 0
+            for k in range(len(neighbours)):
+                if neighbours[k] >= 0:
+                    d = distance(cur[neighbours[k]], z[b])
+                    lo, hi = span[tracks[i], k, 0], span[tracks[i], k, 1]
+                    if d >= lo - gate and d <= hi + gate:
+                        fits += 1
+            out[i, b] = fits >= min(seen, 3)
+    return out
 
 
 @njit(cache=True)
