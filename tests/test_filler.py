@@ -342,6 +342,20 @@ def test_fill_command(tmp_path: Path, rec: SimRecording, skeleton: SkeletonModel
     assert main(["fill", str(source), "-o", str(tmp_path / "bad.c3d"), "--set", "no_such=1"]) == 2
 
 
+def test_fill_command_names_the_markers_most_left_missing(tmp_path: Path, rec: SimRecording,
+                                                          capsys: pytest.CaptureFixture[str]) -> None:
+    from mocapflow.cli import main
+    from mocapflow.io.markers import MarkerData, write_markers
+
+    x = rec.positions[:400].copy()
+    never = rec.labels.index("LFA2")
+    x[:, never] = np.nan  # nothing to fill it from
+    source = tmp_path / "in.c3d"
+    write_markers(source, MarkerData(positions=x, labels=rec.labels, rate=rec.rate))
+    assert main(["fill", str(source), "-o", str(tmp_path / "out.c3d")]) == 0
+    assert "most left missing: LFA2 400 (seen in 0 frames)" in capsys.readouterr().out
+
+
 @pytest.mark.parametrize(("file", "groups", "hidden", "bound_mm"), [
     ("lowerbody_clusters_knee_0401.c3d",
      {"pelvis": ["LASI", "RASI", "LPSI", "RPSI"], "lthigh": ["LTH1", "LTH2", "LTH3", "LTH4"],

@@ -93,4 +93,9 @@ def run(args: argparse.Namespace) -> int:
     print(f"wrote {out}: {data.n_frames} frames, {data.n_markers} markers; {missing_before} missing samples, "
           f"{missing_before - counts[FillCase.MISSING]} filled ({filled or 'none'}), "
           f"{counts[FillCase.MISSING]} left missing")
+    left = (flags == FillCase.MISSING).sum(axis=0)
+    most = [int(i) for i in np.argsort(-left, kind="stable")[:3] if left[i]]
+    if most:  # where they lie, and how often each of those markers was seen
+        seen = np.isfinite(data.positions).all(-1).sum(axis=0)
+        print("most left missing: " + ", ".join(f"{data.labels[i]} {left[i]} (seen in {seen[i]} frames)" for i in most))
     return 0
