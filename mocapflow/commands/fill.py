@@ -87,7 +87,8 @@ def run(args: argparse.Namespace) -> int:
     write_markers(out, MarkerData(positions=positions, labels=data.labels, rate=data.rate,
                                   first_frame=data.first_frame, flags=flags, extra=extra))
     counts = np.bincount(flags.ravel(), minlength=len(FillCase))
-    missing_before = int((~np.isfinite(data.positions).all(-1)).sum())
+    seen = np.isfinite(data.positions).all(-1)
+    missing_before = int((~seen).sum())
     filled = ", ".join(f"{case.name.lower().replace('_', ' ')} {counts[case]}" for case in FillCase
                        if case > FillCase.OBSERVED and counts[case])
     print(f"wrote {out}: {data.n_frames} frames, {data.n_markers} markers; {missing_before} missing samples, "
@@ -96,6 +97,6 @@ def run(args: argparse.Namespace) -> int:
     left = (flags == FillCase.MISSING).sum(axis=0)
     most = [int(i) for i in np.argsort(-left, kind="stable")[:3] if left[i]]
     if most:  # where they lie, and how often each of those markers was seen
-        seen = np.isfinite(data.positions).all(-1).sum(axis=0)
-        print("most left missing: " + ", ".join(f"{data.labels[i]} {left[i]} (seen in {seen[i]} frames)" for i in most))
+        print("most left missing: " + ", ".join(f"{data.labels[i]} {left[i]} (seen in {seen[:, i].sum()} frames)"
+                                                for i in most))
     return 0

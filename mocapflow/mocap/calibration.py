@@ -113,7 +113,7 @@ def calibrate(positions: np.ndarray, labels: Sequence[str], rate: float, segment
     ``segments`` fixes the number of segments (else the clusterer decides); ``method`` picks the clusterer and
     ``cluster_options`` go to it (``neighbour``, ``threshold_mm``...); ``joint_method`` picks the joint estimator.
     """
-    positions, usable = _clean(positions, labels, say_rare=False)  # build_skeleton says which it leaves out
+    positions, usable = _clean(positions, labels)
     stats = pair_statistics(positions[:, usable])
     spread = stats.spread(pair_frames(rate))
     if noise_floor(spread) > UNLABELLED_MM:
@@ -126,9 +126,8 @@ def calibrate(positions: np.ndarray, labels: Sequence[str], rate: float, segment
                           progress=progress)
 
 
-def _clean(positions: np.ndarray, labels: Sequence[str], say_rare: bool = True) -> tuple[np.ndarray, np.ndarray]:
-    """Positions as float64 with NaN gaps, and the indices of markers seen often enough to use (``say_rare``: a
-    warning names the others)."""
+def _clean(positions: np.ndarray, labels: Sequence[str]) -> tuple[np.ndarray, np.ndarray]:
+    """Positions as float64 with NaN gaps, and the indices of markers seen often enough to use."""
     positions = np.array(positions, dtype=np.float64)
     if positions.ndim != 3 or positions.shape[2] != 3 or positions.shape[1] != len(labels):
         raise ValueError(f"positions must be (frames, {len(labels)}, 3), got {positions.shape}")
@@ -137,9 +136,6 @@ def _clean(positions: np.ndarray, labels: Sequence[str], say_rare: bool = True) 
                                "varied motion")
     positions[~np.isfinite(positions).all(-1) | (positions == 0).all(-1)] = np.nan
     seen = np.isfinite(positions).all(-1).mean(0)
-    rare = [labels[int(i)] for i in np.flatnonzero(seen < MIN_VISIBLE)]
-    if rare and say_rare:
-        log.warning("left out markers seen in under %d %% of the frames: %s", round(100 * MIN_VISIBLE), ", ".join(rare))
     usable = np.flatnonzero(seen >= MIN_VISIBLE)
     if len(usable) < 2:
         raise CalibrationError("fewer than two markers are visible often enough to calibrate")
@@ -157,6 +153,9 @@ def build_skeleton(positions: np.ndarray, labels: Sequence[str], rate: float, gr
     positions, usable = _clean(positions, labels)
     frames = positions.shape[0]
     kept = set(usable.tolist())  # the rare markers are left out
+    if len(kept) < len(labels):
+        log.warning("left out markers seen in under %d %% of the frames: %s", round(100 * MIN_VISIBLE),
+                    ", ".join(label for i, label in enumerate(labels) if i not in kept))
     groups = [g for g in ([m for m in group if m in kept] for group in groups) if g]
     for group in groups:
         if len(group) < 2:

@@ -189,7 +189,7 @@ def _plausible(anchors: np.ndarray, span: np.ndarray, tracks: np.ndarray, cur: n
         neighbours = anchors[tracks[i]]
         seen = 0
         for k in range(len(neighbours)):
-            if neighbours[k] >= 0 and np.isfinite(cur[neighbours[k]]).all():
+            if neighbours[k] >= 0 and np.isfinite(cur[neighbours[k], 0]):
                 seen += 1
         if seen == 0:
             continue
