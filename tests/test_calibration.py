@@ -316,6 +316,26 @@ def test_calibrate_names_a_rarely_seen_marker_once(caplog: pytest.LogCaptureFixt
     assert len([r for r in caplog.records if "GHOST" in r.getMessage()]) == 1
 
 
+def test_a_rarely_seen_marker_is_named_once_when_the_build_starts_again(caplog: pytest.LogCaptureFixture) -> None:
+    """A pair of markers never seen with the rest makes the build start again without it: the marker seen too rarely
+    is still named once, and the skeleton is the rods'."""
+    rec = _recording("rods")
+    groups = [[i for i, s in enumerate(rec.marker_segment) if s == seg] for seg in ("rod1", "rod2", "rod3")]
+    n = len(rec.labels)
+    positions = rec.positions.copy()
+    positions[:300] = np.nan  # the rods hidden while the pair is seen
+    extra = np.full((len(positions), 3, 3), np.nan)
+    extra[:300, 0] = rec.positions[:300, 0]
+    extra[:300, 1] = rec.positions[:300, 0] + 50.0
+    extra[400:450, 2] = rec.positions[400:450, 0] + 40.0  # seen in 50 of 2000 frames
+    with caplog.at_level("WARNING"):
+        skeleton = build_skeleton(np.concatenate([positions, extra], axis=1), [*rec.labels, "PA", "PB", "GHOST"],
+                                  rec.rate, [*groups, [n, n + 1], [n + 2]])
+    assert any("PA, PB: never seen long enough together" in r.getMessage() for r in caplog.records)
+    assert len([r for r in caplog.records if "GHOST" in r.getMessage()]) == 1
+    assert sorted(m for segment in skeleton.segments for m in segment.markers) == sorted(rec.labels)
+
+
 def test_a_joint_with_too_little_motion_is_reported_and_placed_between_the_segments(
         caplog: pytest.LogCaptureFixture) -> None:
     rec = _recording("rods")

@@ -149,14 +149,22 @@ def build_skeleton(positions: np.ndarray, labels: Sequence[str], rate: float, gr
     """Topology, joints and rigid parameters for a given partition of the markers (indices per segment)."""
     if joint_method not in ("auto", "variance", "closed-form"):
         raise ValueError(f"unknown joint method {joint_method!r}; choose auto, variance or closed-form")
-    requested = joint_method
     positions, usable = _clean(positions, labels)
-    frames = positions.shape[0]
     kept = set(usable.tolist())  # the rare markers are left out
     if len(kept) < len(labels):
         log.warning("left out markers seen in under %d %% of the frames: %s", round(100 * MIN_VISIBLE),
                     ", ".join(label for i, label in enumerate(labels) if i not in kept))
     groups = [g for g in ([m for m in group if m in kept] for group in groups) if g]
+    return _build(positions, labels, rate, groups, joint_method, hinge_placement, name, progress)
+
+
+def _build(positions: np.ndarray, labels: Sequence[str], rate: float, groups: Sequence[Sequence[int]],
+           joint_method: JointMethod, hinge_placement: Literal["neighbours", "estimator"], name: str,
+           progress: Progress | None) -> SkeletonModel:
+    """``build_skeleton`` on cleaned positions (``_clean``) and groups of usable markers; it starts again without the
+    segments it has to leave out."""
+    requested = joint_method
+    frames = positions.shape[0]
     for group in groups:
         if len(group) < 2:
             log.warning("left out %s: the only marker of its segment (a segment needs at least 2)",
@@ -192,8 +200,8 @@ def build_skeleton(positions: np.ndarray, labels: Sequence[str], rate: float, gr
             if p != body:
                 log.warning("left out %s: never seen long enough together with the rest of the body to join it",
                             ", ".join(labels[m] for m in g))
-        return build_skeleton(positions, labels, rate, [g for g, p in zip(groups, part, strict=True) if p == body],
-                              requested, hinge_placement=hinge_placement, name=name, progress=progress)
+        return _build(positions, labels, rate, [g for g, p in zip(groups, part, strict=True) if p == body],
+                      requested, hinge_placement, name, progress)
     root, edges = spanning_tree(costs)
 
     fixed: set[tuple[int, int]] = set()  # joints too still to locate, placed between the closest markers
@@ -221,8 +229,8 @@ def build_skeleton(positions: np.ndarray, labels: Sequence[str], rate: float, gr
                 shape = fit_shape(positions[chosen][:, group], extras, reference=ref)
             except ValueError as exc:
                 log.warning("left out %s (segment %s): %s", ", ".join(labels[m] for m in group), names[s], exc)
-                return build_skeleton(positions, labels, rate, [g for g in groups if g is not group], requested,
-                                      hinge_placement=hinge_placement, name=name, progress=progress)
+                return _build(positions, labels, rate, [g for g in groups if g is not group], requested,
+                              hinge_placement, name, progress)
             shapes.append(shape)
             offsets.update({(s, e): shape.extra_offsets[j] for j, e in enumerate(attached)})
         motion = {e: _relative_motion(shapes[e[0]].pose, shapes[e[1]].pose) for e in edges}  # deg, deg, estimate
