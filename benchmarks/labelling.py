@@ -6,22 +6,22 @@ Three sets of cases, identities stripped, occlusions and ghosts added, rows shuf
   a moderate and a heavy level of damage, seen directly and through the simulator's camera model (4 and 8 cameras),
   and three real captures;
 - stress: ordinary but harsh capture conditions, on every labelled real capture of the shared data folder and on the
-  simulated human and quadruped: each marker hidden in independent gaps of 0.2-2 s, a third of the time in all, and a
-  one-frame ghost in about a fifth of the frames;
+  simulated human and quadruped: each marker hidden in independent gaps of 0.2-2 s, a third of the time from the first
+  frame on (``stationary``: gaps under way at the start too), and a one-frame ghost in about a fifth of the frames;
 - ghosts: the stress captures (600 frames) with still ghosts that live up to 20 frames, longer than a new track
   needs to be believed (0.3 new a frame).
 
 For each case it prints the cost of ``Labeller.update`` per frame (mean, median, 99th percentile, in microseconds of
 wall time: a busy machine inflates them), then for the streaming labels (which leave a new track's first
 ``confirm_frames`` frames unlabelled) and the offline ``label_sequence`` (those frames filled in, fragments merged,
-short tracks dropped): right identity (share of true points on the track that stands for their marker), swaps,
-output tracks per true marker and the share of true points left unlabelled, and of it the share from before their
-marker was first labelled at all (a streaming labeller that tells a marker from a ghost by how long it lives cannot
-name a marker's first frames). Stress cases are also labelled from a skeleton calibrated on an undamaged trial of the
-same subject (the simulated rigs: another trial; a real capture: its first half, the second half being labelled),
-streaming (``TrackedModelLabeller``, as the ``labeller-skeleton`` node) and offline (``label_with_skeleton``, forward
-and backward, then by trajectory): the share of true points named with their own marker's name, and of those of the
-markers the skeleton has (a marker alone on its segment is left out of it).
+short tracks dropped): right identity (share of true points on the track that stands for their marker), swaps, output
+tracks per true marker and the share of true points left unlabelled, and of it the share from before their marker was
+first labelled at all (a streaming labeller that tells a marker from a ghost by how long it lives cannot name a marker's
+first frames). Stress cases are labelled whole without a model, and also from a skeleton calibrated on an undamaged
+trial of the same subject (the simulated rigs: another trial; a real capture: its first half, the second half of the
+damaged capture being named), streaming (``TrackedModelLabeller``, as the ``labeller-skeleton`` node) and offline
+(``label_with_skeleton``, forward and backward, then by trajectory): the share of true points named with their own
+marker's name, and of those of the markers the skeleton has (a marker alone on its segment is left out of it).
 
     python benchmarks/labelling.py [--cases mild|stress|ghosts|all] [--quick] [--data DIR]
 """
@@ -112,24 +112,24 @@ def stress_captures(frames: int, data: Path) -> list[tuple[str, np.ndarray, list
     return out
 
 
-def _stress(frames: int, data: Path) -> list[tuple[Case, SkeletonModel | None, list[str]]]:
-    """The stress cases, each with a skeleton calibrated on the undamaged first half of its capture (the simulated
-    rigs: on another trial of the same subject), and its true marker labels."""
+def _stress(frames: int, data: Path) -> list[tuple[Case, SkeletonModel | None, list[str], int]]:
+    """The stress cases (whole), each with a skeleton calibrated on the undamaged first half of its capture (the
+    simulated rigs: on another trial of the same subject), its true marker labels, and the first frame the skeleton
+    names (a real capture's second half; 0 for the simulated rigs)."""
     cases = []
     for name, positions, labels, rate in stress_captures(frames, data):
         if name.startswith("simulated"):
             rig = name.split()[1]
-            calibration = simulate(SimulatorConfig(rig=rig, rate=rate, noise_mm=0.5, seed=3), frames)
-            reference, trial = calibration.positions, positions
+            reference, named = simulate(SimulatorConfig(rig=rig, rate=rate, noise_mm=0.5, seed=3), frames).positions, 0
         else:
-            reference, trial = positions[: len(positions) // 2], positions[len(positions) // 2:]
+            reference, named = positions[: len(positions) // 2], len(positions) // 2
         try:
             skeleton = calibrate(reference, labels, rate)
         except CalibrationError as exc:
             print(f"(no skeleton for {name}: {exc})")
             skeleton = None
-        points, identity = unlabel(trial, rate, seed=1, **STRESS)
-        cases.append(((f"{name}, stress", list(points), list(identity), rate, len(labels)), skeleton, labels))
+        points, identity = unlabel(positions, rate, seed=1, stationary=True, **STRESS)
+        cases.append(((f"{name}, stress", list(points), list(identity), rate, len(labels)), skeleton, labels, named))
     return cases
 
 
@@ -191,14 +191,14 @@ def main() -> None:
     parser.add_argument("--data", type=Path, default=_common.DATA, help="folder of the real captures")
     args = parser.parse_args()
     frames = 1500 if args.quick else 4800
-    cases: list[tuple[Case, SkeletonModel | None, list[str]]] = []
+    cases: list[tuple[Case, SkeletonModel | None, list[str], int]] = []
     if args.cases in ("mild", "all"):
-        cases += [(case, None, []) for case in _mild(frames, args.data)]
+        cases += [(case, None, [], 0) for case in _mild(frames, args.data)]
     if args.cases in ("stress", "all"):
         cases += _stress(frames, args.data)
     if args.cases in ("ghosts", "all"):
-        cases += [(case, None, []) for case in _ghosts(args.data)]
-    for (name, points, identity, rate, markers), skeleton, labels in cases:
+        cases += [(case, None, [], 0) for case in _ghosts(args.data)]
+    for (name, points, identity, rate, markers), skeleton, labels, named in cases:
         seen = np.mean([np.isfinite(np.asarray(p)).all(axis=1).sum() for p in points])
         tracks, cost = _stream(points, rate)
         start = time.perf_counter()
@@ -212,11 +212,13 @@ def main() -> None:
         print(f"  streaming: {_line(score_labelling(tracks, points, identity, markers))}")
         print(f"  offline:   {_line(score_labelling(offline, points, identity, markers))}", flush=True)
         for streaming in (True, False) if skeleton is not None else ():
-            right, wrong, of_known, named_us = _named(skeleton, points, identity, rate, labels, streaming)
-            print(f"  skeleton, {'streaming' if streaming else 'offline'}: {100 * right:.3f} % of true points carry "
-                  f"their own marker's name, {100 * wrong:.3f} % another's, {100 * (1 - right - wrong):.3f} % none; "
-                  f"{100 * of_known:.3f} % of those of the skeleton's markers ({named_us:.0f} us per frame)",
-                  flush=True)
+            right, wrong, of_known, named_us = _named(skeleton, points[named:], identity[named:], rate, labels,
+                                                      streaming)
+            frames_named = f" (frames {named}-{len(points) - 1})" if named else ""
+            print(f"  skeleton, {'streaming' if streaming else 'offline'}{frames_named}: {100 * right:.3f} % of true "
+                  f"points carry their own marker's name, {100 * wrong:.3f} % another's, "
+                  f"{100 * (1 - right - wrong):.3f} % none; {100 * of_known:.3f} % of those of the skeleton's markers "
+                  f"({named_us:.0f} us per frame)", flush=True)
 
 
 if __name__ == "__main__":

@@ -123,25 +123,28 @@ per frame (one or more in 18 % of frames)."""
 
 
 def unlabel(positions: np.ndarray, rate: float, seed: int, gaps_per_s: float = 0.05, long_fraction: float = 0.3,
-            ghosts: float = 1.0, long_s: tuple[float, float] = (0.5, 2.0),
-            ghost_frames: int = 3) -> tuple[np.ndarray, np.ndarray]:
+            ghosts: float = 1.0, long_s: tuple[float, float] = (0.5, 2.0), ghost_frames: int = 3,
+            stationary: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """A labelled recording ``(F, N, 3)`` as a passive tracker would report it, to test labelling against truth.
 
     Adds occlusions (``gaps_per_s`` per marker per second, independent; a ``long_fraction`` of them ``long_s``
-    seconds long, the others 1-9 frames), ghost points (Poisson, ``ghosts`` new per frame, each living 1 to
-    ``ghost_frames`` frames, 20-300 mm from a random marker, with 0.5 mm jitter) and shuffles the rows of every
-    frame. Returns points ``(F, W, 3)`` padded with NaN and identity ``(F, W)``: the true marker index of each row,
-    -1 for ghosts and padding.
+    seconds long, the others 1-9 frames; ``stationary``: also gaps already under way at the first frame, as in a
+    capture that began earlier, so that the share hidden is the same from first frame to last; otherwise gaps begin
+    at the first frame or later, and a capture a few gaps long is hidden less than ``gaps_per_s`` says), ghost
+    points (Poisson, ``ghosts`` new per frame, each living 1 to ``ghost_frames`` frames, 20-300 mm from a random
+    marker, with 0.5 mm jitter) and shuffles the rows of every frame. Returns points ``(F, W, 3)`` padded with NaN
+    and identity ``(F, W)``: the true marker index of each row, -1 for ghosts and padding.
     """
     rng = np.random.default_rng(seed)
     n_frames, n_markers, _ = positions.shape
     seen = np.isfinite(positions).all(axis=2)
+    lead = max(int(long_s[1] * rate) if long_fraction > 0 else 0, 9) if stationary else 0  # the longest gap
     for marker in range(n_markers):
-        for _ in range(rng.poisson(gaps_per_s * n_frames / rate)):
+        for _ in range(rng.poisson(gaps_per_s * (n_frames + lead) / rate)):
             long = rng.random() < long_fraction
             length = int(rng.uniform(*long_s) * rate) if long else int(rng.integers(1, 10))
-            start = int(rng.integers(0, n_frames))
-            seen[start:start + length, marker] = False
+            start = int(rng.integers(-lead, n_frames))
+            seen[max(start, 0):max(start + length, 0), marker] = False
     clouds: list[np.ndarray] = []
     owners: list[np.ndarray] = []
     alive: list[tuple[int, np.ndarray]] = []  # (last frame, position) of each ghost

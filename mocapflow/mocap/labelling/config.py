@@ -47,7 +47,8 @@ class LabellerConfig(BaseModel):
     rigid_tolerance_mm: float = Field(5.0, gt=0, description="a point is a lost marker's when its distances to two or "
                                       "more of the marker's rigid partners are the learnt ones within this, plus 3 sd")
     last_position_s: float = Field(1.0, ge=0, description="how long a lost track may still take a new point near "
-                                   "where it was last seen when nothing else places it")
+                                   "where it was last seen when nothing else places it, or, with none of its rigid "
+                                   "partners in view, on a lost partner coming back beside the point")
     rigid_min_s: float = Field(0.2, gt=0, description="time two markers must be seen together before their distance "
                                "statistics choose neighbours")
     reselect_s: float = Field(1.0, gt=0, description="how often neighbour sets are chosen again from the statistics")

@@ -293,7 +293,8 @@ class Labeller:
         position, for ``last_position_s`` only: a marker moves far in a few seconds) is within the gate, or when the
         point keeps its distances to two of the track's rigid partners seen now. With fewer seen, its lost partners
         placed on other tentative points (``_lost_partners``) and its looser neighbours (``Tracks.plausible``)
-        complete the evidence: one partner seen and one more cue, or without any the neighbours and a lost partner,
+        complete the evidence: one partner seen and one more cue, or without any the neighbours and a lost partner
+        (for ``last_position_s`` only: a track lost longer has often seen its marker come back under another track),
         as long as no other lost track fits the point that way, nor by its distance to a rigid partner seen now, and
         no marker seen now under a track never seen with this one fits it that loosely as well (``_seen_elsewhere``:
         its marker may have come back under that track, and a stale track only stands to take another's point). Once
@@ -316,7 +317,8 @@ class Labeller:
             near = self._tracks.plausible(lost, cur, z)
             worst = np.where(partners >= 2, broken, np.fmax(broken, lost_broken))
             # partners seen and lost, and the looser neighbours, for a point that fits no other lost track so
-            pooled = (worst < 1.0) & np.where(partners >= 1, partners + helpers + near >= 2, near & (helpers >= 1))
+            pooled = (worst < 1.0) & np.where(partners >= 1, partners + helpers + near >= 2,
+                                                near & (helpers >= 1) & recent[:, None])
             pooled[self._seen_elsewhere(lost, cur, pooled)] = False  # its marker may be in view under another track
             # another lost track that keeps its distance to a rigid partner as well makes the evidence ambiguous, the
             # looser cues notwithstanding: two markers of one segment often lie at one distance from a third
