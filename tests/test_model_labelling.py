@@ -193,6 +193,28 @@ def test_a_marker_known_to_stray_keeps_its_name() -> None:
     assert named_lasi(0.6) < 0.8 * seen
 
 
+def test_a_point_the_fit_gave_back_is_not_taken_again_by_the_same_marker() -> None:
+    """A marker followed onto a ghost (its own point hidden, a reflection 30 mm off its place, within ``follow_mm`` of
+    its course) is given back by its segment's fit, farther than ``fit_mm`` from where the fit puts it. The marker,
+    missing again, must not take the same point back from its pose's prediction, whose gate is wider: the ghost
+    stays unnamed, and the marker too in that frame."""
+    skeleton = subject()
+    trial = simulate(SimulatorConfig(rig="human", rate=RATE, noise_mm=0.5, seed=7), 80)
+    column = trial.labels.index("LFHD")
+    labeller = ModelLabeller(skeleton, RATE)
+    where = labeller.labels.index("LFHD")
+    for f in range(80):
+        points = trial.positions[f].copy()
+        if f == 60:
+            points[column] += np.array([30.0, 0.0, 0.0])  # the marker hidden, a ghost beside its place
+        named, point_marker = labeller.update(points, f / RATE)
+        if f == 59:
+            assert point_marker[column] == where
+        if f == 60:
+            assert point_marker[column] == -1
+            assert np.isnan(named[where]).all()
+
+
 def _gaping(trial_seed: int, frames: int) -> tuple[np.ndarray, list[str]]:
     """A trial of the simulated human whose left forearm and hand shift 45 mm about their place once a second, as
     a whole: the elbow is no ball joint there (a shoulder girdle, a bending spine), the wrist still is."""

@@ -153,6 +153,7 @@ class ModelLabeller:
         self._last_time = np.full(len(self.segments), -np.inf)
         # each segment's rotation relative to each neighbour, when both were last surely posed: its posture there
         self._posture: dict[tuple[int, int], np.ndarray] = {}
+        self._refused = np.zeros((n, 0), bool)  # per marker, the points of the frame a fit gave back
         self._time = -np.inf
 
     @property
@@ -175,6 +176,7 @@ class ModelLabeller:
         z = pts[rows]
         taken = np.full(len(z), -1, np.intp)
         cur = np.full((len(self.labels), 3), np.nan)
+        self._refused = np.zeros((len(self.labels), len(z)), bool)
         # 1. markers seen in the previous frame follow their points
         live = np.flatnonzero(self.streak > 0)
         dt = time - self.last[live]
@@ -223,12 +225,15 @@ class ModelLabeller:
                     seen = np.isfinite(cur[seg.markers, 0])
                     error = np.where(seen, np.linalg.norm(seg.local @ rot.T + shift - cur[seg.markers], axis=1), 0.0)
                     if joint_excess > 1.0:  # markers swapped, or taken by ghosts: the search decides
-                        taken[np.isin(taken, seg.markers)] = -1
+                        back = np.flatnonzero(np.isin(taken, seg.markers))
+                        self._refused[taken[back], back] = True
+                        taken[back] = -1
                         cur[seg.markers] = np.nan
                         self.streak[seg.markers] = 0
                         continue
                     if (error > seg.tol).any():  # the worst one goes; the others decide again
                         worst = seg.markers[np.argmax(error / seg.tol)]
+                        self._refused[worst, taken == worst] = True
                         taken[taken == worst] = -1
                         cur[worst] = np.nan
                         self.streak[worst] = 0
@@ -365,6 +370,7 @@ class ModelLabeller:
         known = np.flatnonzero(np.isfinite(pred[:, 0]))
         if not len(known):
             return
+        allowed &= ~self._refused[np.ix_(missing, free)]  # a point its segment's fit gave back is not taken again
         cost = np.where(allowed[known], gated_cost(pred[known], gate[known], z[free]), 0.0)
         mi, fi = match(cost)
         cur[missing[known[mi]]] = z[free[fi]]
