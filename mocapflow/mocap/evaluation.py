@@ -138,7 +138,7 @@ def unlabel(positions: np.ndarray, rate: float, seed: int, gaps_per_s: float = 0
     rng = np.random.default_rng(seed)
     n_frames, n_markers, _ = positions.shape
     seen = np.isfinite(positions).all(axis=2)
-    lead = max(int(long_s[1] * rate) if long_fraction > 0 else 0, 9) if stationary else 0  # the longest gap
+    lead = max(int(long_s[1] * rate), 9) if stationary else 0  # no gap is longer
     for marker in range(n_markers):
         for _ in range(rng.poisson(gaps_per_s * (n_frames + lead) / rate)):
             long = rng.random() < long_fraction

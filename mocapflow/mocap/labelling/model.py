@@ -153,7 +153,6 @@ class ModelLabeller:
         self._last_time = np.full(len(self.segments), -np.inf)
         # each segment's rotation relative to each neighbour, when both were last surely posed: its posture there
         self._posture: dict[tuple[int, int], np.ndarray] = {}
-        self._refused = np.zeros((n, 0), bool)  # per marker, the points of the frame a fit gave back
         self._time = -np.inf
 
     @property
@@ -176,7 +175,7 @@ class ModelLabeller:
         z = pts[rows]
         taken = np.full(len(z), -1, np.intp)
         cur = np.full((len(self.labels), 3), np.nan)
-        self._refused = np.zeros((len(self.labels), len(z)), bool)
+        refused = np.zeros((len(self.labels), len(z)), bool)  # per marker, the points a fit gave back this frame
         # 1. markers seen in the previous frame follow their points
         live = np.flatnonzero(self.streak > 0)
         dt = time - self.last[live]
@@ -186,8 +185,8 @@ class ModelLabeller:
         searched: dict[int, int] = {}
         self._level[:] = 3
         while True:
-            posed = self._pose_segments(poses, cur, taken, z)
-            self._take_predicted(poses, cur, taken, z, time)
+            posed = self._pose_segments(poses, cur, taken, refused)
+            self._take_predicted(poses, cur, taken, z, time, refused)
             found = self._search(poses, cur, taken, z, searched)
             if not (posed or found):
                 break
@@ -204,10 +203,10 @@ class ModelLabeller:
         point_marker[rows] = taken
         return cur, point_marker
 
-    def _pose_segments(self, poses: list, cur: np.ndarray, taken: np.ndarray, z: np.ndarray) -> bool:
+    def _pose_segments(self, poses: list, cur: np.ndarray, taken: np.ndarray, refused: np.ndarray) -> bool:
         """Fit every segment not posed yet whose markers, joint centres and previous pose fix a pose, surest first:
         three markers or more, then three points with joint centres, then two with the previous pose. A marker far
-        from its fitted place gives its point back. True when a segment was posed."""
+        from its fitted place gives its point back (``_give_back``). True when a segment was posed."""
         any_posed = self._pose_rigid(poses, cur)
         for level in (0, 1, 2):
             progress = True
@@ -225,24 +224,24 @@ class ModelLabeller:
                     seen = np.isfinite(cur[seg.markers, 0])
                     error = np.where(seen, np.linalg.norm(seg.local @ rot.T + shift - cur[seg.markers], axis=1), 0.0)
                     if joint_excess > 1.0:  # markers swapped, or taken by ghosts: the search decides
-                        back = np.flatnonzero(np.isin(taken, seg.markers))
-                        self._refused[taken[back], back] = True
-                        taken[back] = -1
-                        cur[seg.markers] = np.nan
-                        self.streak[seg.markers] = 0
+                        self._give_back(seg.markers, cur, taken, refused)
                         continue
                     if (error > seg.tol).any():  # the worst one goes; the others decide again
-                        worst = seg.markers[np.argmax(error / seg.tol)]
-                        self._refused[worst, taken == worst] = True
-                        taken[taken == worst] = -1
-                        cur[worst] = np.nan
-                        self.streak[worst] = 0
+                        self._give_back(seg.markers[[np.argmax(error / seg.tol)]], cur, taken, refused)
                         progress = True
                         continue
                     poses[s] = (rot, shift)
                     self._level[s] = level
                     any_posed = progress = True
         return any_posed
+
+    def _give_back(self, markers: np.ndarray, cur: np.ndarray, taken: np.ndarray, refused: np.ndarray) -> None:
+        """Unmatch ``markers``: their points are free again, but not to them (``refused``) until the next frame."""
+        back = np.flatnonzero(np.isin(taken, markers))
+        refused[taken[back], back] = True
+        taken[back] = -1
+        cur[markers] = np.nan
+        self.streak[markers] = 0
 
     def _pose_rigid(self, poses: list, cur: np.ndarray) -> bool:
         """Pose at once (one batched fit) the segments not posed yet that three or more matched markers fit, each
@@ -321,7 +320,8 @@ class ModelLabeller:
                 return rot, rot_o @ there + shift_o - rot @ here
         return None
 
-    def _take_predicted(self, poses: list, cur: np.ndarray, taken: np.ndarray, z: np.ndarray, time: float) -> None:
+    def _take_predicted(self, poses: list, cur: np.ndarray, taken: np.ndarray, z: np.ndarray, time: float,
+                        refused: np.ndarray) -> None:
         """Give the points left over to the unmatched markers predicted by their segment's pose, or, for a segment
         with no pose, by a short constant-velocity coast.
 
@@ -329,7 +329,7 @@ class ModelLabeller:
         the fit: its markers take a point within ``weak_gate_mm`` of the prediction, but only one keeping the
         layout's distances to the segment's markers seen now (within ``fit_mm``) and to its joint centres (within
         each joint's tolerance, ``joint_mm`` or wider), and only where neither the point nor the marker has another
-        such candidate.
+        such candidate. No marker takes a point its segment's fit gave back from it this frame (``refused``).
         """
         cfg = self.config
         missing = np.flatnonzero(np.isnan(cur[:, 0]))
@@ -370,7 +370,7 @@ class ModelLabeller:
         known = np.flatnonzero(np.isfinite(pred[:, 0]))
         if not len(known):
             return
-        allowed &= ~self._refused[np.ix_(missing, free)]  # a point its segment's fit gave back is not taken again
+        allowed &= ~refused[np.ix_(missing, free)]  # a point its segment's fit gave back is not taken again
         cost = np.where(allowed[known], gated_cost(pred[known], gate[known], z[free]), 0.0)
         mi, fi = match(cost)
         cur[missing[known[mi]]] = z[free[fi]]
