@@ -215,6 +215,32 @@ def test_a_point_the_fit_gave_back_is_not_taken_again_by_the_same_marker() -> No
             assert np.isnan(named[where]).all()
 
 
+def test_a_segment_found_on_three_points_alone_needs_a_neighbour_at_its_joint() -> None:
+    """The left forearm and hand are hidden, and three ghost points lie at the hand's layout 600 mm from it (a chance
+    triangle: on a real capture, two markers of another limb's segment and one across its joint). With the right hand
+    posed elsewhere, the left hand's layout fits them alone, and they were named LHN1-3 in 118 of 120 frames. Found on
+    three points with no joint centre to hold it, a segment stands only where a neighbour is posed at their joint: the
+    ghosts stay unnamed. Once the forearm is back, the hand is found and named on its own points."""
+    skeleton = subject()
+    trial = simulate(SimulatorConfig(rig="human", rate=RATE, noise_mm=0.5, seed=7), 120)
+    arm = [trial.labels.index(name) for name in ("LFA1", "LFA2", "LFA3", "LHN1", "LHN2", "LHN3")]
+    hand = arm[3:]
+    labeller = ModelLabeller(skeleton, RATE)
+    own = [labeller.labels.index(name) for name in ("LHN1", "LHN2", "LHN3")]
+    named_ghosts, named_hand = 0, 0
+    for f in range(120):
+        points = trial.positions[f].copy()
+        ghosts = points[hand] + np.array([600.0, 0.0, 0.0])
+        if f < 60:
+            points[arm] = np.nan
+        _, point_marker = labeller.update(np.vstack([points, ghosts]), f / RATE)
+        named_ghosts += int((point_marker[len(points):] >= 0).sum())
+        if f >= 70:
+            named_hand += int((point_marker[hand] == own).all())
+    assert named_ghosts == 0
+    assert named_hand == 50
+
+
 def _gaping(trial_seed: int, frames: int) -> tuple[np.ndarray, list[str]]:
     """A trial of the simulated human whose left forearm and hand shift 45 mm about their place once a second, as
     a whole: the elbow is no ball joint there (a shoulder girdle, a bending spine), the wrist still is."""

@@ -22,7 +22,9 @@ whatever the point order and however long a marker was hidden:
    when one placement fits clearly best, or, among placements of a symmetric layout that fit alike, turns the
    segment clearly least from its last posture to its neighbours. With no posed neighbour it takes four points, or
    three: near where it was lately, or, for a segment of three markers, once every segment with a triangle like its
-   own (the other foot) is surely posed elsewhere.
+   own (the other foot) is surely posed elsewhere. The last rule takes any triangle at the layout's distances, one
+   across two segments of another limb among them: a segment with joints placed by it stands only if, by the end of
+   the frame, a neighbour is surely posed with their joint centre where it puts it.
 
 Steps 2-4 repeat while they pose new segments, so a segment found in step 4 poses its neighbours through their
 joints. Points that fit no marker (ghosts, markers the skeleton does not know) stay unnamed.
@@ -183,13 +185,18 @@ class ModelLabeller:
         cur[live[ti]], taken[pi] = z[pi], live[ti]
         poses: list[tuple[np.ndarray, np.ndarray] | None] = [None] * len(self.segments)
         searched: dict[int, int] = {}
+        seeds: list[int] = []  # segments found this frame on three points alone, for want of a look-alike
         self._level[:] = 3
         while True:
             posed = self._pose_segments(poses, cur, taken, refused)
             self._take_predicted(poses, cur, taken, z, time, refused)
-            found = self._search(poses, cur, taken, z, searched)
+            found = self._search(poses, cur, taken, z, searched, seeds)
             if not (posed or found):
                 break
+        for s in seeds:
+            if not self._confirmed(s, poses):
+                self._give_back(self.segments[s].markers, cur, taken, refused)
+                poses[s], self._level[s] = None, 3
         self._observe(cur, time)
         self.pose = poses
         for s, pose in enumerate(poses):
@@ -376,10 +383,15 @@ class ModelLabeller:
         cur[missing[known[mi]]] = z[free[fi]]
         taken[free[fi]] = missing[known[mi]]
 
-    def _search(self, poses: list, cur: np.ndarray, taken: np.ndarray, z: np.ndarray, searched: dict) -> bool:
+    def _search(self, poses: list, cur: np.ndarray, taken: np.ndarray, z: np.ndarray, searched: dict,
+                seeds: list) -> bool:
         """Look for each segment with no pose among the points left over and those of its own markers matched so far
         by its layout (``_place_layout``), its joint centres to surely posed segments kept within their tolerance;
-        True when one was placed. A segment is searched again in a frame only when more of its neighbours got posed."""
+        True when one was placed. A segment is searched again in a frame only when more of its neighbours got posed.
+        A segment with joints placed on its three points for want of a look-alike elsewhere (``alone``), with no joint
+        centre to hold it and not near where it was lately, is added to ``seeds``: any three points at its layout's
+        distances fit it, a chance triangle across two segments of another limb among them when its own markers are
+        hidden, so it stands only if a neighbour is posed at their joint in the same frame (``_confirmed``)."""
         cfg = self.config
         placed = False
         for s, seg in enumerate(self.segments):
@@ -415,8 +427,18 @@ class ModelLabeller:
                 taken[free[point]] = seg.markers[slot]
             poses[s] = (rot, shift)
             self._level[s] = 1 if anchors else 0
+            if alone and not anchors and around is None and seg.joints:
+                seeds.append(s)
             placed = True
         return placed
+
+    def _confirmed(self, s: int, poses: list) -> bool:
+        """Whether a surely posed neighbour of segment ``s`` puts their joint centre where ``s``'s pose does, within
+        the joint's tolerance."""
+        rot, shift = poses[s]
+        return any(poses[other] is not None and self._level[other] < 2
+                   and np.linalg.norm(rot @ here + shift - poses[other][0] @ there - poses[other][1]) <= tol
+                   for other, here, there, tol in self.segments[s].joints)
 
     def _observe(self, cur: np.ndarray, time: float) -> None:
         seen = np.isfinite(cur[:, 0])
