@@ -110,6 +110,20 @@ def test_a_run_that_takes_its_own_name_frees_its_trajectorys_for_the_run_it_held
     assert (names[55:, 1] == 0).all()  # -1 when not tried again: frames 60-64 would end with no name
 
 
+def test_two_runs_holding_each_others_names_trade_them() -> None:
+    """Trajectories 0 and 1 were each joined across a gap to the other's marker (a swap offline merging made): each
+    is marker 1, then marker 0 (trajectory 0), or the reverse, and the passes named every point right. Each first
+    run takes its trajectory's name, the other marker's, and neither can take its own while the other holds it:
+    they trade."""
+    frames = 100
+    track_row = np.full((frames, 2), -1, np.intp)
+    track_row[:30] = track_row[40:] = [0, 1]
+    named = [np.array([1, 0]) if f < 30 else np.array([0, 1]) for f in range(frames)]
+    names = _track_names(track_row, named, 2)
+    assert (names[:30] == [1, 0]).all() and (names[40:] == [0, 1]).all()
+    assert (names[30:40] == -1).all()
+
+
 def _footless_trial(gone: list[tuple[list[str], slice]],
                     feet: tuple[str, ...] = ("right_foot",)) -> tuple[SkeletonModel, np.ndarray, np.ndarray, list[str]]:
     """The subject's skeleton with no joint to its ``feet`` (as where calibration could not locate them), and a

@@ -734,8 +734,10 @@ def _track_names(track_row: np.ndarray, named: list[np.ndarray], markers: int) -
     points were mostly given another name then takes that one, if no other run holds it in any of its frames: its
     trajectory was joined to it across a gap. The name it leaves is tried again by the runs it held back (a run of
     a trajectory that took another marker's points for a while holds that marker's name until it takes its own).
-    Where the names of a whole segment were given turned (a layout that fits a quarter turn), the other runs of that
-    segment hold them, and the trajectories' names stand."""
+    Two runs that each hold, in frames they share, the name the other's points were mostly given trade names: two
+    trajectories each joined across a gap to the other's marker (neither could take its own name first). Where the
+    names of a whole segment were given turned (a layout that fits a quarter turn), the other runs of that segment
+    hold them, and the trajectories' names stand."""
     frames, count = track_row.shape
     seen = track_row >= 0
     starts = run_starts(seen)
@@ -773,10 +775,32 @@ def _track_names(track_row: np.ndarray, named: list[np.ndarray], markers: int) -
                 give(int(r), int(best[k]))
     own = votes.argmax(axis=1)
     mostly = 2 * votes[np.arange(runs), own] > length
+    def trade(r: int) -> bool:
+        """Run ``r`` takes its own name from the one run holding it in its frames, if that run's own name is the one
+        ``r`` holds: they trade (neither could take its own first, the other holding it); whether they did."""
+        during = slice(first[r], first[r] + length[r])
+        held = np.unique(holder[during, own[r]])
+        held = held[(held >= 0) & (held != r)]
+        if len(held) != 1 or not mostly[held[0]] or own[held[0]] != name_of[r]:
+            return False
+        q = int(held[0])
+        mine, theirs = int(name_of[r]), int(name_of[q])
+        holder[during, mine] = -1
+        holder[first[q]:first[q] + length[q], theirs] = -1
+        name_of[r] = name_of[q] = -1
+        if give(r, theirs) and give(q, mine):
+            return True
+        for run in (r, q):  # a third run holds one of the names in the other's frames: as they were
+            if name_of[run] >= 0:
+                holder[first[run]:first[run] + length[run], name_of[run]] = -1
+                name_of[run] = -1
+        give(r, mine), give(q, theirs)
+        return False
+
     given = True
     while given:  # a run taking its own name frees its trajectory's for a run it held back
-        differs = np.flatnonzero(mostly & (own != name_of))
-        given = any([give(int(r), int(own[r])) for r in sorted(differs, key=lambda r: -votes[r, own[r]])])
+        differs = sorted(np.flatnonzero(mostly & (own != name_of)), key=lambda r: -votes[r, own[r]])
+        given = any([give(int(r), int(own[r])) for r in differs]) or any(trade(int(r)) for r in differs)
     return np.where(seen, name_of[np.maximum(run_of, 0)], -1)
 
 
