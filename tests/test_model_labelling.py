@@ -111,10 +111,10 @@ def test_a_run_that_takes_its_own_name_frees_its_trajectorys_for_the_run_it_held
 
 
 def test_two_runs_holding_each_others_names_trade_them() -> None:
-    """Trajectories 0 and 1 were each joined across a gap to the other's marker (a swap offline merging made): each
-    is marker 1, then marker 0 (trajectory 0), or the reverse, and the passes named every point right. Each first
-    run takes its trajectory's name, the other marker's, and neither can take its own while the other holds it:
-    they trade."""
+    """Trajectories 0 and 1 were each joined across a gap to the other's marker (a re-identification or a merge gone
+    wrong): each is marker 1, then marker 0 (trajectory 0), or the reverse, and the passes named every point right.
+    Each first run takes its trajectory's name, the other marker's, and neither can take its own while the other
+    holds it: they trade."""
     frames = 100
     track_row = np.full((frames, 2), -1, np.intp)
     track_row[:30] = track_row[40:] = [0, 1]

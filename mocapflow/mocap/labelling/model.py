@@ -775,6 +775,7 @@ def _track_names(track_row: np.ndarray, named: list[np.ndarray], markers: int) -
                 give(int(r), int(best[k]))
     own = votes.argmax(axis=1)
     mostly = 2 * votes[np.arange(runs), own] > length
+
     def trade(r: int) -> bool:
         """Run ``r`` takes its own name from the one run holding it in its frames, if that run's own name is the one
         ``r`` holds: they trade (neither could take its own first, the other holding it); whether they did."""
