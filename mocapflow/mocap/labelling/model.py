@@ -758,13 +758,18 @@ def _track_names(track_row: np.ndarray, named: list[np.ndarray], markers: int) -
     name_of = np.full(runs, -1, np.intp)
     holder = np.full((frames, markers), -1, np.intp)  # the run holding each name in each frame
 
+    def drop(r: int) -> None:
+        """Run ``r`` holds no name."""
+        if name_of[r] >= 0:
+            holder[first[r]:first[r] + length[r], name_of[r]] = -1
+            name_of[r] = -1
+
     def give(r: int, m: int) -> bool:
         """Name run ``r`` marker ``m`` unless another run holds ``m`` in one of its frames; whether it was."""
         during = slice(first[r], first[r] + length[r])
         if ((holder[during, m] >= 0) & (holder[during, m] != r)).any():
             return False
-        if name_of[r] >= 0:
-            holder[during, name_of[r]] = -1
+        drop(r)
         name_of[r] = m
         holder[during, m] = r
         return True
@@ -779,23 +784,19 @@ def _track_names(track_row: np.ndarray, named: list[np.ndarray], markers: int) -
     def trade(r: int) -> bool:
         """Run ``r`` takes its own name from the one run holding it in its frames, if that run's own name is the one
         ``r`` holds: they trade (neither could take its own first, the other holding it); whether they did."""
-        during = slice(first[r], first[r] + length[r])
-        held = np.unique(holder[during, own[r]])
+        held = np.unique(holder[first[r]:first[r] + length[r], own[r]])
         held = held[(held >= 0) & (held != r)]
         if len(held) != 1 or not mostly[held[0]] or own[held[0]] != name_of[r]:
             return False
         q = int(held[0])
         mine, theirs = int(name_of[r]), int(name_of[q])
-        holder[during, mine] = -1
-        holder[first[q]:first[q] + length[q], theirs] = -1
-        name_of[r] = name_of[q] = -1
+        drop(r)
+        drop(q)
         if give(r, theirs) and give(q, mine):
             return True
-        for run in (r, q):  # a third run holds one of the names in the other's frames: as they were
-            if name_of[run] >= 0:
-                holder[first[run]:first[run] + length[run], name_of[run]] = -1
-                name_of[run] = -1
-        give(r, mine), give(q, theirs)
+        drop(r)  # a third run holds ``mine`` in q's frames: as they were
+        give(r, mine)
+        give(q, theirs)
         return False
 
     given = True
