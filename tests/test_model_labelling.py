@@ -160,6 +160,37 @@ def test_a_segment_is_placed_on_three_points_once_its_look_alike_is_posed() -> N
     assert right >= 0.999 * total
 
 
+@pytest.mark.parametrize("gone", [1, 2, 3, 4])
+def test_look_alikes_with_no_posed_neighbour_are_placed_with_a_neighbour_through_their_joint(gone: int) -> None:
+    """Both thighs are hidden and each shank shows three of its four markers (all but ``gone``): a shank with no
+    posed neighbour needs four points, and each foot's three points fit the other foot too (a triangle fits its
+    mirror image), so neither foot is placed alone; before, no point of the legs was named in any frame. A foot
+    placed on its own points puts its ankle where its shank's points lie at the layout's distances; placed on the
+    other foot's, it puts the ankle on the wrong side of their plane. Each foot is placed with its shank, and every
+    point of the legs is named right in every frame it is seen."""
+    skeleton = subject()
+    trial = simulate(SimulatorConfig(rig="human", rate=RATE, noise_mm=0.5, seed=7), 120)
+    positions = trial.positions.copy()
+    hidden = [f"{side}TH{k}" for side in "LR" for k in range(1, 5)] + [f"{side}SH{gone}" for side in "LR"]
+    positions[:, [trial.labels.index(name) for name in hidden]] = np.nan
+    points, identity = unlabel(positions, RATE, seed=2)
+    legs = [f"{side}SH{k}" for side in "LR" for k in range(1, 5) if k != gone]
+    legs += ["LHEE", "LTOE", "LMT5", "RHEE", "RTOE", "RMT5"]
+    labeller = ModelLabeller(skeleton, RATE)
+    own = {trial.labels.index(name): labeller.labels.index(name) for name in legs}
+    seen = named_right = 0
+    for f, frame in enumerate(points):
+        _, point_marker = labeller.update(frame, f / RATE)
+        rows = np.flatnonzero(np.isin(identity[f], list(own)))
+        seen += len(rows)
+        named_right += sum(int(point_marker[r] == own[identity[f, r]]) for r in rows)
+    assert seen > 0.99 * 120 * len(legs)
+    assert named_right == seen
+    named, names = label_with_skeleton(list(points), RATE, skeleton)
+    right, wrong, total = _named(named, names, points, identity, trial.labels)
+    assert (right, wrong) == (total, 0)
+
+
 def test_a_segment_whose_look_alike_wore_no_markers_is_not_named_as_it() -> None:
     """Neither foot has a joint and the left one wore no markers in this trial: the right foot's three points fit
     either foot in every frame. No pass places it, and its points are left unnamed: no point gets another marker's

@@ -24,7 +24,10 @@ whatever the point order and however long a marker was hidden:
    three: near where it was lately, or, for a segment of three markers, once every segment with a triangle like its
    own (the other foot) is surely posed elsewhere. The last rule takes any triangle at the layout's distances, one
    across two segments of another limb among them: a segment with joints placed by it stands only if, by the end of
-   the frame, a neighbour is surely posed with their joint centre where it puts it.
+   the frame, a neighbour is surely posed with their joint centre where it puts it. When nothing else poses a
+   segment, a segment of three markers whose look-alike has no pose either (both feet unposed, a deadlock) is placed
+   on three points together with an unposed neighbour whose own three points or more lie where the joint puts them
+   (``_pair``).
 
 Steps 2-4 repeat while they pose new segments, so a segment found in step 4 poses its neighbours through their
 joints. Points that fit no marker (ghosts, markers the skeleton does not know) stay unnamed.
@@ -108,6 +111,7 @@ class ModelLabeller:
         self.labels: list[str] = []
         self.segments: list[_Segment] = []
         index: dict[str, int] = {}
+        self._snug: dict[tuple[int, int], float] = {}  # per joint (both ways), see below
         for seg in skeleton.segments:
             if seg.marker_offsets is None or len(seg.markers) == 0:
                 continue
@@ -127,6 +131,9 @@ class ModelLabeller:
                 p, c = index[joint.parent], index[joint.child]
                 po, co = np.array(joint.parent_offset), np.array(joint.child_offset)
                 held = max(self.config.joint_mm, self.config.spread_sigmas * (joint.gap_mm or 0.0))
+                # how far apart the two put the centre at most, as far as calibration saw
+                self._snug[p, c] = self._snug[c, p] = max(self.config.fit_mm,
+                                                          self.config.spread_sigmas * (joint.gap_mm or 0.0))
                 self.segments[p].joints.append((c, po, co, held))
                 self.segments[c].joints.append((p, co, po, held))
         width = max(len(one.markers) for one in self.segments)
@@ -184,14 +191,14 @@ class ModelLabeller:
         ti, pi = assign(self.pos[live] + self.vel[live] * dt[:, None], np.full(len(live), cfg.follow_mm), z)
         cur[live[ti]], taken[pi] = z[pi], live[ti]
         poses: list[tuple[np.ndarray, np.ndarray] | None] = [None] * len(self.segments)
-        searched: dict[int, int] = {}
+        searched: dict[int, tuple[int, bool]] = {}  # per segment: anchors and look-alikes at its last search
         seeds: list[int] = []  # segments found this frame on three points alone, for want of a look-alike
         self._level[:] = 3
         while True:
             posed = self._pose_segments(poses, cur, taken, refused)
             self._take_predicted(poses, cur, taken, z, time, refused)
             found = self._search(poses, cur, taken, z, searched, seeds)
-            if not (posed or found):
+            if not (posed or found or self._search_pairs(poses, cur, taken, z)):
                 break
         for s in seeds:
             if not self._confirmed(s, poses):
@@ -387,7 +394,8 @@ class ModelLabeller:
                 seeds: list) -> bool:
         """Look for each segment with no pose among the points left over and those of its own markers matched so far
         by its layout (``_place_layout``), its joint centres to surely posed segments kept within their tolerance;
-        True when one was placed. A segment is searched again in a frame only when more of its neighbours got posed.
+        True when one was placed. A segment is searched again in a frame only when more of its neighbours got posed, or
+        its look-alikes did.
         A segment with joints placed on its three points for want of a look-alike elsewhere (``alone``), with no joint
         centre to hold it and not near where it was lately, is added to ``seeds``: any three points at its layout's
         distances fit it, a chance triangle across two segments of another limb among them when its own markers are
@@ -402,35 +410,87 @@ class ModelLabeller:
             anchors = [(here, poses[other][0] @ there + poses[other][1], tol, self._joint_weight(tol))
                        for other, here, there, tol in sure]
             posture = [poses[other][0] @ self._posture[s, other] for other, *_ in sure if (s, other) in self._posture]
-            if searched.get(s, -1) >= len(anchors):
-                continue
-            searched[s] = len(anchors)
-            own = (taken >= 0) & (self._segment_of[taken] == s)  # its markers matched so far may move
-            free = np.flatnonzero((taken < 0) | own)
-            if not len(free):
-                continue
-            dt = self._time - self._last_time[s]
-            around = (self._last_seen[s], 100.0 + cfg.max_speed_mm_s * dt) if dt <= cfg.recent_s else None
             # three points, its whole layout, are this segment's alone when every segment with a triangle like its
             # own is surely posed, its points accounted for
             alone = len(seg.markers) == 3 and all(poses[t] is not None and self._level[t] < 2
                                                   for t in self._look_alikes[s])
+            if searched.get(s, (-1, False)) >= (len(anchors), alone):
+                continue
+            searched[s] = (len(anchors), alone)
+            free = np.flatnonzero((taken < 0) | np.isin(taken, seg.markers))  # its markers matched so far may move
+            if not len(free):
+                continue
+            dt = self._time - self._last_time[s]
+            around = (self._last_seen[s], 100.0 + cfg.max_speed_mm_s * dt) if dt <= cfg.recent_s else None
             best = _place_layout(seg.local, z[free], seg.tol, self._weight[seg.markers], anchors, around, posture,
                                  alone)
             if best is None:
                 continue
-            hits, rot, shift = best
-            cur[seg.markers] = np.nan
-            taken[own] = -1
-            for slot, point in hits.items():
-                cur[seg.markers[slot]] = z[free[point]]
-                taken[free[point]] = seg.markers[slot]
-            poses[s] = (rot, shift)
-            self._level[s] = 1 if anchors else 0
+            points = {slot: int(free[p]) for slot, p in best[0].items()}
+            self._place(s, points, best[1], best[2], 1 if anchors else 0, poses, cur, taken, z)
             if alone and not anchors and around is None and seg.joints:
                 seeds.append(s)
             placed = True
         return placed
+
+    def _place(self, s: int, points: dict[int, int], rot: np.ndarray, shift: np.ndarray, level: int, poses: list,
+               cur: np.ndarray, taken: np.ndarray, z: np.ndarray) -> None:
+        """Pose segment ``s`` at ``level``, its markers matched to the points of ``z`` that ``points`` gives by
+        layout row, instead of any matched before."""
+        seg = self.segments[s]
+        cur[seg.markers] = np.nan
+        taken[np.isin(taken, seg.markers)] = -1
+        for slot, point in points.items():
+            cur[seg.markers[slot]] = z[point]
+            taken[point] = seg.markers[slot]
+        poses[s] = (rot, shift)
+        self._level[s] = level
+
+    def _search_pairs(self, poses: list, cur: np.ndarray, taken: np.ndarray, z: np.ndarray) -> bool:
+        """When nothing else poses a segment: place the first segment of three markers that has no pose, no surely
+        posed neighbour, no pose lately and a look-alike with no pose (both feet unposed: a deadlock the ``alone``
+        rule cannot break), together with a neighbour (``_pair``). True when one was placed."""
+        for s, seg in enumerate(self.segments):
+            if (poses[s] is not None or len(seg.markers) != 3 or self._time - self._last_time[s] <= self.config.recent_s
+                    or any(poses[o] is not None and self._level[o] < 2 for o, *_ in seg.joints)
+                    or all(poses[t] is not None and self._level[t] < 2 for t in self._look_alikes[s])):
+                continue
+            paired = self._pair(s, seg, poses, taken, z)
+            if paired is not None:
+                for one, (points, rot, shift) in paired.items():
+                    self._place(one, points, rot, shift, 0 if one == s else 1, poses, cur, taken, z)
+                return True
+        return False
+
+    def _pair(self, s: int, seg: _Segment, poses: list, taken: np.ndarray,
+              z: np.ndarray) -> dict[int, tuple[dict[int, int], np.ndarray, np.ndarray]] | None:
+        """Segment ``s`` placed on three points with a neighbour that has no pose either, placed on three or more of its
+        own points and their joint centre (within the largest distance calibration saw between the centres the two
+        put, or ``fit_mm``), when exactly one set of points for ``s`` lets a neighbour be placed so: per segment, its
+        points by layout row (indices into ``z``), rotation and translation; else None.
+
+        A triangle alone could be its look-alike's (a triangle fits its mirror image). Its joint centre tells: a
+        layout placed on its mirror image's points puts the centre on the wrong side of their plane, where the
+        neighbour's points do not lie."""
+        hinged = [(o, here, there, self._snug[s, o]) for o, here, there, _ in seg.joints
+                  if poses[o] is None and len(self.segments[o].markers) >= 3]
+        if not hinged:
+            return None
+        free = np.flatnonzero((taken < 0) | np.isin(taken, seg.markers))
+        found: dict[frozenset, dict[int, tuple[dict[int, int], np.ndarray, np.ndarray]]] = {}
+        for hits, _, rot, shift in _placements(seg.local, z[free], seg.tol, self._weight[seg.markers], [], 3):
+            points = {slot: int(free[p]) for slot, p in hits.items()}
+            for o, here, there, tol in hinged:
+                other = self.segments[o]
+                rest = np.flatnonzero(((taken < 0) | np.isin(taken, np.concatenate([seg.markers, other.markers])))
+                                      & ~np.isin(np.arange(len(z)), list(points.values())))
+                anchor = [(there, rot @ here + shift, tol, self._joint_weight(tol))]
+                best = _place_layout(other.local, z[rest], other.tol, self._weight[other.markers], anchor)
+                if best is not None and len(best[0]) >= 3:
+                    key = frozenset(points.items())
+                    found.setdefault(key, {s: (points, rot, shift),
+                                           o: ({slot: int(rest[p]) for slot, p in best[0].items()}, best[1], best[2])})
+        return next(iter(found.values())) if len(found) == 1 else None
 
     def _confirmed(self, s: int, poses: list) -> bool:
         """Whether a surely posed neighbour of segment ``s`` puts their joint centre where ``s``'s pose does, within
@@ -573,14 +633,37 @@ def _place_layout(layout: np.ndarray, cloud: np.ndarray, tol: np.ndarray, weight
     when every rival is turned at least ``POSTURE_DEG`` more; a joint does not flip a segment over between two
     sightings.
     """
-    found: dict[frozenset, tuple[int, float, dict[int, int], np.ndarray, np.ndarray]] = {}
+    least = (4 if around is None and not alone else 3) if not anchors else 2 if len(anchors) == 1 else 1
+    found = _placements(layout, cloud, tol, weight, anchors, least, around)
+    if not found:
+        return None
+    ranked = sorted(found, key=lambda f: (-len(f[0]), f[1]))
+    top = ranked[0]
+    rivals = [f for f in ranked if len(f[0]) == len(top[0]) and f[1] < 3.0 * top[1] + 1.0]
+    if len(rivals) > 1:
+        if not posture:
+            return None
+        turn = sorted((np.mean([_angle(f[2], expected) for expected in posture]), i) for i, f in enumerate(rivals))
+        if turn[1][0] - turn[0][0] < POSTURE_DEG:
+            return None
+        top = rivals[turn[0][1]]
+    return top[0], top[2], top[3]
+
+
+def _placements(layout: np.ndarray, cloud: np.ndarray, tol: np.ndarray, weight: np.ndarray,
+                anchors: list[tuple[np.ndarray, np.ndarray, float, float]], least: int,
+                around: tuple[np.ndarray, float] | None = None,
+                ) -> list[tuple[dict[int, int], float, np.ndarray, np.ndarray]]:
+    """Every placement of a layout on ``cloud`` (arguments as for ``_place_layout``) that lands ``least`` layout
+    points or more on distinct cloud points, each within its tolerance, with every anchor within its own: the points
+    it lands on by layout row, its RMS misfit (markers and anchors, mm), rotation and translation."""
+    if len(layout) < least:
+        return []
+    found: dict[frozenset, tuple[dict[int, int], float, np.ndarray, np.ndarray]] = {}
     local_a = np.array([a[0] for a in anchors]).reshape(-1, 3)
     world_a = np.array([a[1] for a in anchors]).reshape(-1, 3)
     joint_tol = np.array([a[2] for a in anchors])
     joint_weight = np.array([a[3] for a in anchors])
-    least = (4 if around is None and not alone else 3) if not anchors else 2 if len(anchors) == 1 else 1
-    if len(layout) < least:
-        return None
     d_cloud = cdist(cloud, cloud)
     d_anchor = cdist(cloud, world_a)
     d_local = cdist(layout, local_a)
@@ -606,20 +689,8 @@ def _place_layout(layout: np.ndarray, cloud: np.ndarray, tol: np.ndarray, weight
         anchor_misfit = np.sum(anchor_err**2 * joint_weight / JOINT_WEIGHT)
         misfit = float(np.sqrt((np.sum(fit[inside] ** 2) + anchor_misfit) / (inside.sum() + len(anchor_err))))
         if key not in found or misfit < found[key][1]:
-            found[key] = (int(inside.sum()), misfit, hits, rot, shift)
-    if not found:
-        return None
-    ranked = sorted(found.values(), key=lambda f: (-f[0], f[1]))
-    top = ranked[0]
-    rivals = [f for f in ranked if f[0] == top[0] and f[1] < 3.0 * top[1] + 1.0]
-    if len(rivals) > 1:
-        if not posture:
-            return None
-        turn = sorted((np.mean([_angle(f[3], expected) for expected in posture]), i) for i, f in enumerate(rivals))
-        if turn[1][0] - turn[0][0] < POSTURE_DEG:
-            return None
-        top = rivals[turn[0][1]]
-    return top[2], top[3], top[4]
+            found[key] = (hits, misfit, rot, shift)
+    return list(found.values())
 
 
 def _look_alikes(segments: list[_Segment]) -> list[list[int]]:
