@@ -207,11 +207,11 @@ class ModelLabeller:
         self._observe(cur, time)
         self.pose = poses
         for s, pose in enumerate(poses):
-            if pose is not None and self._level[s] < 2:
+            if pose is not None and self._sure(s, poses):
                 self._last_seen[s], self._last_time[s] = pose[1], time
                 for other, *_ in self.segments[s].joints:
                     there = poses[other]
-                    if there is not None and self._level[other] < 2:
+                    if there is not None and self._sure(other, poses):
                         self._posture[s, other] = there[0].T @ pose[0]
         point_marker = np.full(len(pts), -1, np.intp)
         point_marker[rows] = taken
@@ -293,7 +293,7 @@ class ModelLabeller:
         tols = []
         if n_seen < 3:
             for other, here, there, tol in seg.joints:
-                if poses[other] is not None and self._level[other] < 2:
+                if self._sure(other, poses):
                     rot, shift = poses[other]
                     local.append(here[None])
                     world.append((rot @ there + shift)[None])
@@ -328,7 +328,7 @@ class ModelLabeller:
         """Segment ``s``'s pose if it kept its last posture to a surely posed neighbour, hinged at their joint: the
         neighbour carries it as the limb moves. None when no such neighbour has a posture known."""
         for other, here, there, _ in seg.joints:
-            if poses[other] is not None and self._level[other] < 2 and (s, other) in self._posture:
+            if self._sure(other, poses) and (s, other) in self._posture:
                 rot_o, shift_o = poses[other]
                 rot = rot_o @ self._posture[s, other]
                 return rot, rot_o @ there + shift_o - rot @ here
@@ -369,7 +369,7 @@ class ModelLabeller:
                     continue  # no point to take: what could be is not worked out
                 seen = np.flatnonzero(np.isfinite(cur[seg.markers, 0]))
                 sure = [(h, poses[o][0] @ t + poses[o][1], tol) for o, h, t, tol in seg.joints
-                        if poses[o] is not None and self._level[o] < 2]
+                        if self._sure(o, poses)]
                 here = [seg.local[seen]] + [h[None] for h, _, _ in sure]
                 there = [cur[seg.markers[seen]]] + [t[None] for _, t, _ in sure]
                 tol = np.maximum(seg.tol[rows, None], np.concatenate([seg.tol[seen], [t for _, _, t in sure]]))
@@ -406,14 +406,11 @@ class ModelLabeller:
             if poses[s] is not None:
                 continue
             sure = [(other, here, there, tol) for other, here, there, tol in seg.joints
-                    if poses[other] is not None and self._level[other] < 2]
+                    if self._sure(other, poses)]
             anchors = [(here, poses[other][0] @ there + poses[other][1], tol, self._joint_weight(tol))
                        for other, here, there, tol in sure]
             posture = [poses[other][0] @ self._posture[s, other] for other, *_ in sure if (s, other) in self._posture]
-            # three points, its whole layout, are this segment's alone when every segment with a triangle like its
-            # own is surely posed, its points accounted for
-            alone = len(seg.markers) == 3 and all(poses[t] is not None and self._level[t] < 2
-                                                  for t in self._look_alikes[s])
+            alone = self._alone(s, poses)
             if searched.get(s, (-1, False)) >= (len(anchors), alone):
                 continue
             searched[s] = (len(anchors), alone)
@@ -452,8 +449,7 @@ class ModelLabeller:
         rule cannot break), together with a neighbour (``_pair``). True when one was placed."""
         for s, seg in enumerate(self.segments):
             if (poses[s] is not None or len(seg.markers) != 3 or self._time - self._last_time[s] <= self.config.recent_s
-                    or any(poses[o] is not None and self._level[o] < 2 for o, *_ in seg.joints)
-                    or all(poses[t] is not None and self._level[t] < 2 for t in self._look_alikes[s])):
+                    or any(self._sure(o, poses) for o, *_ in seg.joints) or self._alone(s, poses)):
                 continue
             paired = self._pair(s, seg, poses, taken, z)
             if paired is not None:
@@ -477,13 +473,15 @@ class ModelLabeller:
         if not hinged:
             return None
         free = np.flatnonzero((taken < 0) | np.isin(taken, seg.markers))
+        # per neighbour, the points it may take: free, or matched so far to it or to ``s``
+        open_to = {o: (taken < 0) | np.isin(taken, np.concatenate([seg.markers, self.segments[o].markers]))
+                   for o, *_ in hinged}
         found: dict[frozenset, dict[int, tuple[dict[int, int], np.ndarray, np.ndarray]]] = {}
         for hits, _, rot, shift in _placements(seg.local, z[free], seg.tol, self._weight[seg.markers], [], 3):
             points = {slot: int(free[p]) for slot, p in hits.items()}
             for o, here, there, tol in hinged:
                 other = self.segments[o]
-                rest = np.flatnonzero(((taken < 0) | np.isin(taken, np.concatenate([seg.markers, other.markers])))
-                                      & ~np.isin(np.arange(len(z)), list(points.values())))
+                rest = np.flatnonzero(open_to[o] & ~np.isin(np.arange(len(z)), list(points.values())))
                 anchor = [(there, rot @ here + shift, tol, self._joint_weight(tol))]
                 best = _place_layout(other.local, z[rest], other.tol, self._weight[other.markers], anchor)
                 if best is not None and len(best[0]) >= 3:
@@ -492,11 +490,20 @@ class ModelLabeller:
                                            o: ({slot: int(rest[p]) for slot, p in best[0].items()}, best[1], best[2])})
         return next(iter(found.values())) if len(found) == 1 else None
 
+    def _sure(self, s: int, poses: list) -> bool:
+        """Whether segment ``s`` is surely posed this frame: by three markers or more, or through joints."""
+        return poses[s] is not None and self._level[s] < 2
+
+    def _alone(self, s: int, poses: list) -> bool:
+        """Whether three points, its whole layout, are segment ``s``'s alone: it has three markers and every segment
+        with a triangle like its own is surely posed, its points accounted for."""
+        return len(self.segments[s].markers) == 3 and all(self._sure(t, poses) for t in self._look_alikes[s])
+
     def _confirmed(self, s: int, poses: list) -> bool:
         """Whether a surely posed neighbour of segment ``s`` puts their joint centre where ``s``'s pose does, within
         the joint's tolerance."""
         rot, shift = poses[s]
-        return any(poses[other] is not None and self._level[other] < 2
+        return any(self._sure(other, poses)
                    and np.linalg.norm(rot @ here + shift - poses[other][0] @ there - poses[other][1]) <= tol
                    for other, here, there, tol in self.segments[s].joints)
 
