@@ -202,7 +202,9 @@ def test_replay_reads_what_a_killed_record_left(tmp_path: Path, free_endpoint: s
 
 
 def test_a_restarted_labeller_keeps_every_identity(tmp_path: Path, free_endpoint: str) -> None:
-    frames = 12 * RATE
+    """A labeller killed and restarted resumes its tracks: no label names another marker after the gap. The stream
+    runs 11 s past the kill, so that it is back before the stream ends even on a loaded machine."""
+    frames = 15 * RATE
     path, prefix = graph_file(tmp_path, "lab", free_endpoint, f"""
   tracker: {{plugin: simulator, config: {{rig: human, rate: {RATE}, seed: 3, frames: {frames}, unlabelled: true}}}}
   labeller: {{plugin: labeller, inputs: {{markers: tracker/markers}}}}
