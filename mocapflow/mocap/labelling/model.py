@@ -460,19 +460,16 @@ class ModelLabeller:
 
     def _pair(self, s: int, seg: _Segment, poses: list, taken: np.ndarray,
               z: np.ndarray) -> dict[int, tuple[dict[int, int], np.ndarray, np.ndarray]] | None:
-        """Segment ``s`` placed on three points with a neighbour that has no pose either, placed on its own points and
-        their joint centre (within the largest distance calibration saw between the centres the two put, or
-        ``fit_mm``), when exactly one set of points for ``s`` lets a neighbour be placed so: per segment, its points
-        by layout row (indices into ``z``), rotation and translation; else None. The neighbour lands three of its
-        points, or all of them if it has two (a shank); or one or more when a surely posed segment holds it at
-        another joint too (a shank whose knee the thigh places, its ankle marker hidden).
+        """Segment ``s`` placed on three points with a neighbour that has no pose either, placed on three or more of its
+        own points and their joint centre (within the largest distance calibration saw between the centres the two
+        put, or ``fit_mm``), when exactly one set of points for ``s`` lets a neighbour be placed so: per segment, its
+        points by layout row (indices into ``z``), rotation and translation; else None.
 
         A triangle alone could be its look-alike's (a triangle fits its mirror image). Its joint centre tells: a
         layout placed on its mirror image's points puts the centre on the wrong side of their plane, where the
-        neighbour's points do not lie; unless the joint's tolerance is wider than ``joint_mm``, and then it pairs
-        nothing."""
+        neighbour's points do not lie."""
         hinged = [(o, here, there, self._snug[s, o]) for o, here, there, _ in seg.joints
-                  if poses[o] is None and self._snug[s, o] <= self.config.joint_mm]
+                  if poses[o] is None and len(self.segments[o].markers) >= 3]
         if not hinged:
             return None
         free = np.flatnonzero((taken < 0) | np.isin(taken, seg.markers))
@@ -486,10 +483,8 @@ class ModelLabeller:
                 other = self.segments[o]
                 rest = np.flatnonzero(open_to[o] & ~np.isin(np.arange(len(z)), list(points.values())))
                 anchor = [(there, rot @ here + shift, tol, self._joint_weight(tol))]
-                anchor += [(h, poses[q][0] @ t + poses[q][1], held, self._joint_weight(held))
-                           for q, h, t, held in other.joints if self._sure(q, poses)]
                 best = _place_layout(other.local, z[rest], other.tol, self._weight[other.markers], anchor)
-                if best is not None and len(best[0]) >= (min(3, len(other.markers)) if len(anchor) == 1 else 1):
+                if best is not None and len(best[0]) >= 3:
                     key = frozenset(points.items())
                     found.setdefault(key, {s: (points, rot, shift),
                                            o: ({slot: int(rest[p]) for slot, p in best[0].items()}, best[1], best[2])})
