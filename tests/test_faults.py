@@ -27,6 +27,11 @@ from mocapflow.runtime.session import open_client, open_router
 
 pytestmark = pytest.mark.integration
 
+PAST_KILL_S = 11
+"""How long a stream runs past the kill of a node that must come back within it: a restart takes about 3 s on a quiet
+machine and took over 7 s in a loaded test run; were the node back after the stream's end, its gap would run to the
+end."""
+
 GLITCHY = '''
 import numpy as np
 from mocapflow.messages import MarkerFrame
@@ -202,9 +207,8 @@ def test_replay_reads_what_a_killed_record_left(tmp_path: Path, free_endpoint: s
 
 
 def test_a_restarted_labeller_keeps_every_identity(tmp_path: Path, free_endpoint: str) -> None:
-    """A labeller killed and restarted resumes its tracks: no label names another marker after the gap. The stream
-    runs 11 s past the kill, so that it is back before the stream ends even on a loaded machine."""
-    frames = 15 * RATE
+    """A labeller killed and restarted resumes its tracks: no label names another marker after the gap."""
+    frames = (4 + PAST_KILL_S) * RATE
     path, prefix = graph_file(tmp_path, "lab", free_endpoint, f"""
   tracker: {{plugin: simulator, config: {{rig: human, rate: {RATE}, seed: 3, frames: {frames}, unlabelled: true}}}}
   labeller: {{plugin: labeller, inputs: {{markers: tracker/markers}}}}
@@ -415,10 +419,8 @@ def test_a_failed_finish_in_a_group_fails_that_member_only(tmp_path: Path, free_
 
 def test_killed_model_stages_cost_no_frame_and_a_killed_filler_one_gap(tmp_path: Path, free_endpoint: str) -> None:
     """The clusterer and the joint estimator only refresh models: killing them loses no frame of the filled stream.
-    Killing the filler loses the frames of its own restart gap, and nothing else. The stream runs 11 s past the last
-    kill, so that the filler is back before it ends even on a loaded machine (where its restart took over 6 s); were
-    it back later, the gap would run to the end, and the filler would still finish."""
-    frames = 15 * RATE
+    Killing the filler loses the frames of its own restart gap, and nothing else."""
+    frames = (4 + PAST_KILL_S) * RATE
     path, prefix = graph_file(tmp_path, "mdl", free_endpoint, f"""
   tracker: {{plugin: simulator, config: {{rig: human, rate: {RATE}, seed: 3, frames: {frames}}}}}
   clusterer: {{plugin: clusterer-spectral, inputs: {{markers: tracker/markers}}}}
@@ -453,11 +455,10 @@ def test_a_recorder_path_under_a_file_fails_the_run_at_start_in_one_line(tmp_pat
 
 def test_a_killed_skeleton_publisher_loses_poses_of_its_restart_gap_only(tmp_path: Path, free_endpoint: str) -> None:
     """With a skeleton given from the start, every frame is posed; killing the skeleton publisher costs the poses of
-    one gap and not a single marker frame. The stream runs 11 s past the kill, so that the publisher is back before
-    it ends even on a loaded machine (its restart took 3 s on a quiet one, over 7 s in a loaded test run)."""
+    one gap and not a single marker frame."""
     from mocapflow.mocap.simulator import simulate, truth_skeleton
 
-    frames = 14 * RATE
+    frames = (3 + PAST_KILL_S) * RATE
     sim = Simulator(SimulatorConfig(rig="human", rate=RATE, seed=3))
     reference = simulate(SimulatorConfig(rig="human", rate=RATE, seed=3, noise_mm=0.0), 1).true_positions[0]
     (tmp_path / "human.json").write_text(truth_skeleton(sim.rig, reference).model_dump_json())
