@@ -262,6 +262,35 @@ def test_outside_predictions_re_identify() -> None:
     assert len(helped.labels) == 4
 
 
+def test_the_stream_labels_a_new_marker_from_its_fourth_frame() -> None:
+    """Each frame a stream waits before it believes a new point is a frame its marker goes unlabelled live: by
+    default the stream labels a new marker from its fourth frame, at the start and when a marker first appears later,
+    while a ghost that flickers for three frames is not taken."""
+    truth = _wanderers()
+    ghost = np.broadcast_to([300.0, 600.0, 1200.0], (len(truth), 1, 3))
+    truth = np.concatenate([truth, ghost], axis=1)
+    hidden = np.ones(truth.shape[:2], bool)
+    hidden[:, :3] = False
+    hidden[50:, 3] = False  # the fourth marker first appears at frame 50
+    hidden[100:103, 4] = False  # a ghost, still, for three frames
+    labeller = Labeller(LabellerConfig(), RATE)
+    got = _stream(labeller, truth, hidden)
+    assert (got[:3, :3] == -1).all() and (got[3:, :3] >= 0).all()
+    assert (got[50:53, 3] == -1).all() and (got[53:, 3] >= 0).all()
+    assert (got[:, 4] == -1).all() and len(labeller.labels) == 4
+
+
+def test_offline_labelling_waits_its_own_frames() -> None:
+    """Offline, where a confirmed point's earlier frames are filled in, waiting costs nothing: ``label_sequence``
+    waits ``offline_confirm_frames`` whatever the stream waits, and that wait does change its labels under stress."""
+    positions = simulate(SimulatorConfig(rig="human", rate=120.0, noise_mm=0.5, seed=1), 300).positions
+    points, _ = unlabel(positions, 120.0, seed=1, stationary=True, **STRESS)
+    labelled, _ = label_sequence(list(points), 120.0)
+    np.testing.assert_array_equal(label_sequence(list(points), 120.0, LabellerConfig(confirm_frames=1))[0], labelled)
+    sooner, _ = label_sequence(list(points), 120.0, LabellerConfig(offline_confirm_frames=3))
+    assert sooner.shape != labelled.shape or not np.array_equal(sooner, labelled, equal_nan=True)
+
+
 def test_expected_markers_caps_the_tracks() -> None:
     truth = _wanderers()
     hidden = np.zeros(truth.shape[:2], bool)

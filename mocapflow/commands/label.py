@@ -43,7 +43,7 @@ def _config(args: argparse.Namespace) -> LabellerConfig:
     from mocapflow.mocap.labelling import LabellerConfig
 
     return settings(LabellerConfig, args.overrides, gate_mm=args.gate, reid_gate_mm=args.reid_gate,
-                    confirm_frames=args.confirm, expected_markers=args.markers)
+                    offline_confirm_frames=args.confirm, expected_markers=args.markers)
 
 
 def run(args: argparse.Namespace) -> int:

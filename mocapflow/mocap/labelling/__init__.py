@@ -30,10 +30,12 @@ A placement from a rigid neighbourhood re-identifies at once; a looser one (neig
 point that has lived ``confirm_frames`` frames, so that a passing ghost cannot steal the track. Points that match no
 track start tentative tracks, which become markers (or re-identify a lost one) when they live ``confirm_frames``
 frames, or go back to a lost marker sooner when its rigid partners pin them (three from a point's first frame, two
-from its second); the rest, short-lived ghosts, are dropped. Offline, :func:`label_sequence` also cuts the tracks
-that streaming carried across a gap onto another marker (:func:`~.offline.split_doubtful_joins`), merges what
-streaming could not (the thesis's *Marker Set* merging, :func:`merge_tracks`) and drops tracks too short to be
-markers.
+from its second); the rest, short-lived ghosts, are dropped. Each frame a stream waits is a frame its marker goes
+unlabelled live, so it waits 4 frames by default; offline, where a confirmed point's earlier frames are filled in,
+:func:`label_sequence` waits ``offline_confirm_frames`` (5), which keeps more short-lived pieces out of its merging.
+It also cuts the tracks that streaming carried across a gap onto another marker
+(:func:`~.offline.split_doubtful_joins`), merges what streaming could not (the thesis's *Marker Set* merging,
+:func:`merge_tracks`) and drops tracks too short to be markers.
 
 With a skeleton of the subject (``mocapflow calibrate`` on a labelled trial), :mod:`.model` names every point with
 the skeleton's own marker names instead, by fitting its segments' marker layouts frame by frame.

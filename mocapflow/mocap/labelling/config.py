@@ -37,8 +37,14 @@ class LabellerConfig(BaseModel):
                                   "point, which has no velocity yet (a sprinter's swinging foot passes 18 m/s)")
     velocity_smoothing: float = Field(0.7, gt=0, le=1, description="weight of the newest frame-to-frame velocity in a "
                                       "track's velocity estimate")
-    confirm_frames: int = Field(5, ge=1, description="consecutive frames a new point must be tracked before it is "
-                                "accepted as a marker; shorter-lived points are ghosts")
+    confirm_frames: int = Field(4, ge=1, description="consecutive frames a new point must be tracked before the "
+                                "stream accepts it as a marker; shorter-lived points are ghosts (a flicker of up to "
+                                "three frames is not taken). Each frame waited is a frame the marker goes unlabelled "
+                                "live")
+    offline_confirm_frames: int = Field(5, ge=1, description="offline only: confirm_frames for label_sequence, which "
+                                        "labels a confirmed point's earlier frames too, so that waiting costs it "
+                                        "nothing, and the pieces of fewer short-lived points reach its merging; also "
+                                        "the fewest frames two tracks must share for their distance statistics")
     neighbours: int = Field(4, ge=3, description="neighbours that place a lost marker (the thesis uses 4-5)")
     neighbour_sd_mm: float = Field(100.0, gt=0, description="largest standard deviation of the distance to a marker "
                                    "for it to serve as a neighbour; each neighbour is weighted by 1/sd^2")
@@ -57,9 +63,10 @@ class LabellerConfig(BaseModel):
     min_track_s: float = Field(0.5, ge=0, description="offline only: tracks seen for less than this in all, once "
                                "merged, are dropped as ghosts (the thesis drops Marker Sets under half a second) "
                                "unless they move and keep their distances to rigid partners seen with them: one "
-                               "seen with it for confirm_frames frames for a track seen in one unbroken run, two "
-                               "seen throughout for one merged across gaps (rigid at this recording's own noise: "
-                               "three times its noise floor, at least rigid_sd_mm; moving by more than that, RMS)")
+                               "seen with it for offline_confirm_frames frames for a track seen in one unbroken "
+                               "run, two seen throughout for one merged across gaps (rigid at this recording's own "
+                               "noise: three times its noise floor, at least rigid_sd_mm; moving by more than that, "
+                               "RMS)")
     expected_markers: int | None = Field(None, ge=1, description="number of physical markers, when known: at most "
                                          "this many tracks; beyond it new points can only re-identify lost tracks")
 

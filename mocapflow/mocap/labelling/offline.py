@@ -139,7 +139,7 @@ class _Round:
 
     def _side(self, triangle: tuple[int, int, int], near: np.ndarray) -> np.ndarray:
         """On which side of the triangle each of the ``near`` tracks lies: +1 or -1 where it holds in 90 % of the
-        frames (at least ``confirm_frames``) they are seen together, else 0."""
+        frames (at least ``offline_confirm_frames``) they are seen together, else 0."""
         a, b, c = triangle
         frames = self.seen[:, a] & self.seen[:, b] & self.seen[:, c]
         x = self.tracks[frames]
@@ -147,7 +147,7 @@ class _Round:
         out = np.zeros(len(near), np.int64)
         for k, n in enumerate(near.tolist()):
             shown = self.seen[frames, n]
-            if shown.sum() < self._cfg.confirm_frames:
+            if shown.sum() < self._cfg.offline_confirm_frames:
                 continue
             share = (np.einsum("fi,fi->f", normal[shown], x[shown, n] - x[shown, a]) > 0).mean()
             out[k] = 1 if share >= 0.9 else -1 if share <= 0.1 else 0
@@ -167,7 +167,7 @@ class _Round:
     def spread(self, i: int) -> tuple[np.ndarray, np.ndarray]:
         """``_distance_spread`` of track ``i``."""
         if i not in self._spreads:
-            self._spreads[i] = _distance_spread(self.tracks, self.seen, i, self._cfg.confirm_frames)
+            self._spreads[i] = _distance_spread(self.tracks, self.seen, i, self._cfg.offline_confirm_frames)
         return self._spreads[i]
 
 
@@ -407,7 +407,7 @@ def _rigid_sd(tracks: np.ndarray, seen: np.ndarray, markers: np.ndarray, cfg: La
     ``rigid_sd_mm``. Skin on a sprinter's legs moves markers several millimetres where a rigid cluster holds one."""
     spread = np.full((len(markers), len(markers)), np.nan)
     for row, k in enumerate(markers):
-        spread[row] = _distance_spread(tracks, seen, k, cfg.confirm_frames)[1][markers]
+        spread[row] = _distance_spread(tracks, seen, k, cfg.offline_confirm_frames)[1][markers]
     return max(cfg.rigid_sd_mm, 3.0 * noise_floor(spread)) if len(markers) > 1 else cfg.rigid_sd_mm
 
 
@@ -436,7 +436,7 @@ def label_sequence(frames: Iterable[np.ndarray], rate: float, config: LabellerCo
     merging goes (its cost grows with the square of the number of tracks).
     """
     cfg = config or LabellerConfig()
-    labeller = Labeller(cfg, rate)
+    labeller = Labeller(cfg.model_copy(update={"confirm_frames": cfg.offline_confirm_frames}), rate)
     rows: list[np.ndarray] = []
     late: list[tuple[int, np.ndarray, np.ndarray]] = []
     for i, points in enumerate(frames):
@@ -456,7 +456,7 @@ def label_sequence(frames: Iterable[np.ndarray], rate: float, config: LabellerCo
     long = seen.sum(axis=0) >= cfg.min_track_s * rate
     rigid_sd = _rigid_sd(joined, seen, np.flatnonzero(long), cfg) if not long.all() else cfg.rigid_sd_mm
     markers = [m for k, m in enumerate(merged)
-               if long[k] or _explained(joined, seen, k, rigid_sd, cfg.confirm_frames)]
+               if long[k] or _explained(joined, seen, k, rigid_sd, cfg.offline_confirm_frames)]
     markers.sort(key=lambda m: np.flatnonzero(np.isfinite(m[:, 0]))[0])
     out = np.stack(markers, axis=1) if markers else np.full((len(rows), 0, 3), np.nan)
     return out, [f"M{k + 1:03d}" for k in range(out.shape[1])]
