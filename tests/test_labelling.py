@@ -411,6 +411,8 @@ def test_label_command(tmp_path: Path) -> None:
     reread = read_markers(source).positions
     assert score_labelling(out.positions, reread, identity, 12).accuracy >= 0.995
     assert main(["label", str(source), "-o", str(target), "--set", "gate=3"]) == 2
+    assert main(["label", str(source), "-o", str(target), "--set", "confirm_frames=2"]) == 2  # a stream's wait
+    assert main(["label", str(source), "-o", str(target), "--confirm", "3"]) == 0
 
 
 def _report(name: str, score: object) -> None:

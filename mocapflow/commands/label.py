@@ -42,6 +42,9 @@ def _config(args: argparse.Namespace) -> LabellerConfig:
     """LabellerConfig from the options; a bad value is a one-line error naming the setting."""
     from mocapflow.mocap.labelling import LabellerConfig
 
+    if any(item.partition("=")[0].strip() == "confirm_frames" for item in args.overrides):
+        raise MocapflowError("--set confirm_frames: that is a live stream's wait; a file is labelled offline, which "
+                             "waits --confirm frames (offline_confirm_frames)")
     return settings(LabellerConfig, args.overrides, gate_mm=args.gate, reid_gate_mm=args.reid_gate,
                     offline_confirm_frames=args.confirm, expected_markers=args.markers)
 
