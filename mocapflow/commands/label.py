@@ -42,11 +42,12 @@ def _config(args: argparse.Namespace) -> LabellerConfig:
     """LabellerConfig from the options; a bad value is a one-line error naming the setting."""
     from mocapflow.mocap.labelling import LabellerConfig
 
-    if any(item.partition("=")[0].strip() == "confirm_frames" for item in args.overrides):
+    config = settings(LabellerConfig, args.overrides, gate_mm=args.gate, reid_gate_mm=args.reid_gate,
+                      offline_confirm_frames=args.confirm, expected_markers=args.markers)
+    if "confirm_frames" in config.model_fields_set:
         raise MocapflowError("--set confirm_frames: that is a live stream's wait; a file is labelled offline, which "
                              "waits --confirm frames (offline_confirm_frames)")
-    return settings(LabellerConfig, args.overrides, gate_mm=args.gate, reid_gate_mm=args.reid_gate,
-                    offline_confirm_frames=args.confirm, expected_markers=args.markers)
+    return config
 
 
 def run(args: argparse.Namespace) -> int:
