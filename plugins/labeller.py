@@ -9,7 +9,7 @@ from mocapflow.mocap.compiled import compile_labelling
 from mocapflow.mocap.labelling import Labeller, LabellerConfig
 from mocapflow.mocap.reacquire import Reacquirer
 from mocapflow.runtime.node import Input, Node, Output
-from mocapflow.runtime.resume import clear_state, load_state, save_state
+from mocapflow.runtime.resume import StateKeeper
 
 SAVE_EVERY_S = 0.5
 RESUME_S = 1.0  # after a restart, how long lost tracks are looked for by their layouts
@@ -35,7 +35,8 @@ class LabellerNode(Node[LabellerConfig]):
     kernels = (compile_labelling,)
 
     def setup(self) -> None:
-        self.labeller: Labeller | None = load_state(self.run_id, self.name)
+        self.state = StateKeeper(self.run_id, self.name)
+        self.labeller: Labeller | None = self.state.load()
         self._saved_at = -float("inf")
         self.reacquire = Reacquirer(self.labeller) if self.labeller is not None else None
         self._resumed_at: float | None = None  # stream time of the first frame after a restart
@@ -84,11 +85,11 @@ class LabellerNode(Node[LabellerConfig]):
         if len(labeller.labels) != before:
             self._apply_segments()
         if frame.frame / frame.rate - self._saved_at >= SAVE_EVERY_S:
-            save_state(self.run_id, self.name, labeller)
+            self.state.save(labeller)
             self._saved_at = frame.frame / frame.rate
 
     def finish(self) -> None:
-        clear_state(self.run_id, self.name)
+        self.state.clear()
 
     def _predicted(self, frame: MarkerFrame) -> np.ndarray | None:
         """The filler's predictions for this very frame, in track order; None when there are none for it.
