@@ -239,8 +239,8 @@ def test_a_brief_run_of_a_marker_is_kept_when_its_mate_is_seen_with_it_part_of_t
 def test_a_piece_too_short_for_a_partner_to_vouch_for_is_not_a_marker() -> None:
     """Offline, one rigid partner vouches for a brief unbroken track only when seen with it for
     ``offline_confirm_frames`` frames. A piece seen in fewer frames in all has no such partner, however well one of
-    the markers keeps its distance to it there: on a simulated human (52 markers, 1.5 ghosts a frame), two ghosts of
-    consecutive frames a few millimetres apart had been kept as a 53rd marker, seen in 2 frames."""
+    the markers keeps its distance to it there: on a simulated human (52 markers, 1.5 ghosts a frame), two ghosts in
+    consecutive frames, 159 mm apart, had been kept as a 53rd marker, seen in 2 frames."""
     frames = 60
     step = np.arange(frames)[:, None] * np.array([20.0, 0.0, 0.0])  # a rigid body moving 20 mm a frame
     layout = np.array([[0.0, 0.0, 0.0], [80.0, 0.0, 0.0], [0.0, 90.0, 0.0], [0.0, 0.0, 100.0]])

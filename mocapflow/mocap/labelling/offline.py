@@ -387,8 +387,8 @@ def _explained(tracks: np.ndarray, seen: np.ndarray, k: int, rigid_sd: float, le
     with it for ``least`` frames vouches for it; a track merged from fragments across gaps needs two, seen in every
     one of its frames, since fragments of ghosts merge too. Distances that hold while nothing moves prove nothing: a
     reflection that stands still keeps its distances to other still reflections, and over a few frames to any slow
-    marker. A track seen in fewer than ``least`` frames in all (a piece that splitting cut off, two ghosts of
-    consecutive frames close together) has no partner seen with it for that long, and no partner vouches for it."""
+    marker. A track seen in fewer than ``least`` frames in all (a piece that splitting cut off, two ghosts in
+    consecutive frames taken for one point) has no partner seen with it for that long, and no partner vouches for it."""
     frames = np.flatnonzero(seen[:, k])
     if len(frames) < least:
         return False
