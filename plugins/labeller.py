@@ -35,8 +35,8 @@ class LabellerNode(Node[LabellerConfig]):
     kernels = (compile_labelling,)
 
     def setup(self) -> None:
-        self.state = StateKeeper(self.run_id, self.name)
-        self.labeller: Labeller | None = self.state.load()
+        self.keeper = StateKeeper(self.run_id, self.name)
+        self.labeller: Labeller | None = self.keeper.load()
         self._saved_at = -float("inf")
         self.reacquire = Reacquirer(self.labeller) if self.labeller is not None else None
         self._resumed_at: float | None = None  # stream time of the first frame after a restart
@@ -85,11 +85,11 @@ class LabellerNode(Node[LabellerConfig]):
         if len(labeller.labels) != before:
             self._apply_segments()
         if frame.frame / frame.rate - self._saved_at >= SAVE_EVERY_S:
-            self.state.save(labeller)
+            self.keeper.save(labeller)
             self._saved_at = frame.frame / frame.rate
 
     def finish(self) -> None:
-        self.state.clear()
+        self.keeper.clear()
 
     def _predicted(self, frame: MarkerFrame) -> np.ndarray | None:
         """The filler's predictions for this very frame, in track order; None when there are none for it.
