@@ -76,6 +76,20 @@ def _kind(rig: str, segment: str) -> str:
     return r.joint_kinds[r.segments.index(segment)]
 
 
+def test_a_few_wrong_samples_cost_no_segment() -> None:
+    """Two ghosts each taken for a head marker in one frame (as a labeller under heavy ghosts may) make the head's
+    pairs look loose to a plain standard deviation; the skeleton still has the head."""
+    rec = _recording("quadruped")
+    positions = rec.positions.copy()
+    head = [rec.labels.index(label) for label in ("HED1", "HED2")]
+    positions[500, head[0]] += [180.0, 0.0, 0.0]
+    positions[900, head[1]] += [0.0, -160.0, 30.0]
+    skeleton = calibrate(positions, rec.labels, rec.rate)
+    of = dict(zip(rec.labels, rec.marker_segment, strict=True))
+    truth = sorted(sorted(label for label in rec.labels if of[label] == s) for s in set(rec.marker_segment))
+    assert sorted(sorted(s.markers) for s in skeleton.segments) == truth
+
+
 def test_rods_middle_length() -> None:
     lengths = bone_lengths(_skeleton("rods", "variance"))
     assert len(lengths) == 1

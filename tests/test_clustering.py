@@ -40,8 +40,26 @@ def test_distance_spread_matches_the_direct_standard_deviation_with_gaps() -> No
     positions[rng.random((700, 5)) < 0.2] = np.nan
     d = np.linalg.norm(positions[:, :, None] - positions[:, None], axis=-1)
     expected = np.nanstd(d, axis=0)
-    got = distance_spread(positions, values=128 * 6)  # chunks of a few frames: the running sums must add up
+    # chunks of a few frames: the running sums must add up
+    got = distance_spread(positions, values=128 * 6, clip=np.inf)
     assert np.allclose(got, expected, atol=1e-9)
+
+
+def test_a_few_wrong_samples_do_not_make_a_rigid_pair_look_loose() -> None:
+    """A ghost taken for a marker in one frame of 3000, 120 mm off: without it the pair's spread is its noise."""
+    rng = np.random.default_rng(1)
+    frames = 3000
+    centre = np.cumsum(rng.normal(0, 5, (frames, 3)), axis=0)
+    positions = np.stack([centre, centre + [30.0, 0, 0], centre + [0, 500.0, 0]], axis=1)
+    positions[:, 2] += np.cumsum(rng.normal(0, 3, (frames, 3)), axis=0)  # a marker of another segment
+    positions += rng.normal(0, 0.5, positions.shape)
+    clean = distance_spread(positions, clip=np.inf)
+    positions[1200, 1] += [0, 120.0, 0]
+    positions[2100, 0] += [90.0, 0, 0]
+    naive, kept = distance_spread(positions, clip=np.inf), distance_spread(positions)
+    assert naive[0, 1] > 2.5 * clean[0, 1]  # the wrong samples alone
+    assert kept[0, 1] == pytest.approx(clean[0, 1], rel=0.05)
+    assert kept[0, 2] == pytest.approx(clean[0, 2], rel=0.05)  # a loose pair keeps its spread
 
 
 @pytest.mark.parametrize("rig", ["human", "rods", "quadruped"])

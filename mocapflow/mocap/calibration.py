@@ -3,7 +3,7 @@
 The batch pipeline of Schoenauer (2007, chapter 3) with Aristidou's (2008) closed-form centres of rotation:
 
 1. segments: markers grouped by the spread of their mutual distances (``clustering``; by default, rigidity at the
-   recording's own noise level);
+   recording's own noise level), without the distances of the odd wrong sample (``pair_statistics``);
 2. joint costs for every pair of segments, on frames sampled every half second with a small jitter (Kirk et al.):
    the distance-variance cost of 3.5 (``joint_method="variance"``) or the residual of the closed-form centre of
    rotation of Aristidou 4.4 (``"closed-form"``); when some segments have only two markers (markers on the joints
