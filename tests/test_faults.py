@@ -291,6 +291,8 @@ def test_commands_fail_in_one_line(tmp_path: Path, free_endpoint: str) -> None:
     quickstart = Path(__file__).resolve().parents[1] / "deployments" / "quickstart.yaml"
     cases = [
         (["simulate", "-o", "x.c3d", "--frames", "100000000"], "--frames 100000000: must be between 1 and"),
+        (["simulate", "-o", "x.c3d", "--set", "hidden_segments=[HED]"],
+         "error: settings: Value error, hidden_segments ['HED'] are not segments of rig 'human'"),
         (["validate", "binary.yaml"], "not a text file"),
         (["validate", str(quickstart), "--set", "tracker.rate.x=1"], "tracker.rate is a value, not a section"),
         (["validate", "prefix.yaml"], "'a//b' must be '/'-separated chunks"),

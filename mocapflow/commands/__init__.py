@@ -103,4 +103,5 @@ def settings(model: type[M], items: list[str], **named: Any) -> M:
     try:
         return model.model_validate(values)
     except ValidationError as exc:
-        raise MocapflowError("; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in exc.errors())) from None
+        raise MocapflowError("; ".join(f"{'.'.join(map(str, e['loc'])) or 'settings'}: {e['msg']}"
+                                       for e in exc.errors())) from None
