@@ -340,6 +340,21 @@ def test_a_foot_hidden_whole_comes_back_to_its_own_tracks_offline() -> None:
     assert score.tracks == len(rec.labels)  # 55 when the foot's new tracks stay apart
 
 
+def test_a_head_whose_triangle_has_two_like_sides_comes_back_to_its_own_tracks_offline() -> None:
+    """The simulated quadruped's head (two markers 120 mm apart, each 145 mm from the third: a triangle with two like
+    sides, which fits its mirror image with the two side markers swapped) hidden for 1.5 s comes back as three new
+    tracks that the neck's markers place too loosely to merge. The neck's markers lie on the same side of the old and
+    the new triangle only when the side markers are matched right: the tracks are merged so."""
+    rec = simulate(SimulatorConfig(rig="quadruped", rate=120, noise_mm=0.5, seed=7), 960)
+    hidden = np.zeros(rec.positions.shape[:2], bool)
+    hidden[300:480, [rec.labels.index(name) for name in ("HED1", "HED2", "HED3")]] = True
+    points, identity = _hidden(rec.positions, hidden)
+    tracks, _ = label_sequence(points, 120.0)
+    score = score_labelling(tracks, points, identity, len(rec.labels))
+    assert score.accuracy == 1.0 and score.swaps == 0
+    assert score.tracks == len(rec.labels)
+
+
 def test_fragments_of_the_quadruped_under_stress_are_merged_by_their_triangles_offline() -> None:
     """Under the stress damage, the quadruped's leg clusters (three markers each) are often hidden whole and come
     back as new tracks, with fragments for partners. A leg's triangle has two sides 13 mm apart (61, 93 and 106 mm),

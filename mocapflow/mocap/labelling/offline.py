@@ -25,6 +25,12 @@ on, every marker is 'rigid' with dozens of others."""
 LOOSE = 4.0
 """A pair of tracks whose rigid triangles match is merged unless its neighbours place one this many gates or more
 from the other (a like triangle on the other side of the body)."""
+WITNESSES = 3
+"""A triangle with two like sides is told from its mirror image by this many markers across its joints at least,
+each on the same side of the two triangles and none on opposite sides (``_triangle_score``). One such marker may lie
+near the triangle's plane, and the joint's turn between the two sightings moves it across (the simulated human's
+trunk: C7 and the sternum marker each 173 mm from the clavicle marker, in a plane 50 mm from the back pelvis marker
+that alone told them apart, wrongly)."""
 UNSIDED = 0.25
 """A pair of tracks whose triangles show no side (a hand that turns over, the forearm's markers nearly in its plane)
 is merged by its triangle only where the neighbours leave it in doubt both ways and its three distances agree within
@@ -118,15 +124,15 @@ class _Round:
 
     def same_side(self, first: tuple[int, int, int], second: tuple[int, int, int]) -> int:
         """Whether two triangles of tracks (``a``, ``b``, ``c``) are alike or mirror images, seen from their first
-        corner: +1 when a track near both (one of both first corners' steadiest neighbours that are not rigid with
-        them: the markers across the joints) lies on one side of each in 90 % of the frames it is seen with it, -1
-        when one lies on opposite sides so, 0 when none tells (no such neighbour in common, as for the two legs' like
-        clusters; a neighbour in the triangle's plane; a hand turning over)."""
+        corner: how many tracks near both (both first corners' steadiest neighbours that are not rigid with them: the
+        markers across the joints) lie on one side of each in 90 % of the frames they are seen with it, -1 when one
+        lies on opposite sides so, 0 when none tells (no such neighbour in common, as for the two legs' like clusters;
+        a neighbour in the triangle's plane; a hand turning over)."""
         near = np.intersect1d(self._steadiest(first), self._steadiest(second))
         near = near[~np.isin(near, first + second)]
         sides = np.array([self._side(first, near), self._side(second, near)])  # (2, N): +1, -1, 0
         votes = sides[0] * sides[1]
-        return -1 if (votes < 0).any() else 1 if (votes > 0).any() else 0
+        return -1 if (votes < 0).any() else int((votes > 0).sum())
 
     def _steadiest(self, triangle: tuple[int, int, int]) -> np.ndarray:
         """The first corner's steadiest neighbours that are not rigid with it (twice as many as place a marker, so
@@ -340,14 +346,15 @@ def _triangle_score(state: _Round, i: int, j: int, cfg: LabellerConfig, in_doubt
     came back as new tracks (a foot hidden whole) is known again by its shape, where its neighbours across the joints
     place a marker too loosely to say.
 
-    Only a triangle whose three sides differ by more than the tolerance of a match counts: in one with two like sides
-    the markers could be matched the other way round, and its mirror image is the same triangle with two partners
-    swapped; sides further apart than the tolerance cannot match the wrong way round. And the markers across
-    their joints must lie on the same side of both triangles (``_Round.same_side``): the other leg's cluster may
-    have the same shape, mirrored. A pair with no partner in common must show that side plainly, unless ``in_doubt``
-    (the neighbours leave it in doubt both ways) and its three distances agree within ``UNSIDED`` of their
-    tolerance; one with a partner in common is held by that partner where the side changes with the pose (a hand
-    turning over)."""
+    A triangle whose three sides differ by more than the tolerance of a match cannot be matched the wrong way round. One
+    with two like sides (a head's two side markers, each as far from the third) fits its mirror image, which is the same
+    triangle with its two partners swapped: it counts only where ``WITNESSES`` markers across its joints show plainly
+    that they lie on the same side of both (a swap turns the triangle over). One with three like sides also fits itself
+    turned round, its markers relabelled in turn, which keeps the side: it never counts. And the markers across their
+    joints must lie on the same side of both triangles (``_Round.same_side``): the other leg's cluster may have the same
+    shape, mirrored. A pair with no partner in common must show that side plainly, unless ``in_doubt`` (the neighbours
+    leave it in doubt both ways) and its three distances agree within ``UNSIDED`` of their tolerance; one with a partner
+    in common is held by that partner where the side changes with the pose (a hand turning over)."""
     mean_i, sd_i = state.spread(i)
     mean_j, sd_j = state.spread(j)
     if not min(np.nanmedian(sd_i), np.nanmedian(sd_j)) >= ARTICULATION * cfg.rigid_sd_mm:
@@ -369,10 +376,13 @@ def _triangle_score(state: _Round, i: int, j: int, cfg: LabellerConfig, in_doubt
             mean_q, sd_q = state.spread(q1)
             t3 = cfg.rigid_tolerance_mm + 3.0 * max(sd_p[p2], sd_q[q2])
             e3 = abs(mean_p[p2] - mean_q[q2]) / t3
-            sides = np.sort([mean_i[p1], mean_i[p2], mean_p[p2]])
-            if not e3 <= 1.0 or np.diff(sides).min() <= max(t1, t2, t3):
+            if not e3 <= 1.0:
                 continue
+            sides = np.sort([mean_i[p1], mean_i[p2], mean_p[p2]])
+            like = max(t1, t2, t3)
             side = state.same_side((i, p1, p2), (j, q1, q2))
+            if np.diff(sides).min() <= like and (side < WITNESSES or sides[2] - sides[0] <= like):
+                continue  # like sides: the triangle fits itself another way round (see above)
             error = max(e1, e2, e3)
             if side < 0 or (side == 0 and p1 != q1 and p2 != q2 and not (in_doubt and error <= UNSIDED)):
                 continue
