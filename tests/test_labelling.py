@@ -325,34 +325,23 @@ def _hidden(truth: np.ndarray, hidden: np.ndarray, seed: int = 0) -> tuple[list[
     return [frame[o] for frame, o in zip(truth, order, strict=True)], order
 
 
-def test_a_foot_hidden_whole_comes_back_to_its_own_tracks_offline() -> None:
-    """The simulated human's right foot (heel, toe, fifth metatarsal) hidden for 1.5 s: its three markers come back
-    together, with none of their rigid partners in view, and streaming gives them new tracks. The shank's markers
-    across the ankle place them too loosely to merge the tracks; offline, each new track and its two mates keep the
-    old ones' triangle of distances, with the shank's markers on the same side of it, and are merged."""
-    rec = simulate(SimulatorConfig(rig="human", rate=120, noise_mm=0.5, seed=7), 960)
+@pytest.mark.parametrize(("rig", "part"), [("human", ("RHEE", "RTOE", "RMT5")),
+                                          ("quadruped", ("HED1", "HED2", "HED3"))])
+def test_a_part_hidden_whole_comes_back_to_its_own_tracks_offline(rig: str, part: tuple[str, ...]) -> None:
+    """A body part's three markers hidden for 1.5 s come back together, with none of their rigid partners in view,
+    and streaming gives them new tracks, which the markers across its joint place too loosely to merge. Offline, each
+    new track and its two mates keep the old ones' triangle of distances, with the markers across the joint on the
+    same side of it, and are merged: the simulated human's right foot (heel, toe, fifth metatarsal), and the
+    quadruped's head, whose triangle has two like sides (two markers 120 mm apart, each 145 mm from the third), so
+    that it fits its mirror image with the two side markers swapped, which turns it over: the neck's markers tell."""
+    rec = simulate(SimulatorConfig(rig=rig, rate=120, noise_mm=0.5, seed=7), 960)
     hidden = np.zeros(rec.positions.shape[:2], bool)
-    hidden[300:480, [rec.labels.index(name) for name in ("RHEE", "RTOE", "RMT5")]] = True
+    hidden[300:480, [rec.labels.index(name) for name in part]] = True
     points, identity = _hidden(rec.positions, hidden)
     tracks, _ = label_sequence(points, 120.0)
     score = score_labelling(tracks, points, identity, len(rec.labels))
     assert score.accuracy == 1.0 and score.swaps == 0
-    assert score.tracks == len(rec.labels)  # 55 when the foot's new tracks stay apart
-
-
-def test_a_head_whose_triangle_has_two_like_sides_comes_back_to_its_own_tracks_offline() -> None:
-    """The simulated quadruped's head (two markers 120 mm apart, each 145 mm from the third: a triangle with two like
-    sides, which fits its mirror image with the two side markers swapped) hidden for 1.5 s comes back as three new
-    tracks that the neck's markers place too loosely to merge. The neck's markers lie on the same side of the old and
-    the new triangle only when the side markers are matched right: the tracks are merged so."""
-    rec = simulate(SimulatorConfig(rig="quadruped", rate=120, noise_mm=0.5, seed=7), 960)
-    hidden = np.zeros(rec.positions.shape[:2], bool)
-    hidden[300:480, [rec.labels.index(name) for name in ("HED1", "HED2", "HED3")]] = True
-    points, identity = _hidden(rec.positions, hidden)
-    tracks, _ = label_sequence(points, 120.0)
-    score = score_labelling(tracks, points, identity, len(rec.labels))
-    assert score.accuracy == 1.0 and score.swaps == 0
-    assert score.tracks == len(rec.labels)
+    assert score.tracks == len(rec.labels)  # three more when the part's new tracks stay apart
 
 
 def test_fragments_of_the_quadruped_under_stress_are_merged_by_their_triangles_offline() -> None:
