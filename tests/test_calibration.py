@@ -36,6 +36,12 @@ def _true_segment(rec: SimRecording, skeleton: SkeletonModel) -> dict[str, str]:
     return {s.name: of[s.markers[0]] for s in skeleton.segments}
 
 
+def _true_segments(rec: SimRecording) -> list[list[str]]:
+    """The rig's segments, each as its sorted marker labels, sorted."""
+    of = dict(zip(rec.labels, rec.marker_segment, strict=True))
+    return sorted(sorted(label for label in rec.labels if of[label] == s) for s in set(rec.marker_segment))
+
+
 def _joint_errors(rec: SimRecording, skeleton: SkeletonModel, positions: np.ndarray | None = None) -> dict:
     """Mean distance (mm) between solved and true joint centres, per true joint name, with the joint's kind."""
     seg = _true_segment(rec, skeleton)
@@ -55,9 +61,7 @@ def _joint_errors(rec: SimRecording, skeleton: SkeletonModel, positions: np.ndar
 def test_simulated_rigs_give_their_true_segments_tree_and_joints(rig: str, joint_method: str) -> None:
     rec = _recording(rig)
     skeleton = _skeleton(rig, joint_method)
-    of = dict(zip(rec.labels, rec.marker_segment, strict=True))
-    truth = sorted(sorted(label for label in rec.labels if of[label] == s) for s in set(rec.marker_segment))
-    assert sorted(sorted(s.markers) for s in skeleton.segments) == truth
+    assert sorted(sorted(s.markers) for s in skeleton.segments) == _true_segments(rec)
     seg = _true_segment(rec, skeleton)
     assert {frozenset((seg[j.parent], seg[j.child])) for j in skeleton.joints} == {
         frozenset(pc) for pc in zip(rec.joint_parent, rec.joint_child, strict=True)}
@@ -85,9 +89,7 @@ def test_a_few_wrong_samples_cost_no_segment() -> None:
     positions[500, head[0]] += [180.0, 0.0, 0.0]
     positions[900, head[1]] += [0.0, -160.0, 30.0]
     skeleton = calibrate(positions, rec.labels, rec.rate)
-    of = dict(zip(rec.labels, rec.marker_segment, strict=True))
-    truth = sorted(sorted(label for label in rec.labels if of[label] == s) for s in set(rec.marker_segment))
-    assert sorted(sorted(s.markers) for s in skeleton.segments) == truth
+    assert sorted(sorted(s.markers) for s in skeleton.segments) == _true_segments(rec)
 
 
 def test_rods_middle_length() -> None:

@@ -92,16 +92,18 @@ class PairStatistics:
         self.total += sign * dev.sum(0)
         self.squares += sign * (dev * dev).sum(0)
 
+    def moments(self) -> tuple[np.ndarray, np.ndarray]:
+        """Each pair's mean distance and its standard deviation (mm), in pair order (NaN mean for a pair never seen)."""
+        n = np.maximum(self.count, 1)
+        return self.shift + self.total / n, np.sqrt(np.maximum(self.squares / n - (self.total / n) ** 2, 0.0))
+
     def spread(self, min_frames: int = MIN_PAIR_FRAMES) -> np.ndarray:
         """(N, N) standard deviation of each pair's distance (mm); NaN for pairs seen together too rarely."""
-        n = np.maximum(self.count, 1)
-        var = np.maximum(self.squares / n - (self.total / n) ** 2, 0.0)
-        return self._square(np.where(self.count >= min_frames, np.sqrt(var), np.nan))
+        return self._square(np.where(self.count >= min_frames, self.moments()[1], np.nan))
 
     def mean(self, min_frames: int = MIN_PAIR_FRAMES) -> np.ndarray:
         """(N, N) mean of each pair's distance (mm); NaN for pairs seen together too rarely."""
-        return self._square(np.where(self.count >= min_frames, self.shift + self.total / np.maximum(self.count, 1),
-                                     np.nan))
+        return self._square(np.where(self.count >= min_frames, self.moments()[0], np.nan))
 
     def _square(self, pairs: np.ndarray) -> np.ndarray:
         """The symmetric (N, N) matrix of per-pair values, zero on the diagonal."""
@@ -123,20 +125,19 @@ def pair_statistics(positions: np.ndarray, values: int = 4_000_000, clip: float 
     is not the pair's motion, and of normally spread distances it leaves out one in 15,000 (never one within
     ``CLIP_MIN_MM`` of the mean)."""
     positions = np.asarray(positions, dtype=np.float64)
-    stats = PairStatistics(positions.shape[1])
-    chunk = max(1, values // max(len(stats.rows), 1))
-    bounds: tuple[np.ndarray, np.ndarray] | None = None
+    markers = positions.shape[1]
+    chunk = max(1, values // max(markers * (markers - 1) // 2, 1))
+    bounds: tuple[np.ndarray, np.ndarray] | None = None  # each pair's mean and the farthest kept from it
     for _ in range(passes + 1):
-        stats = PairStatistics(positions.shape[1])
+        stats = PairStatistics(markers)
         for start in range(0, positions.shape[0], chunk):
             distances = stats.distances(positions[start:start + chunk])
             if bounds is not None:
                 with np.errstate(invalid="ignore"):
                     distances[np.abs(distances - bounds[0]) > bounds[1]] = np.nan
             stats.add(distances)
-        n = np.maximum(stats.count, 1)
-        sd = np.sqrt(np.maximum(stats.squares / n - (stats.total / n) ** 2, 0.0))
-        bounds = (stats.shift + stats.total / n, np.maximum(clip * sd, CLIP_MIN_MM))
+        mean, sd = stats.moments()
+        bounds = (mean, np.maximum(clip * sd, CLIP_MIN_MM))
     return stats
 
 
