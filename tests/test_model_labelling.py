@@ -147,6 +147,25 @@ def _placed(skeleton: SkeletonModel, points: np.ndarray, markers: list[str]) -> 
     return sum(bool(np.isfinite(labeller.update(p, f / RATE)[0][rows]).any()) for f, p in enumerate(points))
 
 
+@pytest.mark.integration
+def test_a_capture_at_60_hz_is_named_from_its_skeleton(data_dir: Path) -> None:
+    """Every second frame of a real 120 Hz capture (cmu_85_02 at 60 Hz), every point shown, named from a skeleton
+    calibrated on it. Between two frames its hands and feet stray up to 75 mm from their constant-velocity course,
+    beyond the 40 mm a followed marker was allowed: they were lost in the fast moves and found again by the search,
+    not always as themselves (97.06 % named right, 232 points wrong). Below 87 Hz the follow widens with the frame
+    interval."""
+    from mocapflow.io.markers import read_markers
+
+    data = read_markers(data_dir / "cmu_85_02.c3d")
+    rate = data.rate / 2
+    skeleton = calibrate(data.positions[::2], data.labels, rate)
+    points, identity = unlabel(data.positions[::2], rate, seed=1, gaps_per_s=0.0, ghosts=0.0)
+    named, names = label_with_skeleton(list(points), rate, skeleton)
+    right, wrong, total = _named(named, names, points, identity, data.labels)
+    print(f"\n{right}/{total} named right ({100 * right / total:.2f} %), {wrong} wrong")
+    assert right >= 0.999 * total
+
+
 def test_a_segment_is_placed_on_three_points_once_its_look_alike_is_posed() -> None:
     """The right foot has no joint: three points at its layout's distances could as well be the left foot's (a
     triangle fits its mirror image), so they name it only while the left foot is posed elsewhere, which is most

@@ -201,5 +201,5 @@ def _followed(labeller: Labeller, cloud: np.ndarray, time: float) -> dict[int, i
     pred = tracks.pos[live] + tracks.vel[live] * (time - tracks.last[live])[:, None]
     d = cdist(pred, cloud)
     near = d.argmin(axis=1)
-    ok = d[np.arange(len(live)), near] < labeller.config.gate_mm
+    ok = d[np.arange(len(live)), near] < labeller.config.follow_gate(labeller.rate)
     return {int(t): int(p) for t, p, good in zip(live, near, ok, strict=True) if good}

@@ -30,6 +30,7 @@ class Labeller:
             raise ValueError("rate must be positive")
         self.config = config
         self.rate = float(rate)
+        self._follow = config.follow_gate(self.rate)
         self.labels: list[str] = []
         self.frame = 0
         self._time = -np.inf
@@ -83,7 +84,7 @@ class Labeller:
 
         # 1. tracks seen in the previous frame: constant-velocity prediction, gated optimal assignment
         live, cost, unique, cur, taken, lost, free = _step_one(tracks.pos, tracks.vel, tracks.last, tracks.streak,
-                                                               time, cfg.gate_mm, z, n_tracks)
+                                                               time, self._follow, z, n_tracks)
         if not unique:  # a track or a point with two candidates: the optimal assignment
             ti, pi = match(cost)
             cur, taken, lost, free = _matched(live[ti], pi, z, n_tracks)
@@ -185,7 +186,7 @@ class Labeller:
         tracks = self._tracks
         expected = np.where((dt <= cfg.max_coast_s)[:, None], tracks.pos[unseen] + tracks.vel[unseen] * dt[:, None],
                             np.nan)
-        gate = cfg.coast_gate(dt)
+        gate = cfg.coast_gate(dt, self.rate)
         if outside is not None:
             known = np.zeros(len(unseen), bool)
             known[unseen < len(outside)] = np.isfinite(outside[unseen[unseen < len(outside)], 0])
@@ -220,8 +221,8 @@ class Labeller:
         tracks = self._tracks
         # an outside prediction replaces the placement, so only the others are placed
         pred, gate, given = _hypotheses(lost, np.empty((0, 3)) if outside is None else outside, tracks.pos, tracks.vel,
-                                        tracks.last, time, cfg.max_coast_s, cfg.gate_mm, cfg.max_accel_mm_s2,
-                                        cfg.reid_gate_mm)
+                                        tracks.last, time, cfg.max_coast_s, self._follow,
+                                        cfg.max_accel_mm_s2, cfg.reid_gate_mm)
         instant = given.copy()
         unknown = np.flatnonzero(~given)
         if len(free) and len(unknown):
@@ -278,7 +279,7 @@ class Labeller:
         dt = time - tent.time
         zf = z[free]
         # a point seen once has no velocity yet: its first step may be as long as the fastest marker moves
-        ui, pi = match(_tentative_costs(tent.pos, tent.vel, tent.hits, zf, dt, cfg.gate_mm, cfg.max_speed_mm_s * dt))
+        ui, pi = match(_tentative_costs(tent.pos, tent.vel, tent.hits, zf, dt, self._follow, cfg.max_speed_mm_s * dt))
         # the carried tracks, then new ones on the unclaimed points
         pos, vel, hits, order = _carry(tent.pos, tent.vel, tent.hits, zf, ui, pi, dt, cfg.velocity_smoothing)
         tent.step(pos, vel, hits, ui, time, self.frame)
@@ -494,7 +495,7 @@ def _carry(pos: np.ndarray, vel: np.ndarray, hits: np.ndarray, points: np.ndarra
 
 @njit(cache=True)
 def _hypotheses(lost: np.ndarray, outside: np.ndarray, pos: np.ndarray, vel: np.ndarray, last: np.ndarray, time: float,
-                max_coast_s: float, gate_mm: float, max_accel: float,
+                max_coast_s: float, follow: float, max_accel: float,
                 reid_gate: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # pragma: no cover
     """``Labeller._lost_predictions`` before the placement by neighbours: each ``lost`` track's first hypothesis its
     ``outside`` prediction where it has one (an empty array: none), its second its constant-velocity coast within
@@ -511,7 +512,7 @@ def _hypotheses(lost: np.ndarray, outside: np.ndarray, pos: np.ndarray, vel: np.
         if dt <= max_coast_s:
             for c in range(3):
                 pred[i, 1, c] = pos[t, c] + vel[t, c] * dt
-        gate[i, 1] = gate_mm + 0.5 * max_accel * (dt * dt)
+        gate[i, 1] = follow + 0.5 * max_accel * (dt * dt)
     return pred, gate, given
 
 

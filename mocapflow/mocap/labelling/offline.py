@@ -284,7 +284,7 @@ def run_starts(seen: np.ndarray) -> np.ndarray:
 def _junctions(state: _Round, rate: float, cfg: LabellerConfig) -> dict[tuple[int, int], float]:
     """Pairs of tracks (``i < j``) one of which takes up where the other left off within ``max_coast_s``: the worst,
     over their junctions, of how far each end's constant-velocity step across the gap lands from the other end,
-    forward and backward, in units of the gate (``gate_mm``, widened by ``max_accel_mm_s2`` over the gap). Below 1 a
+    forward and backward, in units of the coast's gate (``LabellerConfig.coast_gate``). Below 1 a
     fast marker the streaming follow lost for a frame or two (a foot at 10 m/s) is the same marker; both must fit,
     and every junction between the two."""
     seen, tracks = state.seen, state.tracks
@@ -305,7 +305,7 @@ def _junctions(state: _Round, rate: float, cfg: LabellerConfig) -> dict[tuple[in
                 continue
             forward = tracks[a, x] + (tracks[a, x] - tracks[a - 1, x]) * gap
             backward = tracks[s, y] - (tracks[s + 1, y] - tracks[s, y]) * gap
-            gate = cfg.coast_gate(gap / rate)
+            gate = cfg.coast_gate(gap / rate, rate)
             error = max(float(np.linalg.norm(forward - tracks[s, y])), float(np.linalg.norm(backward - tracks[a, x])))
             key = (min(x, y), max(x, y))
             worst[key] = max(worst.get(key, 0.0), error / gate)
