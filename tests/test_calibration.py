@@ -92,6 +92,25 @@ def test_a_few_wrong_samples_cost_no_segment() -> None:
     assert sorted(sorted(s.markers) for s in skeleton.segments) == _true_segments(rec)
 
 
+def test_two_subjects_captured_together_give_the_skeleton_of_one_naming_the_other(
+        caplog: pytest.LogCaptureFixture) -> None:
+    """A quadruped and a human (their skin moving 3 mm over the human's muscles) captured together, 3 m apart, each
+    marker labelled with its subject's prefix. Their distances spread by hundreds of millimetres: the two move on
+    their own. Each is grouped into segments at its own noise, as if captured alone, and the skeleton is one
+    subject's tree, the other's markers named in a warning: a joint never joins two subjects."""
+    animal = _recording("quadruped")
+    person = simulate(SimulatorConfig(rig="human", rate=120, noise_mm=0.5, skin_mm=3.0, seed=8), len(animal.positions))
+    positions = np.concatenate([animal.positions, person.positions + [3000.0, 0.0, 0.0]], axis=1)
+    labels = [f"Dog:{m}" for m in animal.labels] + [f"Ann:{m}" for m in person.labels]
+    skeleton = calibrate(positions, labels, animal.rate)
+    alone = calibrate(person.positions, person.labels, person.rate)
+    segments = sorted(sorted(s.markers) for s in skeleton.segments)
+    assert all(m.startswith("Ann:") for segment in segments for m in segment)  # the subject with most markers
+    assert segments == sorted(sorted(f"Ann:{m}" for m in s.markers) for s in alone.segments)
+    assert len(skeleton.joints) == len(alone.joints)
+    assert f"left out {len(animal.labels)} markers that move on their own" in caplog.text
+
+
 def test_rods_middle_length() -> None:
     lengths = bone_lengths(_skeleton("rods", "variance"))
     assert len(lengths) == 1

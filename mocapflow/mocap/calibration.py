@@ -40,6 +40,7 @@ from scipy.spatial.transform import Rotation
 
 from mocapflow.errors import CalibrationError
 from mocapflow.mocap.clustering import (
+    bodies,
     distance_spread,
     noise_floor,
     pair_statistics,
@@ -193,14 +194,26 @@ def _build(positions: np.ndarray, labels: Sequence[str], rate: float, groups: Se
             log.info("no segment has 3 markers: joints by the distance-variance cost")
         joint_method = ("variance" if flat else "closed-form") if joint_method == "auto" else joint_method
         costs = _pair_costs(positions, groups, poses, sample_frames(frames, rate), joint_method, progress)
+    # a joint joins segments of one body: not two subjects captured together, nor a subject and a prop
+    spread = distance_spread(positions, pair_frames(rate))
+    body = bodies(spread)
+    own = np.array([np.bincount(body[g]).argmax() for g in groups])
+    costs = np.where(own[:, None] == own[None, :], costs, np.inf)
     parts, part = connected_components(np.isfinite(costs) & ~np.eye(len(groups), dtype=bool), directed=False)
-    if parts > 1:  # segments never seen with the others: keep the body that holds the most markers
-        body = max(range(parts), key=lambda c: sum(len(g) for g, p in zip(groups, part, strict=True) if p == c))
-        for g, p in zip(groups, part, strict=True):
-            if p != body:
+    if parts > 1:  # keep the body that holds the most markers
+        kept = max(range(parts), key=lambda c: sum(len(g) for g, p in zip(groups, part, strict=True) if p == c))
+        main = [m for g, p in zip(groups, part, strict=True) if p == kept for m in g]
+        left = [g for g, p in zip(groups, part, strict=True) if p != kept]
+        apart = [m for g in left if np.isfinite(spread[np.ix_(g, main)]).any() for m in g]  # seen, moving apart
+        if apart:
+            log.warning("left out %d markers that move on their own, apart from the body calibrated (another subject "
+                        "or a prop): %s; calibrate each subject alone (--markers GLOB)", len(apart),
+                        ", ".join(labels[m] for m in apart))
+        for g in left:
+            if g[0] not in apart:
                 log.warning("left out %s: never seen long enough together with the rest of the body to join it",
                             ", ".join(labels[m] for m in g))
-        return _build(positions, labels, rate, [g for g, p in zip(groups, part, strict=True) if p == body],
+        return _build(positions, labels, rate, [g for g, p in zip(groups, part, strict=True) if p == kept],
                       requested, hinge_placement, name, progress)
     root, edges = spanning_tree(costs)
 

@@ -30,6 +30,7 @@ import numpy as np
 from scipy.cluster.hierarchy import fcluster
 from scipy.cluster.hierarchy import linkage as hierarchy
 from scipy.cluster.vq import kmeans2
+from scipy.sparse.csgraph import connected_components
 from scipy.spatial.distance import squareform
 
 from mocapflow.mocap.markerset import added
@@ -44,6 +45,12 @@ CLIP_PASSES = 2
 """How many times a recording's pair statistics are gathered again without the distances so far off."""
 CLIP_MIN_MM = 1.0
 """A distance this close to its pair's mean is always kept (an exact rigid pair's spread is rounding error)."""
+
+
+BODY_SPREAD_MM = 100.0
+"""Two markers whose distance spreads more than this (mm) move on their own unless other markers link them. From one
+segment to the next, some pair of the real captures' markers spreads by 22 mm at most; two subjects captured together
+move apart by far more (two CMU subjects side by side: 174 mm at the least)."""
 
 
 class PairStatistics:
@@ -251,6 +258,16 @@ def cluster_distance_threshold(positions: np.ndarray, k: int | None = None, *, t
     return partition_threshold(distance_spread(positions), k, threshold_mm=threshold_mm, linkage=linkage)
 
 
+def bodies(spread: np.ndarray, limit: float = BODY_SPREAD_MM) -> np.ndarray:
+    """(N,) which independently moving body each marker belongs to, numbered from 0 in order of first marker: markers
+    linked by a chain of pairs whose distances spread less than ``limit`` (two subjects, or a subject and a prop)."""
+    linked = np.isfinite(spread) & (spread < limit)
+    _, body = connected_components(linked, directed=False)
+    _, first = np.unique(body, return_index=True)
+    order = np.argsort(np.argsort(first))  # bodies renumbered by their first marker
+    return np.asarray(order[body], dtype=np.intp)
+
+
 def noise_floor(spread: np.ndarray) -> float:
     """A recording's rigidity noise (mm): the upper quartile, over markers, of the spread to their most rigid partner.
 
@@ -283,11 +300,21 @@ def partition_rigidity(spread: np.ndarray, k: int | None = None, *, distance: np
        times the threshold (a soft segment: shoulder markers on the trunk); a marker rigid with nothing stays
        alone.
 
-    With ``k`` given, complete linkage cut at ``k`` groups.
+    Markers of bodies that move on their own (``bodies``: two subjects captured together) are grouped body by body,
+    each at its own noise floor. With ``k`` given, complete linkage cut at ``k`` groups.
     """
     n = spread.shape[0]
     if n <= 2 or k is not None:
         return partition_threshold(spread, k, threshold_mm=np.inf, linkage="complete") if n > 1 else [[0]] * n
+    body = bodies(spread)
+    if body.max() > 0:  # each body at its own noise: two subjects' skin moves differently
+        groups = []
+        for b in range(body.max() + 1):
+            own = np.flatnonzero(body == b)
+            part = partition_rigidity(spread[np.ix_(own, own)], distance=distance[np.ix_(own, own)], factor=factor,
+                                      bridge=bridge, loose=loose, floor_mm=floor_mm)
+            groups += [[int(own[m]) for m in g] for g in part]
+        return sorted((sorted(g) for g in groups), key=lambda g: g[0])
     d = _unseen_as_far(spread)
     near = np.where(np.isfinite(distance), distance, np.inf)  # pairs never seen together: as far as can be
     threshold = factor * max(noise_floor(spread), floor_mm)
