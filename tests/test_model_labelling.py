@@ -152,8 +152,8 @@ def test_a_capture_at_60_hz_is_named_from_its_skeleton(data_dir: Path) -> None:
     """Every second frame of a real 120 Hz capture (cmu_85_02 at 60 Hz), every point shown, named from a skeleton
     calibrated on it. Between two frames its hands and feet stray up to 75 mm from their constant-velocity course,
     beyond the 40 mm a followed marker was allowed: they were lost in the fast moves and found again by the search,
-    not always as themselves (97.06 % named right, 232 points wrong). Below 87 Hz the follow widens with the frame
-    interval."""
+    not always as themselves (97.06 % named right, 232 points wrong). Below 87 Hz a moving marker's follow widens by
+    as far as it moved in its last frame."""
     from mocapflow.io.markers import read_markers
 
     data = read_markers(data_dir / "cmu_85_02.c3d")

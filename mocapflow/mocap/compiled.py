@@ -20,6 +20,7 @@ import numpy as np
 
 from mocapflow.mocap.filling import FillerConfig, GapFiller
 from mocapflow.mocap.labelling import Labeller, LabellerConfig
+from mocapflow.mocap.labelling.labeller import own_gates
 from mocapflow.mocap.model import Joint, Segment, SkeletonModel
 from mocapflow.mocap.reacquire import Reacquirer
 from mocapflow.mocap.rigidfit import fit_one, fit_pose, kabsch, quaternion_matrices, rotor
@@ -70,6 +71,7 @@ def compile_labelling() -> None:
     reacquire = Reacquirer(labeller)
     for i, (points, _) in zip(range(2), _turning(), strict=False):
         reacquire(points, 4.0 + i / 100)
+    own_gates(1.0, 2.0, np.zeros((1, 3)), np.zeros(1))  # as reacquire follows the tracks it found
 
 
 @cache

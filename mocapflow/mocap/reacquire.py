@@ -25,6 +25,7 @@ import numpy as np
 from scipy.spatial.distance import cdist
 
 from mocapflow.mocap.labelling import Labeller
+from mocapflow.mocap.labelling.labeller import own_gates
 from mocapflow.mocap.rigidfit import fit_one
 
 TOLERANCE_MM = 4.0
@@ -198,8 +199,10 @@ def _followed(labeller: Labeller, cloud: np.ndarray, time: float) -> dict[int, i
     live = np.flatnonzero(tracks.streak > 0)
     if len(live) == 0:
         return {}
-    pred = tracks.pos[live] + tracks.vel[live] * (time - tracks.last[live])[:, None]
+    dt = time - tracks.last[live]
+    pred = tracks.pos[live] + tracks.vel[live] * dt[:, None]
     d = cdist(pred, cloud)
     near = d.argmin(axis=1)
-    ok = d[np.arange(len(live)), near] < labeller.config.follow_gate(labeller.rate)
+    cfg = labeller.config
+    ok = d[np.arange(len(live)), near] < own_gates(cfg.gate_mm, cfg.follow_gate(labeller.rate), tracks.vel[live], dt)
     return {int(t): int(p) for t, p, good in zip(live, near, ok, strict=True) if good}

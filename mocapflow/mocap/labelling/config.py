@@ -20,16 +20,16 @@ Seconds = TypeVar("Seconds", float, np.ndarray)  # a time, or one per track
 
 
 def frame_gate(least_mm: float, accel_mm_s2: float, rate: float) -> float:
-    """The gate of a marker followed from one frame to the next at ``rate`` Hz: ``least_mm``, or, when frames are so
-    far apart that a marker accelerating at ``accel_mm_s2`` strays farther from its constant-velocity course, that
-    distance. At 60 Hz a hand or a foot strays up to 100 mm, and a gate of 30 mm loses it: it starts again as a new
-    track, or takes a neighbour's point."""
+    """The widest gate of a marker followed from one frame to the next at ``rate`` Hz: ``least_mm``, or, when frames
+    are so far apart that a marker accelerating at ``accel_mm_s2`` strays farther from its constant-velocity course,
+    that distance. At 60 Hz a hand or a foot strays up to 100 mm, and a gate of 30 mm loses it: it starts again as a
+    new track, or takes a neighbour's point."""
     return max(least_mm, accel_mm_s2 / rate**2)
 
 
 class LabellerConfig(BaseModel):
     """Tuning of the labeller; the defaults suit human capture at 50-250 Hz with markers 40 mm or more apart (below
-    100 Hz the follow gates widen with the frame interval: ``follow_gate``)."""
+    100 Hz a moving track's gate widens with the frame interval: ``follow_gate``)."""
 
     model_config = ConfigDict(extra="forbid")
 
@@ -42,8 +42,9 @@ class LabellerConfig(BaseModel):
                                   "misfit and spread of candidate poses) is re-identified at once; looser placements "
                                   "only take points that have lived confirm_frames frames")
     frame_accel_mm_s2: float = Field(FRAME_ACCEL_MM_S2, ge=0, description="acceleration between two frames that a "
-                                     "track still follows: where frames are far apart (below 100 Hz by default), "
-                                     "gate_mm widens to this times the frame interval squared (83 mm at 60 Hz)")
+                                     "track still follows: where frames are far apart (below 100 Hz by default), a "
+                                     "moving track's gate_mm widens by as far as it moved in its last frame, up to "
+                                     "this times the frame interval squared (83 mm at 60 Hz)")
     max_coast_s: float = Field(0.1, ge=0, description="how long a lost track is also extrapolated at constant "
                                "velocity; after that only its neighbours can find it again")
     max_accel_mm_s2: float = Field(10_000.0, ge=0, description="acceleration bounding how fast a coasting track's gate "
@@ -86,12 +87,13 @@ class LabellerConfig(BaseModel):
                                          "this many tracks; beyond it new points can only re-identify lost tracks")
 
     def follow_gate(self, rate: float) -> float:
-        """The gate of a track seen in the previous frame at ``rate`` Hz (``frame_gate``)."""
+        """The widest gate of a track seen in the previous frame at ``rate`` Hz (``frame_gate``); each track's own
+        is ``labeller.own_gates``."""
         return frame_gate(self.gate_mm, self.frame_accel_mm_s2, rate)
 
     def coast_gate(self, dt: Seconds, rate: float) -> Seconds:
-        """The gate of a track coasting at constant velocity for ``dt`` s: the ``follow_gate``, widened by what
-        ``max_accel_mm_s2`` could have moved it off its course since."""
+        """The widest gate of a track coasting at constant velocity for ``dt`` s: the ``follow_gate``, widened by
+        what ``max_accel_mm_s2`` could have moved it off its course since."""
         return self.follow_gate(rate) + 0.5 * self.max_accel_mm_s2 * dt**2
 
 

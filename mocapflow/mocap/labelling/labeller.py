@@ -84,7 +84,7 @@ class Labeller:
 
         # 1. tracks seen in the previous frame: constant-velocity prediction, gated optimal assignment
         live, cost, unique, cur, taken, lost, free = _step_one(tracks.pos, tracks.vel, tracks.last, tracks.streak,
-                                                               time, self._follow, z, n_tracks)
+                                                               time, cfg.gate_mm, self._follow, z, n_tracks)
         if not unique:  # a track or a point with two candidates: the optimal assignment
             ti, pi = match(cost)
             cur, taken, lost, free = _matched(live[ti], pi, z, n_tracks)
@@ -221,8 +221,8 @@ class Labeller:
         tracks = self._tracks
         # an outside prediction replaces the placement, so only the others are placed
         pred, gate, given = _hypotheses(lost, np.empty((0, 3)) if outside is None else outside, tracks.pos, tracks.vel,
-                                        tracks.last, time, cfg.max_coast_s, self._follow,
-                                        cfg.max_accel_mm_s2, cfg.reid_gate_mm)
+                                        tracks.last, time, cfg.max_coast_s, cfg.gate_mm, self._follow,
+                                        1.0 / self.rate, cfg.max_accel_mm_s2, cfg.reid_gate_mm)
         instant = given.copy()
         unknown = np.flatnonzero(~given)
         if len(free) and len(unknown):
@@ -279,7 +279,8 @@ class Labeller:
         dt = time - tent.time
         zf = z[free]
         # a point seen once has no velocity yet: its first step may be as long as the fastest marker moves
-        ui, pi = match(_tentative_costs(tent.pos, tent.vel, tent.hits, zf, dt, self._follow, cfg.max_speed_mm_s * dt))
+        ui, pi = match(_tentative_costs(tent.pos, tent.vel, tent.hits, zf, dt, cfg.gate_mm, self._follow,
+                                        cfg.max_speed_mm_s * dt))
         # the carried tracks, then new ones on the unclaimed points
         pos, vel, hits, order = _carry(tent.pos, tent.vel, tent.hits, zf, ui, pi, dt, cfg.velocity_smoothing)
         tent.step(pos, vel, hits, ui, time, self.frame)
@@ -423,12 +424,13 @@ def _matched(tracks: np.ndarray, rows: np.ndarray, points: np.ndarray,
 
 @njit(cache=True)
 def _step_one(pos: np.ndarray, vel: np.ndarray, last: np.ndarray, streak: np.ndarray, time: float, gate: float,
-              points: np.ndarray, n_tracks: int) -> tuple[np.ndarray, np.ndarray, bool, np.ndarray, np.ndarray,
-                                                          np.ndarray, np.ndarray]:  # pragma: no cover
+              follow: float, points: np.ndarray,
+              n_tracks: int) -> tuple[np.ndarray, np.ndarray, bool, np.ndarray, np.ndarray, np.ndarray,
+                                      np.ndarray]:  # pragma: no cover
     """Step 1 in one call where it is plain: the tracks followed and their costs (``_followed``), whether no track
     and no point has two admissible pairs (``assignment.unambiguous``: most frames), and then at once the pairs'
     outcome (``_matched``: positions, taken, lost, free; empty otherwise, for ``assignment.match`` to solve)."""
-    live, cost = _followed(pos, vel, last, streak, time, gate, points)
+    live, cost = _followed(pos, vel, last, streak, time, gate, follow, points)
     rows, cols, unique = unambiguous(cost)
     if not unique:
         empty = np.empty(0, np.intp)
@@ -439,28 +441,43 @@ def _step_one(pos: np.ndarray, vel: np.ndarray, last: np.ndarray, streak: np.nda
 
 @njit(cache=True)
 def _followed(pos: np.ndarray, vel: np.ndarray, last: np.ndarray, streak: np.ndarray, time: float, gate: float,
-              points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover
+              follow: float, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover
     """The tracks seen in the previous frame and the gated costs (``gated_cost``) of the ``points`` for them, each
-    predicted at ``time`` at constant velocity."""
+    predicted at ``time`` at constant velocity, within its own gate (``own_gates``)."""
     live = np.flatnonzero(streak > 0)
+    dt = time - last[live]
     pred = np.empty((len(live), 1, 3))
     for i, t in enumerate(live):
         for c in range(3):
-            pred[i, 0, c] = pos[t, c] + vel[t, c] * (time - last[t])
-    return live, gated_cost_compiled(pred, np.full((len(live), 1), gate), points)
+            pred[i, 0, c] = pos[t, c] + vel[t, c] * dt[i]
+    return live, gated_cost_compiled(pred, own_gates(gate, follow, vel[live], dt).reshape(-1, 1), points)
+
+
+@njit(cache=True)
+def own_gates(gate: float, follow: float, vel: np.ndarray, dt: np.ndarray) -> np.ndarray:  # pragma: no cover
+    """The gates of tracks followed over ``dt`` (N,) at velocities ``vel`` (N, 3): ``gate``, each widened up to
+    ``follow`` (``LabellerConfig.follow_gate``) by as far as the track moves in that time. Where frames are far apart
+    a fast marker strays far from its constant-velocity course, while a marker at rest does not, and a wide gate would
+    only reach its neighbours' points."""
+    out = np.empty(len(dt))
+    for i in range(len(dt)):
+        step = np.sqrt(vel[i, 0] * vel[i, 0] + vel[i, 1] * vel[i, 1] + vel[i, 2] * vel[i, 2]) * dt[i]
+        out[i] = max(gate, min(follow, step))
+    return out
 
 
 @njit(cache=True)
 def _tentative_costs(pos: np.ndarray, vel: np.ndarray, hits: np.ndarray, points: np.ndarray, dt: float, gate: float,
-                     first_step: float) -> np.ndarray:  # pragma: no cover
+                     follow: float, first_step: float) -> np.ndarray:  # pragma: no cover
     """The gated costs (``gated_cost``) of ``points`` for tentative tracks predicted ``dt`` on at constant velocity,
-    the gate of a track seen once widened by ``first_step``."""
+    each within its own gate (``own_gates``), that of a track seen once widened by ``first_step``."""
     pred = np.empty((len(pos), 1, 3))
-    gates = np.empty((len(pos), 1))
+    gates = own_gates(gate, follow, vel, np.full(len(pos), dt)).reshape(-1, 1)
     for i in range(len(pos)):
         for c in range(3):
             pred[i, 0, c] = pos[i, c] + vel[i, c] * dt
-        gates[i, 0] = gate + (first_step if hits[i] == 1 else 0.0)
+        if hits[i] == 1:
+            gates[i, 0] = gate + first_step
     return gated_cost_compiled(pred, gates, points)
 
 
@@ -495,13 +512,15 @@ def _carry(pos: np.ndarray, vel: np.ndarray, hits: np.ndarray, points: np.ndarra
 
 @njit(cache=True)
 def _hypotheses(lost: np.ndarray, outside: np.ndarray, pos: np.ndarray, vel: np.ndarray, last: np.ndarray, time: float,
-                max_coast_s: float, follow: float, max_accel: float,
+                max_coast_s: float, gate_mm: float, follow: float, frame_s: float, max_accel: float,
                 reid_gate: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # pragma: no cover
     """``Labeller._lost_predictions`` before the placement by neighbours: each ``lost`` track's first hypothesis its
     ``outside`` prediction where it has one (an empty array: none), its second its constant-velocity coast within
-    ``max_coast_s``, with their gates (the coast's is ``LabellerConfig.coast_gate``), and where the first is given."""
+    ``max_coast_s``, with their gates (the coast's as ``LabellerConfig.coast_gate``, from the track's own gate in its
+    last frame of ``frame_s``: ``own_gates``), and where the first is given."""
     pred = np.full((len(lost), 2, 3), np.nan)
     gate = np.full((len(lost), 2), reid_gate)
+    own = own_gates(gate_mm, follow, vel[lost], np.full(len(lost), frame_s))
     given = np.zeros(len(lost), np.bool_)
     for i, t in enumerate(lost):
         if len(outside):
@@ -512,7 +531,7 @@ def _hypotheses(lost: np.ndarray, outside: np.ndarray, pos: np.ndarray, vel: np.
         if dt <= max_coast_s:
             for c in range(3):
                 pred[i, 1, c] = pos[t, c] + vel[t, c] * dt
-        gate[i, 1] = follow + 0.5 * max_accel * (dt * dt)
+        gate[i, 1] = own[i] + 0.5 * max_accel * (dt * dt)
     return pred, gate, given
 
 

@@ -49,7 +49,7 @@ from scipy.spatial.distance import cdist
 
 from mocapflow.mocap.labelling.assignment import assign, gated_cost, match, norm
 from mocapflow.mocap.labelling.config import FRAME_ACCEL_MM_S2, LabellerConfig, frame_gate
-from mocapflow.mocap.labelling.labeller import Labeller
+from mocapflow.mocap.labelling.labeller import Labeller, own_gates
 from mocapflow.mocap.labelling.offline import label_sequence, run_starts, source_rows
 from mocapflow.mocap.model import SkeletonModel
 from mocapflow.mocap.report import Progress, steps
@@ -73,7 +73,8 @@ class ModelLabellerConfig(BaseModel):
                              "strays 20 mm from it at 120 Hz")
     frame_accel_mm_s2: float = Field(FRAME_ACCEL_MM_S2, ge=0, description="acceleration between two frames that a "
                                      "followed marker may have: where frames are far apart (below 87 Hz by default), "
-                                     "follow_mm widens to this times the frame interval squared (83 mm at 60 Hz)")
+                                     "a moving marker's follow_mm widens by as far as it moved in its last frame, up "
+                                     "to this times the frame interval squared (83 mm at 60 Hz)")
     gate_mm: float = Field(30.0, gt=0, description="largest distance from a marker's place in its segment's pose to "
                            "the point it takes")
     fit_mm: float = Field(10.0, gt=0, description="largest distance between a fitted layout and a point it keeps")
@@ -191,8 +192,9 @@ class ModelLabeller:
         # 1. markers seen in the previous frame follow their points
         live = np.flatnonzero(self.streak > 0)
         dt = time - self.last[live]
-        follow = frame_gate(cfg.follow_mm, cfg.frame_accel_mm_s2, self.rate)
-        ti, pi = assign(self.pos[live] + self.vel[live] * dt[:, None], np.full(len(live), follow), z)
+        widest = frame_gate(cfg.follow_mm, cfg.frame_accel_mm_s2, self.rate)
+        follow = own_gates(cfg.follow_mm, widest, self.vel[live], dt)
+        ti, pi = assign(self.pos[live] + self.vel[live] * dt[:, None], follow, z)
         cur[live[ti]], taken[pi] = z[pi], live[ti]
         poses: list[tuple[np.ndarray, np.ndarray] | None] = [None] * len(self.segments)
         searched: dict[int, tuple[int, bool]] = {}  # per segment: anchors and look-alikes at its last search
