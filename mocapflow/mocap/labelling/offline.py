@@ -284,9 +284,9 @@ def run_starts(seen: np.ndarray) -> np.ndarray:
 def _junctions(state: _Round, rate: float, cfg: LabellerConfig) -> dict[tuple[int, int], float]:
     """Pairs of tracks (``i < j``) one of which takes up where the other left off within ``max_coast_s``: the worst,
     over their junctions, of how far each end's constant-velocity step across the gap lands from the other end,
-    forward and backward, in units of the coast's gate (``LabellerConfig.coast_gate``). Below 1 a
-    fast marker the streaming follow lost for a frame or two (a foot at 10 m/s) is the same marker; both must fit,
-    and every junction between the two."""
+    forward and backward, in units of the coast's gate (``LabellerConfig.coast_gate``). Below 1 a fast marker the
+    streaming follow lost for a frame or two (a foot at 10 m/s) is the same marker; both must fit, and every junction
+    between the two."""
     seen, tracks = state.seen, state.tracks
     longest = max(1, round(cfg.max_coast_s * rate))
     worst: dict[tuple[int, int], float] = {}
