@@ -182,20 +182,20 @@ def _build(positions: np.ndarray, labels: Sequence[str], rate: float, groups: Se
                                "rotation needs each segment's orientation; use the variance joint method "
                                "(--joints variance)")
     sequential = joint_method == "auto" and bool(flat) and any(pose is not None for pose in poses)
+    spread = distance_spread(positions, pair_frames(rate))
     if sequential:
         # the closed form needs every segment's orientation: segments of two markers (markers on the joints took
         # the others) are joined where their closest markers keep their distance best, and their joints are
         # found down the tree from the segments whose markers fix their orientation
         log.info("segments %s have fewer than 3 markers: the tree joins the segments whose closest markers keep "
                  "their distance best; joints found down the tree", ", ".join(flat))
-        costs = closest_spreads(distance_spread(positions, pair_frames(rate)), groups)
+        costs = closest_spreads(spread, groups)
     else:
         if joint_method == "auto" and flat:
             log.info("no segment has 3 markers: joints by the distance-variance cost")
         joint_method = ("variance" if flat else "closed-form") if joint_method == "auto" else joint_method
         costs = _pair_costs(positions, groups, poses, sample_frames(frames, rate), joint_method, progress)
     # a joint joins segments of one body: not two subjects captured together, nor a subject and a prop
-    spread = distance_spread(positions, pair_frames(rate))
     body = bodies(spread)
     own = np.array([np.bincount(body[g]).argmax() for g in groups])
     costs = np.where(own[:, None] == own[None, :], costs, np.inf)

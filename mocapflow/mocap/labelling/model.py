@@ -112,6 +112,8 @@ class ModelLabeller:
             raise ValueError("rate must be positive")
         self.config = config or ModelLabellerConfig()
         self.rate = float(rate)
+        # the widest gate of a followed marker at this rate (``labeller.own_gates`` gives each its own)
+        self._widest = frame_gate(self.config.follow_mm, self.config.frame_accel_mm_s2, self.rate)
         self.labels: list[str] = []
         self.segments: list[_Segment] = []
         index: dict[str, int] = {}
@@ -192,8 +194,7 @@ class ModelLabeller:
         # 1. markers seen in the previous frame follow their points
         live = np.flatnonzero(self.streak > 0)
         dt = time - self.last[live]
-        widest = frame_gate(cfg.follow_mm, cfg.frame_accel_mm_s2, self.rate)
-        follow = own_gates(cfg.follow_mm, widest, self.vel[live], dt)
+        follow = own_gates(cfg.follow_mm, self._widest, self.vel[live], dt)
         ti, pi = assign(self.pos[live] + self.vel[live] * dt[:, None], follow, z)
         cur[live[ti]], taken[pi] = z[pi], live[ti]
         poses: list[tuple[np.ndarray, np.ndarray] | None] = [None] * len(self.segments)
