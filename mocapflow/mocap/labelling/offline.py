@@ -1,6 +1,6 @@
 """Offline labelling of a whole recording: streaming, then filling in what tentative tracks collected, cutting the
-tracks streaming carried onto another marker, merging the tracks of one marker (the thesis's *Marker Set* merging)
-and dropping tracks too short to be markers."""
+tracks streaming carried onto another marker, merging the tracks of one marker (the thesis's *Marker Set* merging),
+dropping tracks too short to be markers and following the tracks back and on into the points left to none."""
 
 from __future__ import annotations
 
@@ -10,9 +10,9 @@ import numpy as np
 from scipy.spatial.distance import cdist
 
 from mocapflow.mocap.clustering import noise_floor
-from mocapflow.mocap.labelling.assignment import norm, rigid_signature
+from mocapflow.mocap.labelling.assignment import assign, norm, rigid_signature
 from mocapflow.mocap.labelling.config import SD_FLOOR_MM, LabellerConfig
-from mocapflow.mocap.labelling.labeller import Labeller
+from mocapflow.mocap.labelling.labeller import Labeller, own_gates
 from mocapflow.mocap.labelling.placement import place_marker
 from mocapflow.mocap.report import Progress, steps
 
@@ -276,6 +276,70 @@ def split_doubtful_joins(tracks: np.ndarray, config: LabellerConfig | None = Non
     return np.concatenate([out, *[p[:, None] for p in pieces]], axis=1)
 
 
+def extend_tracks(tracks: np.ndarray, clouds: list[np.ndarray], rate: float,
+                  config: LabellerConfig | None = None) -> np.ndarray:
+    """Tracks ``(F, T, 3)`` followed from each end, back in time and then on, into the points of ``clouds`` (per frame
+    ``(M, 3)``, NaN rows ignored) that no track holds.
+
+    Streaming starts a track only once a point has lived ``confirm_frames`` and been told from its neighbours' points,
+    and a point seen once has no velocity: where markers move fast (a sprinter's foot, 140 mm a frame at 125 Hz, at the
+    capture's start or as it leaves the ground), a foot's markers are taken for one another's until it slows, and
+    their points are left to no track meanwhile. Offline, a track's frames on the far side give its velocity: each
+    track is followed frame by frame from its ends as streaming follows it (constant velocity from its two nearest
+    frames, each track within its own gate, ``own_gates``, one optimal assignment per frame), back in time first, then
+    on. A chain of points so added that meets the track's other side across a gap, or another chain, stays only if
+    one side can be followed into the other (one way is enough: where a foot leaves the ground, the step on is the one
+    streaming failed); else the end it grew from was another marker's point (at 60 Hz, a wrist's track that streaming
+    carried onto its finger's point after a flick would grow back along the finger), and it is taken out again.
+    """
+    cfg = config or LabellerConfig()
+    out = tracks.copy()
+    follow = cfg.follow_gate(rate)
+    chain = np.zeros(out.shape[:2], np.intp)  # per point: 0 as the tracks were, else the chain that added it
+    chains = 0
+    for way in (-1, 1):
+        for f in range(len(out) - 2, -1, -1) if way < 0 else range(1, len(out)):
+            last = f - way  # the frame each track's end was seen in
+            ends = np.flatnonzero(np.isnan(out[f, :, 0]) & np.isfinite(out[last, :, 0]))
+            cloud = np.asarray(clouds[f], dtype=float).reshape(-1, 3)
+            free = np.isfinite(cloud).all(axis=1)
+            if not len(ends) or not free.any():
+                continue
+            held = source_rows(out[f], cloud)
+            free[held[held >= 0]] = False
+            rows = np.flatnonzero(free)
+            before = out[last - way, ends] if 0 <= last - way < len(out) else np.full((len(ends), 3), np.nan)
+            ti, pi = assign(*_course(out[last, ends], before, rate, cfg.gate_mm, follow), cloud[rows])
+            grown = ends[ti]
+            out[f, grown] = cloud[rows[pi]]
+            ids = chain[last, grown]
+            fresh = ids == 0
+            ids[fresh] = chains + 1 + np.arange(int(fresh.sum()))
+            chains += int(fresh.sum())
+            chain[f, grown] = ids
+    seen = np.isfinite(out[..., 0])
+    # where a chain meets what it did not grow from: frame ``at`` and the next, of track ``k``
+    at, k = np.nonzero(seen[:-1] & seen[1:] & (chain[:-1] != chain[1:]))
+    if len(at):
+        early = np.where((at > 0)[:, None], out[np.maximum(at - 1, 0), k], np.nan)
+        late = np.where((at + 2 < len(out))[:, None], out[np.minimum(at + 2, len(out) - 1), k], np.nan)
+        on_pred, on_gate = _course(out[at, k], early, rate, cfg.gate_mm, follow)
+        back_pred, back_gate = _course(out[at + 1, k], late, rate, cfg.gate_mm, follow)
+        bad = (norm(out[at + 1, k] - on_pred) > on_gate) & (norm(out[at, k] - back_pred) > back_gate)
+        wrong = np.setdiff1d(np.concatenate([chain[at[bad], k[bad]], chain[at[bad] + 1, k[bad]]]), 0)
+        out[np.isin(chain, wrong)] = np.nan
+    return out
+
+
+def _course(here: np.ndarray, before: np.ndarray, rate: float, gate: float,
+            follow: float) -> tuple[np.ndarray, np.ndarray]:
+    """Where markers at ``here`` ``(N, 3)`` are one frame on at constant velocity, from ``before`` (one frame back; NaN
+    rows: at rest), and the gate of each (``own_gates``)."""
+    vel = np.nan_to_num((here - before) * rate)
+    step = np.full(len(here), 1.0 / rate)
+    return here + vel * step[:, None], own_gates(gate, follow, vel, step)
+
+
 def run_starts(seen: np.ndarray) -> np.ndarray:
     """``(F, T)``: where each track's runs of frames seen in a row (``seen`` ``(F, T)``) begin."""
     return seen & ~np.vstack([np.zeros((1, seen.shape[1]), bool), seen[:-1]])
@@ -443,17 +507,20 @@ def label_sequence(frames: Iterable[np.ndarray], rate: float, config: LabellerCo
 
     Knowing the whole recording allows more than streaming: points a track collected while still tentative are
     filled in, tracks carried across a gap onto another marker are cut there (:func:`split_doubtful_joins`), tracks
-    of one marker are merged (:func:`merge_tracks`), and tracks seen for less than ``min_track_s``
+    of one marker are merged (:func:`merge_tracks`), tracks seen for less than ``min_track_s``
     in all are dropped unless rigid partners explain them (``_explained``, at this recording's rigidity:
-    ``_rigid_sd``). Markers are labelled ``M001``... in order of first appearance. ``progress`` is told how the
+    ``_rigid_sd``), and the tracks kept are followed from their ends into the points left to none
+    (:func:`extend_tracks`). Markers are labelled ``M001``... in order of first appearance. ``progress`` is told how the
     merging goes (its cost grows with the square of the number of tracks).
     """
     cfg = config or LabellerConfig()
     labeller = Labeller(cfg.model_copy(update={"confirm_frames": cfg.offline_confirm_frames}), rate)
     rows: list[np.ndarray] = []
+    clouds: list[np.ndarray] = []
     late: list[tuple[int, np.ndarray, np.ndarray]] = []
     for i, points in enumerate(frames):
-        result = labeller.update(points, i / rate)
+        clouds.append(np.asarray(points, dtype=float).reshape(-1, 3))
+        result = labeller.update(clouds[-1], i / rate)
         rows.append(result.positions)
         late += result.history
     tracks = np.full((len(rows), len(labeller.labels), 3), np.nan)
@@ -472,7 +539,7 @@ def label_sequence(frames: Iterable[np.ndarray], rate: float, config: LabellerCo
                if long[k] or _explained(joined, seen, k, rigid_sd, cfg.offline_confirm_frames)]
     markers.sort(key=lambda m: np.flatnonzero(np.isfinite(m[:, 0]))[0])
     out = np.stack(markers, axis=1) if markers else np.full((len(rows), 0, 3), np.nan)
-    return out, [f"M{k + 1:03d}" for k in range(out.shape[1])]
+    return extend_tracks(out, clouds, rate, cfg), [f"M{k + 1:03d}" for k in range(out.shape[1])]
 
 
 def source_rows(positions: np.ndarray, cloud: np.ndarray) -> np.ndarray:
