@@ -119,6 +119,28 @@ def test_space_separated_file_and_rate_from_time(tmp_path: Path) -> None:
     np.testing.assert_array_equal(data.positions.reshape(2, 6), [[1, 2, 3, 4, 5, 6], [7, 8, 9, 10, 11, 12]])
 
 
+def test_a_tabbed_header_over_spaced_rows(tmp_path: Path) -> None:
+    """Some exporters write the header with tabs and the frames with spaces: the rows read as the tabbed file's."""
+    data = synthetic()
+    data.positions[np.isnan(data.positions)] = 0.0  # spaced rows have no empty cells: missing as 0,0,0
+    write_trc(tmp_path / "tabs.trc", data)
+    lines = (tmp_path / "tabs.trc").read_text().split("\n")
+    spaced = lines[:6] + ["  ".join(line.split("\t")) for line in lines[6:]]
+    (tmp_path / "spaced.trc").write_text("\n".join(spaced))
+    tabbed, read = read_trc(tmp_path / "tabs.trc"), read_trc(tmp_path / "spaced.trc")
+    np.testing.assert_array_equal(read.positions, tabbed.positions)
+    assert read.labels == tabbed.labels and np.isnan(read.positions[3:7, 1]).all()
+
+
+def test_a_cell_that_is_no_number_is_named_by_row_and_column(tmp_path: Path) -> None:
+    path = tmp_path / "bad.trc"
+    path.write_text(HEADER.format(frames=2) + "1\t0\t1\t2\t3\n2\t0.01\t4\t" + "5e" * 100 + "\t6\n")
+    with pytest.raises(MocapFileError) as raised:
+        read_trc(path)
+    message = str(raised.value)
+    assert "frame row 2, column 4: '5e5e5e" in message and len(message) < len(str(path)) + 120
+
+
 HEADER = (
     "PathFileType\t4\t(X/Y/Z)\tbad.trc\n"
     "DataRate\tCameraRate\tNumFrames\tNumMarkers\tUnits\n"

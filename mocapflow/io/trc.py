@@ -3,7 +3,8 @@
 Layout: a ``PathFileType`` line; a line of header keys (DataRate, CameraRate, NumFrames, NumMarkers, Units,
 OrigDataRate, OrigDataStartFrame, OrigNumFrames...) and a line of their values; a ``Frame#  Time  name...`` line
 with each marker name above its X column; an ``X1 Y1 Z1...`` line; then one tab-separated line per frame, where an
-empty cell is a missing coordinate. TRC has no per-sample flags, so a TRC file reads back observed wherever a
+empty cell is a missing coordinate. Files spaced throughout are read too, and so are spaced frame lines under a tabbed
+header (some exporters write both). TRC has no per-sample flags, so a TRC file reads back observed wherever a
 position exists, and ``extra`` points are written as further markers (OpenSim shows them as virtual markers).
 """
 
@@ -75,16 +76,14 @@ def read_trc(path: str | Path, *, strip_prefix: bool = True) -> MarkerData:
     names = name_cells[::3] if tabbed else [cell for cell in name_cells if cell.strip()]
     names = (names + [""] * n_markers)[:n_markers]
 
-    rows = [split(line) for line in lines[FIRST_DATA_LINE:] if line.strip()]
+    # a data line without tabs is split at spaces (some exporters write a tabbed header over spaced rows)
+    rows = [line.split("\t") if "\t" in line else line.split() for line in lines[FIRST_DATA_LINE:] if line.strip()]
     if not rows:
         raise MocapFileError(f"{path}: the TRC file holds no frames")
     declared = _number(header.get("NumFrames"), int)
     if declared is not None and len(rows) < declared:
         raise MocapFileError(f"{path}: truncated TRC file ({len(rows)} frames, NumFrames says {declared})")
-    try:
-        values = _cells_to_floats(rows, 2 + 3 * n_markers)
-    except ValueError as exc:
-        raise MocapFileError(f"{path}: not a number in the TRC data ({' '.join(str(exc).split())})") from exc
+    values = _cells_to_floats(rows, 2 + 3 * n_markers, path)
 
     rate = _rate(header, values[:, 1])
     if rate is None:
@@ -103,13 +102,28 @@ def read_trc(path: str | Path, *, strip_prefix: bool = True) -> MarkerData:
     )
 
 
-def _cells_to_floats(rows: list[list[str]], width: int) -> np.ndarray:
-    """(rows, width) floats; an empty cell, or one past the end of a short row, is NaN."""
+def _cells_to_floats(rows: list[list[str]], width: int, path: Path) -> np.ndarray:
+    """(rows, width) floats; an empty cell, or one past the end of a short row, is NaN. A cell that is no number
+    raises ``MocapFileError`` naming its frame row and column."""
     values = np.full((len(rows), width), np.nan)
     for index, cells in enumerate(rows):
         cells = cells[:width]
-        values[index, : len(cells)] = [float(cell) if cell.strip() else np.nan for cell in cells]
+        try:
+            values[index, : len(cells)] = [float(cell) if cell.strip() else np.nan for cell in cells]
+        except ValueError:
+            column, cell = next((c, cell) for c, cell in enumerate(cells) if cell.strip() and not _is_number(cell))
+            shown = cell.strip() if len(cell.strip()) <= 40 else cell.strip()[:40] + "..."
+            raise MocapFileError(f"{path}: not a number in the TRC data, frame row {index + 1}, column {column + 1}: "
+                                 f"{shown!r}") from None
     return values
+
+
+def _is_number(cell: str) -> bool:
+    try:
+        float(cell)
+    except ValueError:
+        return False
+    return True
 
 
 def _rate(header: dict[str, str], times: np.ndarray) -> float | None:
