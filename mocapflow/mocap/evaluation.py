@@ -74,17 +74,15 @@ def score_naming(named: np.ndarray, names: Sequence[str], points: Sequence[np.nd
     return NamingScore(right, wrong, total, known)
 
 
-def score_labelling(tracks: np.ndarray, points: Sequence[np.ndarray], identity: Sequence[np.ndarray],
-                    markers: int) -> LabellingScore:
-    """Score trajectories ``(F, T, 3)`` labelled from ``points`` (per frame ``(M, 3)``) against ``identity``.
-
-    ``identity`` gives per frame the true marker index of each row of ``points``, -1 for a ghost; ``markers`` is the
-    number of true markers. A labelled position is traced back to the input row it was copied from.
-    """
+def held_markers(tracks: np.ndarray, points: Sequence[np.ndarray], identity: Sequence[np.ndarray],
+                 markers: int) -> tuple[np.ndarray, np.ndarray, int]:
+    """The true marker each track of ``tracks`` ``(F, T, 3)`` holds in each frame, ``(F, T)`` (-1 a ghost, -2
+    nothing), traced back to the row of ``points`` it was copied from; which true markers are seen in each frame,
+    ``(F, markers)``; and how many ghost points there are (arguments as for :func:`score_labelling`)."""
     n_frames, n_tracks, _ = tracks.shape
-    held = np.full((n_frames, n_tracks), -2)  # true marker held by each track; -1 ghost, -2 nothing
+    held = np.full((n_frames, n_tracks), -2)
     ghosts = 0
-    seen = np.zeros((n_frames, markers), bool)  # true markers seen in each frame
+    seen = np.zeros((n_frames, markers), bool)
     for f in range(n_frames):
         rows = np.asarray(points[f], dtype=float).reshape(-1, 3)
         ids = np.asarray(identity[f])
@@ -96,8 +94,25 @@ def score_labelling(tracks: np.ndarray, points: Sequence[np.ndarray], identity: 
         if (source < 0).any():
             raise ValueError(f"frame {f}: a labelled position is not one of the input points")
         held[f, on] = ids[source]
-    majority = np.array([np.bincount(h[h >= 0], minlength=markers).argmax() if (h >= 0).any() else -1
-                         for h in held.T], dtype=int)
+    return held, seen, ghosts
+
+
+def track_markers(held: np.ndarray, markers: int) -> np.ndarray:
+    """The marker each track stands for, ``(T,)``: the true marker it holds most (-1 for a track of ghosts only)."""
+    return np.array([np.bincount(h[h >= 0], minlength=markers).argmax() if (h >= 0).any() else -1
+                     for h in held.T], dtype=int)
+
+
+def score_labelling(tracks: np.ndarray, points: Sequence[np.ndarray], identity: Sequence[np.ndarray],
+                    markers: int) -> LabellingScore:
+    """Score trajectories ``(F, T, 3)`` labelled from ``points`` (per frame ``(M, 3)``) against ``identity``.
+
+    ``identity`` gives per frame the true marker index of each row of ``points``, -1 for a ghost; ``markers`` is the
+    number of true markers. A labelled position is traced back to the input row it was copied from.
+    """
+    n_frames, n_tracks, _ = tracks.shape
+    held, seen, ghosts = held_markers(tracks, points, identity, markers)
+    majority = track_markers(held, markers)
     real = int(seen.sum())
     right = int(((held >= 0) & (held == majority[None])).sum())
     swaps = sum(int(np.count_nonzero(np.diff(h[h >= 0]))) for h in held.T)
