@@ -356,6 +356,25 @@ def test_fill_command_names_the_markers_most_left_missing(tmp_path: Path, rec: S
     assert "most left missing: LFA2 400 (seen in 0 frames)" in capsys.readouterr().out
 
 
+def test_fill_command_says_what_only_the_frames_after_can_fill(tmp_path: Path, rec: SimRecording,
+                                                               capsys: pytest.CaptureFixture[str]) -> None:
+    """A marker hidden from the first frame, with no skeleton: a stream has nothing to place it by until it is first
+    seen, and the summary says so, and that ``--offline`` fills it from the frames after."""
+    from mocapflow.cli import main
+    from mocapflow.io.markers import MarkerData, read_markers, write_markers
+
+    x = rec.positions[:400].copy()
+    late = rec.labels.index("LFA2")
+    x[:50, late] = np.nan
+    source = tmp_path / "in.c3d"
+    write_markers(source, MarkerData(positions=x, labels=rec.labels, rate=rec.rate))
+    assert main(["fill", str(source), "-o", str(tmp_path / "out.c3d")]) == 0
+    assert "50 of those left missing lie before their marker was first seen: --offline" in capsys.readouterr().out
+    assert main(["fill", str(source), "-o", str(tmp_path / "both.c3d"), "--offline"]) == 0
+    assert np.isfinite(read_markers(tmp_path / "both.c3d").positions[:50, late]).all()
+    assert "before their marker was first seen" not in capsys.readouterr().out
+
+
 @pytest.mark.parametrize(("file", "groups", "hidden", "bound_mm"), [
     ("lowerbody_clusters_knee_0401.c3d",
      {"pelvis": ["LASI", "RASI", "LPSI", "RPSI"], "lthigh": ["LTH1", "LTH2", "LTH3", "LTH4"],

@@ -99,4 +99,9 @@ def run(args: argparse.Namespace) -> int:
     if most:  # where they lie, and how often each of those markers was seen
         print("most left missing: " + ", ".join(f"{data.labels[i]} {left[i]} (seen in {seen[:, i].sum()} frames)"
                                                 for i in most))
+    # a stream has nothing to place a marker by before it is first seen; the frames after it do
+    early = int(((flags == FillCase.MISSING) & (np.cumsum(seen, axis=0) == 0) & seen.any(axis=0)).sum())
+    if early and not args.offline:
+        print(f"{early} of those left missing lie before their marker was first seen: --offline fills them from the "
+              "frames after")
     return 0
