@@ -12,7 +12,7 @@ from scipy.spatial.distance import cdist
 from mocapflow.mocap.clustering import noise_floor
 from mocapflow.mocap.labelling.assignment import assign, norm, rigid_signature
 from mocapflow.mocap.labelling.config import SD_FLOOR_MM, LabellerConfig
-from mocapflow.mocap.labelling.labeller import Labeller, own_gates
+from mocapflow.mocap.labelling.labeller import Labeller
 from mocapflow.mocap.labelling.placement import place_marker
 from mocapflow.mocap.report import Progress, steps
 
@@ -286,15 +286,16 @@ def extend_tracks(tracks: np.ndarray, clouds: list[np.ndarray], rate: float,
     capture's start or as it leaves the ground), a foot's markers are taken for one another's until it slows, and
     their points are left to no track meanwhile. Offline, a track's frames on the far side give its velocity: each
     track is followed frame by frame from its ends as streaming follows it (constant velocity from its two nearest
-    frames, each track within its own gate, ``own_gates``, one optimal assignment per frame), back in time first, then
-    on. A chain of points so added that meets the track's other side across a gap, or another chain, stays only if
-    one side can be followed into the other (one way is enough: where a foot leaves the ground, the step on is the one
-    streaming failed); else the end it grew from was another marker's point (at 60 Hz, a wrist's track that streaming
-    carried onto its finger's point after a flick would grow back along the finger), and it is taken out again.
+    frames, within ``gate_mm`` at any rate, one optimal assignment per frame), back in time first, then on. Below 100
+    Hz streaming widens a moving track's gate (``LabellerConfig.follow_gate``); here that took other markers' points
+    and ghosts at the tracks' ends under heavy damage. A chain of points so added that meets the track's other side
+    across a gap, or another chain, stays only if one side can be followed into the other (one way is enough: where a
+    foot leaves the ground, the step on is the one streaming failed); else the end it grew from was another marker's
+    point, and it is taken out again.
     """
     cfg = config or LabellerConfig()
     out = tracks.copy()
-    follow = cfg.follow_gate(rate)
+    gate = cfg.gate_mm
     chain = np.zeros(out.shape[:2], np.intp)  # per point: 0 as the tracks were, else the chain that added it
     chains = 0
     for way in (-1, 1):
@@ -309,7 +310,7 @@ def extend_tracks(tracks: np.ndarray, clouds: list[np.ndarray], rate: float,
             free[held[held >= 0]] = False
             rows = np.flatnonzero(free)
             before = out[last - way, ends] if 0 <= last - way < len(out) else np.full((len(ends), 3), np.nan)
-            ti, pi = assign(*_course(out[last, ends], before, rate, cfg.gate_mm, follow), cloud[rows])
+            ti, pi = assign(_course(out[last, ends], before), gate, cloud[rows])
             grown = ends[ti]
             out[f, grown] = cloud[rows[pi]]
             ids = chain[last, grown]
@@ -323,21 +324,17 @@ def extend_tracks(tracks: np.ndarray, clouds: list[np.ndarray], rate: float,
     if len(at):
         early = np.where((at > 0)[:, None], out[np.maximum(at - 1, 0), k], np.nan)
         late = np.where((at + 2 < len(out))[:, None], out[np.minimum(at + 2, len(out) - 1), k], np.nan)
-        on_pred, on_gate = _course(out[at, k], early, rate, cfg.gate_mm, follow)
-        back_pred, back_gate = _course(out[at + 1, k], late, rate, cfg.gate_mm, follow)
-        bad = (norm(out[at + 1, k] - on_pred) > on_gate) & (norm(out[at, k] - back_pred) > back_gate)
+        bad = (norm(out[at + 1, k] - _course(out[at, k], early)) > gate) & (
+            norm(out[at, k] - _course(out[at + 1, k], late)) > gate)
         wrong = np.setdiff1d(np.concatenate([chain[at[bad], k[bad]], chain[at[bad] + 1, k[bad]]]), 0)
         out[np.isin(chain, wrong)] = np.nan
     return out
 
 
-def _course(here: np.ndarray, before: np.ndarray, rate: float, gate: float,
-            follow: float) -> tuple[np.ndarray, np.ndarray]:
+def _course(here: np.ndarray, before: np.ndarray) -> np.ndarray:
     """Where markers at ``here`` ``(N, 3)`` are one frame on at constant velocity, from ``before`` (one frame back; NaN
-    rows: at rest), and the gate of each (``own_gates``)."""
-    vel = np.nan_to_num((here - before) * rate)
-    step = np.full(len(here), 1.0 / rate)
-    return here + vel * step[:, None], own_gates(gate, follow, vel, step)
+    rows: at rest)."""
+    return here + np.nan_to_num(here - before)
 
 
 def run_starts(seen: np.ndarray) -> np.ndarray:
