@@ -119,6 +119,7 @@ def _cells_to_floats(rows: list[list[str]], width: int, path: Path) -> np.ndarra
 
 
 def _is_number(cell: str) -> bool:
+    """Whether a cell reads as a number."""
     try:
         float(cell)
     except ValueError:

@@ -286,12 +286,12 @@ def extend_tracks(tracks: np.ndarray, clouds: list[np.ndarray], rate: float,
     capture's start or as it leaves the ground), a foot's markers are taken for one another's until it slows, and
     their points are left to no track meanwhile. Offline, a track's frames on the far side give its velocity: each
     track is followed frame by frame from its ends as streaming follows it (constant velocity from its two nearest
-    frames, within ``gate_mm`` at any rate, one optimal assignment per frame), back in time first, then on. Below 100
-    Hz streaming widens a moving track's gate (``LabellerConfig.follow_gate``); here that took other markers' points
-    and ghosts at the tracks' ends under heavy damage. A chain of points so added that meets the track's other side
-    across a gap, or another chain, stays only if one side can be followed into the other (one way is enough: where a
-    foot leaves the ground, the step on is the one streaming failed); else the end it grew from was another marker's
-    point, and it is taken out again.
+    frames, within ``gate_mm`` at any rate, one optimal assignment per frame), back in time first, then on. Below
+    100 Hz streaming widens a moving track's gate (``LabellerConfig.follow_gate``); here that took other markers'
+    points and ghosts at the tracks' ends under heavy damage. A chain of points so added that meets the track's other
+    side across a gap, or another chain, stays only if one side can be followed into the other (one way is enough:
+    where a foot leaves the ground, the step on is the one streaming failed); else the end it grew from was another
+    marker's point, and it is taken out again.
     """
     cfg = config or LabellerConfig()
     out = tracks.copy()
