@@ -160,7 +160,7 @@ def _named(skeleton: SkeletonModel, points: list[np.ndarray], identity: list[np.
     return score.right / score.total, score.wrong / score.total, score.right / score.known, cost
 
 
-def _stream(points: list[np.ndarray], rate: float) -> tuple[np.ndarray, np.ndarray]:
+def stream_labels(points: list[np.ndarray], rate: float) -> tuple[np.ndarray, np.ndarray]:
     """Streaming labels (F, T, 3) and the wall time of each ``update`` call (s)."""
     labeller = Labeller(LabellerConfig(), rate)
     rows, cost = [], np.empty(len(points))
@@ -200,7 +200,7 @@ def main() -> None:
         cases += [(case, None, [], 0) for case in _ghosts(args.data)]
     for (name, points, identity, rate, markers), skeleton, labels, named in cases:
         seen = np.mean([np.isfinite(np.asarray(p)).all(axis=1).sum() for p in points])
-        tracks, cost = _stream(points, rate)
+        tracks, cost = stream_labels(points, rate)
         start = time.perf_counter()
         offline, _ = label_sequence(points, rate)
         offline_s = time.perf_counter() - start

@@ -20,7 +20,7 @@ matplotlib.use("Agg")
 import _common  # noqa: E402
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
-from labelling import _stream  # noqa: E402
+from labelling import stream_labels  # noqa: E402
 from matplotlib.colors import ListedColormap  # noqa: E402
 from matplotlib.patches import Patch  # noqa: E402
 
@@ -59,7 +59,7 @@ def main() -> None:
     rate, markers = data.rate, len(data.labels)
     points, identity = unlabel(data.positions, rate, seed=args.seed, stationary=True, **STRESS)
     points, identity = list(points), list(identity)
-    streamed, _ = _stream(points, rate)
+    streamed, _ = stream_labels(points, rate)
     offline, _ = label_sequence(points, rate)
     fig, axes = plt.subplots(2, 1, figsize=(12, 9.5), sharex=True)
     for ax, (how, tracks) in zip(axes, (("streaming (live)", streamed), ("offline (mocapflow label)", offline)),

@@ -203,6 +203,5 @@ def _followed(labeller: Labeller, cloud: np.ndarray, time: float) -> dict[int, i
     pred = tracks.pos[live] + tracks.vel[live] * dt[:, None]
     d = cdist(pred, cloud)
     near = d.argmin(axis=1)
-    cfg = labeller.config
-    ok = d[np.arange(len(live)), near] < own_gates(cfg.gate_mm, cfg.follow_gate(labeller.rate), tracks.vel[live], dt)
+    ok = d[np.arange(len(live)), near] < own_gates(labeller.config.gate_mm, labeller.follow_mm, tracks.vel[live], dt)
     return {int(t): int(p) for t, p, good in zip(live, near, ok, strict=True) if good}

@@ -30,7 +30,7 @@ class Labeller:
             raise ValueError("rate must be positive")
         self.config = config
         self.rate = float(rate)
-        self._follow = config.follow_gate(self.rate)
+        self.follow_mm = config.follow_gate(self.rate)  # the widest gate of a track seen in the last frame
         self.labels: list[str] = []
         self.frame = 0
         self._time = -np.inf
@@ -84,7 +84,7 @@ class Labeller:
 
         # 1. tracks seen in the previous frame: constant-velocity prediction, gated optimal assignment
         live, cost, unique, cur, taken, lost, free = _step_one(tracks.pos, tracks.vel, tracks.last, tracks.streak,
-                                                               time, cfg.gate_mm, self._follow, z, n_tracks)
+                                                               time, cfg.gate_mm, self.follow_mm, z, n_tracks)
         if not unique:  # a track or a point with two candidates: the optimal assignment
             ti, pi = match(cost)
             cur, taken, lost, free = _matched(live[ti], pi, z, n_tracks)
@@ -221,7 +221,7 @@ class Labeller:
         tracks = self._tracks
         # an outside prediction replaces the placement, so only the others are placed
         pred, gate, given = _hypotheses(lost, np.empty((0, 3)) if outside is None else outside, tracks.pos, tracks.vel,
-                                        tracks.last, time, cfg.max_coast_s, cfg.gate_mm, self._follow,
+                                        tracks.last, time, cfg.max_coast_s, cfg.gate_mm, self.follow_mm,
                                         1.0 / self.rate, cfg.max_accel_mm_s2, cfg.reid_gate_mm)
         instant = given.copy()
         unknown = np.flatnonzero(~given)
@@ -279,7 +279,7 @@ class Labeller:
         dt = time - tent.time
         zf = z[free]
         # a point seen once has no velocity yet: its first step may be as long as the fastest marker moves
-        ui, pi = match(_tentative_costs(tent.pos, tent.vel, tent.hits, zf, dt, cfg.gate_mm, self._follow,
+        ui, pi = match(_tentative_costs(tent.pos, tent.vel, tent.hits, zf, dt, cfg.gate_mm, self.follow_mm,
                                         cfg.max_speed_mm_s * dt))
         # the carried tracks, then new ones on the unclaimed points
         pos, vel, hits, order = _carry(tent.pos, tent.vel, tent.hits, zf, ui, pi, dt, cfg.velocity_smoothing)
