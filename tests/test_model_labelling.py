@@ -166,6 +166,38 @@ def test_a_capture_at_60_hz_is_named_from_its_skeleton(data_dir: Path) -> None:
     assert right >= 0.999 * total
 
 
+@pytest.mark.integration
+def test_a_leg_that_no_single_frame_poses_is_named_along_its_trajectories(data_dir: Path) -> None:
+    """The dribble's second half under stress damage, named from a skeleton calibrated on its first half (2 s of
+    standing: thighs and shanks of two markers each). The left thigh is posed (two markers and the hip) only while
+    the ankle marker is hidden, the shank's two markers are seen together only while the thigh marker is hidden, and
+    each foot's triangle fits the other foot too: before, no pass named a point of the left shank or foot in any
+    frame. Along their trajectories the frames add up: the shin marker keeps its distance to the knee centre, the
+    ankle marker to the shin marker, the foot's triangle puts the ankle centre where the shank's markers keep theirs.
+    Every point of the left shank and foot is named right, and no point wrong."""
+    from mocapflow.io.markers import read_markers
+
+    data = read_markers(data_dir / "cmu_dribble_shoot_basketball.c3d")
+    half = len(data.positions) // 2
+    skeleton = calibrate(data.positions[:half], data.labels, data.rate)
+    points, identity = unlabel(data.positions, data.rate, seed=1, stationary=True, **STRESS)
+    points, identity = points[half:], identity[half:]
+    leg = [data.labels.index(name) for name in ("LSHN", "LANK", "LHEE", "LTOE", "LMT5")]
+    labeller = ModelLabeller(skeleton, data.rate)
+    theirs = [labeller.labels.index(data.labels[m]) for m in leg]
+    forward = sum(int(np.isin(labeller.update(p, f / data.rate)[1][np.isin(ids, leg)], theirs).sum())
+                  for f, (p, ids) in enumerate(zip(points, identity, strict=True)))
+    assert forward == 0, "the forward pass names the left leg: the case no longer needs its trajectories"
+    named, names = label_with_skeleton(list(points), data.rate, skeleton)
+    assert _named(named, names, points, identity, data.labels)[1] == 0  # no point named wrong
+    for m in leg:
+        own = named[:, names.index(data.labels[m])]
+        truth = np.array([p[ids == m][0] if (ids == m).any() else [np.nan] * 3
+                          for p, ids in zip(points, identity, strict=True)])
+        seen = np.isfinite(truth[:, 0])
+        assert np.array_equal(own[seen], truth[seen]), data.labels[m]
+
+
 def test_a_segment_is_placed_on_three_points_once_its_look_alike_is_posed() -> None:
     """The right foot has no joint: three points at its layout's distances could as well be the left foot's (a
     triangle fits its mirror image), so they name it only while the left foot is posed elsewhere, which is most

@@ -33,8 +33,9 @@ Steps 2-4 repeat while they pose new segments, so a segment found in step 4 pose
 joints. Points that fit no marker (ghosts, markers the skeleton does not know) stay unnamed.
 
 The names then go with the points' tracks, as the labeller without a model follows them: frame by frame as far as the
-frames so far tell (``TrackedModelLabeller``, the live node's), or over a whole recording, by runs of trajectories
-(``label_with_skeleton``). The method, its workflow and its accuracy under stress: docs/labelling.md.
+frames so far tell (``TrackedModelLabeller``, the live node's), or over a whole recording, by runs of trajectories, and
+where no frame alone names a trajectory, by what its frames tell together (``label_with_skeleton``). The method, its
+workflow and its accuracy under stress: docs/labelling.md.
 """
 
 from __future__ import annotations
@@ -49,6 +50,7 @@ from scipy.spatial.distance import cdist
 
 from mocapflow.mocap.labelling.assignment import assign, gated_cost, match, norm
 from mocapflow.mocap.labelling.config import FRAME_ACCEL_MM_S2, LabellerConfig, frame_gate
+from mocapflow.mocap.labelling.evidence import name_by_evidence
 from mocapflow.mocap.labelling.labeller import Labeller, own_gates
 from mocapflow.mocap.labelling.offline import label_sequence, run_starts, source_rows
 from mocapflow.mocap.model import SkeletonModel
@@ -781,8 +783,9 @@ def label_with_skeleton(frames: Sequence[np.ndarray] | np.ndarray, rate: float, 
     Then the names go to whole trajectories: the recording is labelled without the skeleton too
     (:func:`label_sequence`), whose trajectories keep one marker each, however often their segment had no pose, and
     each run of a trajectory takes the name the passes gave most of its points, or its trajectory's
-    (:func:`_track_names`). A point on no named run keeps its name from the passes. ``report`` is told each pass's
-    progress.
+    (:func:`_track_names`). The parts of trajectories left unnamed take names where the frames along them agree, though
+    no frame alone could pose their segment (:func:`name_by_evidence`: a leg whose two-marker segments are never seen
+    whole). A point on no named run keeps its name from the passes. ``report`` is told each pass's progress.
     """
     forward = ModelLabeller(skeleton, rate, config)
     backward = ModelLabeller(skeleton, rate, config)
@@ -795,7 +798,8 @@ def label_with_skeleton(frames: Sequence[np.ndarray] | np.ndarray, rate: float, 
     named = [_merged(one, other) for one, other in zip(ahead, behind, strict=True)]  # per frame: each row's marker
     tracks, _ = label_sequence(steps(clouds, n, "label trajectories", report), rate, progress=report)
     track_row = np.array([source_rows(tracks[f], clouds[f]) for f in range(n)], np.intp).reshape(tracks.shape[:2])
-    owner = _track_names(track_row, named, markers)
+    owner = name_by_evidence(tracks, _track_names(track_row, named, markers), forward.segments, forward._snug, rate,
+                             forward.config.joint_mm)
     out = np.full((n, markers, 3), np.nan)
     for f in range(n):
         rows = track_row[f]
