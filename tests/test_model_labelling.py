@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from functools import cache
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -196,6 +197,48 @@ def test_a_leg_that_no_single_frame_poses_is_named_along_its_trajectories(data_d
                           for p, ids in zip(points, identity, strict=True)])
         seen = np.isfinite(truth[:, 0])
         assert np.array_equal(own[seen], truth[seen]), data.labels[m]
+
+
+@pytest.mark.integration
+@pytest.mark.parametrize(("capture", "seed"), [("cmu_85_02.c3d", 3), ("hamner_run200.trc", 4)])
+def test_the_trajectories_evidence_adds_no_wrong_name(data_dir: Path, monkeypatch: pytest.MonkeyPatch, capture: str,
+                                                      seed: int) -> None:
+    """A real capture's second half under stress damage, named from a skeleton calibrated on its first half, where the
+    passes named some of a segment's markers wrong (two names swapped, or garbled). A trajectory part beside such
+    points keeps its distances to them under a mate's name as well as under its own, and took it: cmu_85_02's RWRA
+    took RFIN's name for 405 points, hamner's RTH1 RTH2's for 25. A distance to a mate now checks a name only where
+    the frames refute the swap, and a frame whose names break the layout checks nothing. The evidence still names
+    parts here, each with its own marker's name."""
+    from mocapflow.io.markers import read_markers
+    from mocapflow.mocap.labelling import model
+    from mocapflow.mocap.labelling.offline import source_rows
+
+    data = read_markers(data_dir / capture)
+    half = len(data.positions) // 2
+    skeleton = calibrate(data.positions[:half], data.labels, data.rate)
+    points, identity = unlabel(data.positions, data.rate, seed=seed, stationary=True, **STRESS)
+    points, identity = points[half:], identity[half:]
+    calls = []
+    real = model.name_by_evidence
+
+    def watched(*args: Any) -> np.ndarray:
+        named = real(*args)
+        calls.append((args[0], args[1], named))  # the trajectories, their names before and after
+        return named
+
+    monkeypatch.setattr(model, "name_by_evidence", watched)
+    label_with_skeleton(list(points), data.rate, skeleton)
+    ((tracks, owner, named),) = calls
+    labels = ModelLabeller(skeleton, data.rate).labels
+    added = []
+    for f in range(len(points)):
+        rows = source_rows(tracks[f], points[f])
+        for k in np.flatnonzero((owner[f] < 0) & (named[f] >= 0)):
+            truth = identity[f, rows[k]]
+            added.append((labels[named[f, k]], data.labels[truth] if truth >= 0 else "a ghost"))
+    assert added, "the evidence names nothing here: the case no longer tests it"
+    wrong = [(given, own) for given, own in added if given != own]
+    assert not wrong, f"{len(wrong)} of {len(added)} points named wrong, e.g. {wrong[0]}"
 
 
 def test_a_segment_is_placed_on_three_points_once_its_look_alike_is_posed() -> None:
