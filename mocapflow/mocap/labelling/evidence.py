@@ -125,10 +125,10 @@ def _poses(named: np.ndarray, segments: Sequence[Segment], snug: dict[tuple[int,
             world = [named[:, seg.markers]]
             tol = [np.broadcast_to(seg.tol, (frames, len(seg.markers)))]
             for other, here, there, _ in seg.joints:
-                centre, slack = out[other].centre(there, snug[s, other], most_slack)
+                centre, held = out[other].centre(there, snug[s, other], most_slack)
                 local.append(here[None])
                 world.append(centre[:, None])
-                tol.append(slack[:, None])
+                tol.append(held[:, None])
             x = np.concatenate(world, axis=1)
             have = np.isfinite(x[..., 0])
             todo = ~pose.posed & (have.sum(axis=1) >= 3) & have[:, : len(seg.markers)].any(axis=1)

@@ -276,8 +276,7 @@ def split_doubtful_joins(tracks: np.ndarray, config: LabellerConfig | None = Non
     return np.concatenate([out, *[p[:, None] for p in pieces]], axis=1)
 
 
-def extend_tracks(tracks: np.ndarray, clouds: list[np.ndarray], rate: float,
-                  config: LabellerConfig | None = None) -> np.ndarray:
+def extend_tracks(tracks: np.ndarray, clouds: list[np.ndarray], config: LabellerConfig | None = None) -> np.ndarray:
     """Tracks ``(F, T, 3)`` followed from each end, back in time and then on, into the points of ``clouds`` (per frame
     ``(M, 3)``, NaN rows ignored) that no track holds.
 
@@ -536,7 +535,7 @@ def label_sequence(frames: Iterable[np.ndarray], rate: float, config: LabellerCo
                if long[k] or _explained(joined, seen, k, rigid_sd, cfg.offline_confirm_frames)]
     markers.sort(key=lambda m: np.flatnonzero(np.isfinite(m[:, 0]))[0])
     out = np.stack(markers, axis=1) if markers else np.full((len(rows), 0, 3), np.nan)
-    return extend_tracks(out, clouds, rate, cfg), [f"M{k + 1:03d}" for k in range(out.shape[1])]
+    return extend_tracks(out, clouds, cfg), [f"M{k + 1:03d}" for k in range(out.shape[1])]
 
 
 def source_rows(positions: np.ndarray, cloud: np.ndarray) -> np.ndarray:
