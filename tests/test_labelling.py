@@ -418,6 +418,30 @@ def test_merge_tracks_joins_fragments_only() -> None:
     assert len(merge_tracks(overlapping, RATE)) == 13
 
 
+@pytest.mark.integration
+def test_a_fragment_its_neighbours_place_loosely_joins_the_track_it_fits_best_offline(
+        data_dir: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The dribble under the stress damage (seed 2): the right heel marker comes back from a gap as a new track,
+    which the markers across the ankle place 1.2-1.3 gates from its old track and the old track from it: too loosely
+    for the first rules. Every other track is placed farther off, each of the two fits the other best, and offline
+    they are one track; without that rule, two."""
+    from mocapflow.io.markers import read_markers
+    from mocapflow.mocap.labelling import offline
+
+    data = read_markers(data_dir / "cmu_dribble_shoot_basketball.c3d")
+    points, identity = unlabel(data.positions, data.rate, seed=2, stationary=True, **STRESS)
+    markers = len(data.labels)
+
+    def labelled() -> LabellingScore:
+        tracks, _ = label_sequence(list(points), data.rate)
+        return score_labelling(tracks, list(points), list(identity), markers)
+
+    joined = labelled()
+    assert joined.accuracy == 1.0 and joined.swaps == 0 and joined.tracks == markers
+    monkeypatch.setattr(offline, "MUTUAL", 0.0)
+    assert labelled().tracks == markers + 1
+
+
 def test_label_command(tmp_path: Path) -> None:
     from mocapflow.cli import main
     from mocapflow.io.markers import MarkerData, read_markers, write_markers

@@ -31,6 +31,9 @@ each on the same side of the two triangles and none on opposite sides (``_triang
 near the triangle's plane, and the joint's turn between the two sightings moves it across (the simulated human's
 trunk: C7 and the sternum marker each 173 mm from the clavicle marker, in a plane 50 mm from the back pelvis marker
 that alone told them apart, wrongly)."""
+MUTUAL = 2.0
+"""Two tracks whose neighbours place each other within this many gates, both ways (the median over frames), are one
+marker when each fits the other best of all the tracks it could be, once nothing else merges."""
 UNSIDED = 0.25
 """A pair of tracks whose triangles show no side (a hand that turns over, the forearm's markers nearly in its plane)
 is merged by its triangle only where the neighbours leave it in doubt both ways and its three distances agree within
@@ -57,7 +60,8 @@ def merge_tracks(tracks: np.ndarray, rate: float, config: LabellerConfig | None 
     stream lost for a few frames, which its neighbours place too loosely at that speed. A pair left in doubt (under
     ``LOOSE`` gates) is also compared by shape: two tracks that stand in one rigid triangle with two partners each
     (``_triangle_score``) are one marker, as when a foot hidden whole comes back as new tracks that its neighbours
-    across the ankle place too loosely to tell.
+    across the ankle place too loosely to tell. When no pair passes these, two tracks whose neighbours place each
+    other within ``MUTUAL`` gates both ways, and which each fit the other best, are one marker (``_mutual``).
 
     Pairs are merged greedily, best first, never joining tracks seen in the same frame, and the comparison is
     repeated on the merged tracks until nothing changes: merging the fragments of one marker gives its neighbours'
@@ -72,8 +76,10 @@ def merge_tracks(tracks: np.ndarray, rate: float, config: LabellerConfig | None 
         joins = _junctions(state, rate, cfg)
         scored = []
         pairs = np.argwhere(np.triu(state.overlap == 0, 1))
+        both = np.full((len(groups), len(groups)), np.inf)  # per pair: the worse of its two set scores
         for i, j in steps(pairs.tolist(), len(pairs), f"merge, round {rounds} ({len(groups)} tracks)", progress):
             ways = (_set_score(state, i, j, cfg), _set_score(state, j, i, cfg))
+            both[i, j] = both[j, i] = max(ways)
             score = min(ways)
             if score >= 1.0 and joins.get((i, j), np.inf) < 1.0:
                 kept = max(_kept_distances(state, i, j, cfg), _kept_distances(state, j, i, cfg))
@@ -82,6 +88,8 @@ def merge_tracks(tracks: np.ndarray, rate: float, config: LabellerConfig | None 
                 score = min(score, _triangle_score(state, i, j, cfg, max(ways) < LOOSE))
             if score < 1.0:
                 scored.append((score, i, j))
+        if not scored:
+            scored = _mutual(both, state.seen.sum(axis=0) >= cfg.min_track_s * rate)
         taken: set[int] = set()
         for _, i, j in sorted(scored):
             if i not in taken and j not in taken:
@@ -92,6 +100,17 @@ def merge_tracks(tracks: np.ndarray, rate: float, config: LabellerConfig | None 
         if not taken:
             break
     return groups
+
+
+def _mutual(both: np.ndarray, long: np.ndarray) -> list[tuple[float, int, int]]:
+    """Pairs of tracks (score, i, j), one of them ``long`` (seen for ``min_track_s`` or more), whose set scores both
+    ways (``both``, the worse of the two) are below ``MUTUAL`` and each of which fits the other better than any other
+    track it was compared with: a fragment of a marker that its neighbours place too loosely for the first rules (a
+    marker across a joint from them, some of them hidden), where every other track is placed farther off. Two short
+    fragments are not joined so: their neighbours are learnt over too short a time."""
+    best = both.argmin(axis=1)
+    return [(float(both[i, j]), int(i), int(j)) for i, j in enumerate(best.tolist())
+            if i < j and best[j] == i and both[i, j] < MUTUAL and (long[i] or long[j])]
 
 
 class _Round:
