@@ -421,10 +421,10 @@ def test_merge_tracks_joins_fragments_only() -> None:
 @pytest.mark.integration
 def test_a_fragment_its_neighbours_place_loosely_joins_the_track_it_fits_best_offline(
         data_dir: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    """The dribble under the stress damage (seed 2): the right heel marker comes back from a gap as a new track,
-    which the markers across the ankle place 1.2-1.3 gates from its old track and the old track from it: too loosely
-    for the first rules. Every other track is placed farther off, each of the two fits the other best, and offline
-    they are one track; without that rule, two."""
+    """The dribble under the stress damage (seed 2): the right heel marker comes back from a gap as a new track. The
+    two tracks' neighbours (markers across the ankle) place each 1.17 and 1.32 gates from the other: too loosely for
+    the first rules. Every other track is placed farther off, each of the two fits the other best, and offline they
+    are one track; without that rule, two."""
     from mocapflow.io.markers import read_markers
     from mocapflow.mocap.labelling import offline
 

@@ -33,7 +33,8 @@ trunk: C7 and the sternum marker each 173 mm from the clavicle marker, in a plan
 that alone told them apart, wrongly)."""
 MUTUAL = 2.0
 """Two tracks whose neighbours place each other within this many gates, both ways (the median over frames), are one
-marker when each fits the other best of all the tracks it could be, once nothing else merges."""
+marker when each fits the other best of all the tracks it could be, once nothing else merges. At most 2: beyond that,
+``_set_score`` gives a pair it rules out by its distances only a lower bound."""
 UNSIDED = 0.25
 """A pair of tracks whose triangles show no side (a hand that turns over, the forearm's markers nearly in its plane)
 is merged by its triangle only where the neighbours leave it in doubt both ways and its three distances agree within
