@@ -86,7 +86,7 @@ def merge_tracks(tracks: np.ndarray, rate: float, config: LabellerConfig | None 
                 kept = max(_kept_distances(state, i, j, cfg), _kept_distances(state, j, i, cfg))
                 score = min(score, max(joins[i, j], kept))
             if 1.0 <= score < LOOSE:
-                score = min(score, _triangle_score(state, i, j, cfg, max(ways) < LOOSE))
+                score = min(score, _triangle_score(state, i, j, cfg, both[i, j] < LOOSE))
             if score < 1.0:
                 scored.append((score, i, j))
         if not scored:
