@@ -41,7 +41,8 @@ could not tell from its mates' with no velocity known).
 
 With a skeleton of the subject (``mocapflow calibrate`` on a labelled trial), :mod:`.model` names every point with
 the skeleton's own marker names instead, by fitting its segments' marker layouts frame by frame; offline, where no
-frame alone poses a segment, :mod:`.evidence` names its trajectories from what their frames tell together.
+frame alone poses a segment, :mod:`.evidence` names its trajectories from what their frames tell together (live, its
+tracks' runs from what their frames so far tell).
 """
 
 from mocapflow.mocap.labelling.config import LabellerConfig, LabelResult

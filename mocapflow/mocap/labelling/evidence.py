@@ -1,4 +1,5 @@
-"""Naming trajectories from a skeleton where no single frame can: evidence gathered over their whole length.
+"""Naming trajectories from a skeleton where no single frame can: evidence gathered over their whole length, or
+live, over their runs so far (:class:`RunningEvidence`).
 
 A segment is posed in a frame only when three of its references (its markers, the centres of its joints to posed
 neighbours) are seen together. A leg whose thigh and shank have two markers each, half of them hidden at any time,
@@ -314,3 +315,148 @@ def _keeps(pos: np.ndarray, distance: float, tol: float, least: int, chunk: int 
         known += seen.sum(axis=0)
         good += (seen & (np.abs(d - distance) <= tol)).sum(axis=0)
     return (good >= least) & (good >= AGREE * known)
+
+
+class RunningEvidence:
+    """The same evidence gathered frame by frame, as far as the frames so far tell (``TrackedModelLabeller``): per
+    track and marker, over the track's current run (the frames it has been seen in a row, one marker surely), the
+    frames that check the track's point as that marker, and those whose checks it fails.
+
+    A frame checks a point as a marker when it knows the distances to two of the marker's mates named there, or to
+    the centre of one of the segment's joints, the neighbour posed (by three of its markers or more, or, as over a
+    whole recording, by its named markers and the centres of its joints to posed segments); the other distances it
+    knows then check the point too. A frame where a check fails counts as well. The distance to one mate alone checks
+    too little over a run's first frames: a point of the next segment keeps it for a while as well. A run takes a
+    marker's name when the checks hold in nearly all of at least ``CHECKED_S`` of frames (``AGREE``), it agrees with
+    no other marker, no other run seen now agrees with that marker, and the marker was named elsewhere in none of the
+    run's frames; it keeps the name while the checks go on holding."""
+
+    def __init__(self, segments: Sequence[Segment], snug: dict[tuple[int, int], float], rate: float,
+                 joint_mm: float) -> None:
+        self.segments, self.snug, self.joint_mm = segments, snug, joint_mm
+        self.least = max(3, int(round(CHECKED_S * rate)))
+        markers = sum(len(seg.markers) for seg in segments)
+        self._segment_of = np.empty(markers, np.intp)
+        for s, seg in enumerate(segments):
+            self._segment_of[seg.markers] = s
+        self._joints = [(s, other, there) for s, seg in enumerate(segments) for other, _, there, _ in seg.joints]
+        # per marker, its references as rows of a frame's places (its markers named, then its joints' centres, then
+        # a row of NaN for padding), the distance to each and the marker's own share of the tolerance
+        width = max(len(seg.markers) - 1 + len(seg.joints) for seg in segments)
+        self._ref = np.full((markers, width), markers + len(self._joints), np.intp)
+        self._distance = np.zeros((markers, width))
+        self._tol = np.zeros((markers, width))
+        joint = 0
+        for seg in segments:
+            for row, marker in enumerate(seg.markers):
+                refs = [(int(mate), seg.local[j], seg.tol[row] + seg.tol[j])
+                        for j, mate in enumerate(seg.markers) if j != row]
+                refs += [(markers + joint + k, here, seg.tol[row]) for k, (_, here, _, _) in enumerate(seg.joints)]
+                for k, (ref, where, tol) in enumerate(refs):
+                    self._ref[marker, k] = ref
+                    self._distance[marker, k] = np.linalg.norm(seg.local[row] - where)
+                    self._tol[marker, k] = tol
+            joint += len(seg.joints)
+        self._centre = (self._ref >= markers) & (self._ref < markers + len(self._joints))
+        # every pair of mates, to tell a segment whose named markers break its layout (``_garbled``)
+        pairs = [(int(seg.markers[i]), int(seg.markers[j]), s) for s, seg in enumerate(segments)
+                 for i, j in combinations(range(len(seg.markers)), 2)]
+        self._pairs = np.array([(a, b) for a, b, _ in pairs], np.intp).reshape(-1, 2)
+        self._pair_segment = np.array([s for *_, s in pairs], np.intp)
+        seg_rows = [(seg, i, j) for seg in segments for i, j in combinations(range(len(seg.markers)), 2)]
+        self._pair_distance = np.array([np.linalg.norm(seg.local[i] - seg.local[j]) for seg, i, j in seg_rows])
+        self._pair_tol = np.array([seg.tol[i] + seg.tol[j] for seg, i, j in seg_rows])
+        self.checked = np.zeros((0, markers), np.int64)
+        self.failed = np.zeros((0, markers), np.int64)
+        self.overlap = np.zeros((0, markers), bool)  # the marker named elsewhere in a frame of the run
+
+    def grow(self, tracks: int) -> None:
+        """Room for ``tracks`` tracks in all."""
+        more = tracks - len(self.checked)
+        if more > 0:
+            markers = self.checked.shape[1]
+            self.checked = np.vstack([self.checked, np.zeros((more, markers), np.int64)])
+            self.failed = np.vstack([self.failed, np.zeros((more, markers), np.int64)])
+            self.overlap = np.vstack([self.overlap, np.zeros((more, markers), bool)])
+
+    def restart(self, tracks: np.ndarray) -> None:
+        """Forget what the runs of ``tracks`` gathered: they start a new run."""
+        self.checked[tracks], self.failed[tracks], self.overlap[tracks] = 0, 0, False
+
+    def add(self, points: np.ndarray, tracks: np.ndarray, named: np.ndarray, poses: Sequence[tuple | None],
+            level: np.ndarray) -> None:
+        """Gather one frame: ``points`` (P, 3) on ``tracks`` (P,), named by nothing but this evidence; ``named``
+        (N, 3) the markers named otherwise in the frame (NaN where none is); ``poses`` each segment's (rot, shift)
+        or None, and ``level`` how it was posed (0: by three markers or more)."""
+        held = np.isfinite(named[:, 0])
+        self.overlap[np.ix_(tracks, held)] = True
+        centres, centre_tol = self._centres(named, poses, level)
+        places = np.concatenate([named, centres, np.full((1, 3), np.nan)])
+        tol = self._tol + np.concatenate([np.zeros(len(named)), centre_tol, [0.0]])[self._ref]
+        d = norm(points[:, None, None] - places[self._ref][None])  # (P, N, references)
+        known = np.isfinite(d)
+        failed = (known & (np.abs(d - self._distance) > tol)).any(axis=2)
+        checked = (known & self._centre).any(axis=2) | ((known & ~self._centre).sum(axis=2) >= 2) | failed
+        self.checked[tracks] += checked
+        self.failed[tracks] += failed | (checked & self._garbled(named))
+
+    def _centres(self, named: np.ndarray, poses: Sequence[tuple | None],
+                 level: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Where each joint's neighbour puts its centre (J, 3), and how far the centre may stray (J,); NaN where the
+        neighbour is not posed, or where that is farther than ``joint_mm``. A segment the frame's poses put by three
+        markers or more (``level`` 0) stands; the others are posed as over a whole recording (``_poses``), from their
+        markers ``named`` and the centres of their joints to posed segments."""
+        pose = [p if p is not None and level[s] == 0 else None for s, p in enumerate(poses)]
+        slack = np.zeros(len(self.segments))
+        count = np.bincount(self._segment_of[np.isfinite(named[:, 0])], minlength=len(self.segments))
+        changed = True
+        while changed:
+            changed = False
+            for s, seg in enumerate(self.segments):
+                if pose[s] is not None or not count[s]:
+                    continue
+                joints = []  # (centre in this segment, where the neighbour puts it, how far it may stray)
+                for other, here, there, _ in seg.joints:
+                    found, held = pose[other], self.snug[s, other] + slack[other]
+                    if found is not None and held <= self.joint_mm:
+                        joints.append((here, found[0] @ there + found[1], held))
+                if count[s] + len(joints) < 3:
+                    continue
+                have = np.isfinite(named[seg.markers, 0])
+                lay = np.concatenate([seg.local[have]] + [here[None] for here, _, _ in joints])
+                x = np.concatenate([named[seg.markers[have]]] + [where[None] for _, where, _ in joints])
+                limit = np.concatenate([seg.tol[have], [held for _, _, held in joints]])
+                r, t, ok = kabsch(lay[None], x[None], np.ones((1, len(x))))
+                if ok[0] and (norm(lay @ r[0].T + t[0] - x) <= limit).all():
+                    pose[s] = (r[0], t[0])
+                    slack[s] = max((held for _, _, held in joints), default=0.0)
+                    changed = True
+        centres = np.full((len(self._joints), 3), np.nan)
+        tol = np.zeros(len(self._joints))
+        for j, (s, other, there) in enumerate(self._joints):
+            held = self.snug[s, other] + slack[other]
+            there_pose = pose[other]
+            if there_pose is not None and held <= self.joint_mm:
+                centres[j] = there_pose[0] @ there + there_pose[1]
+                tol[j] = held
+        return centres, tol
+
+    def _garbled(self, named: np.ndarray) -> np.ndarray:
+        """Per marker (N,), whether its segment's named markers break the segment's layout (as ``_garbled``)."""
+        d = norm(named[self._pairs[:, 0]] - named[self._pairs[:, 1]])
+        broken = np.abs(d - self._pair_distance) > self._pair_tol  # False where either is not named
+        return np.bincount(self._pair_segment[broken], minlength=len(self.segments))[self._segment_of] > 0
+
+    def agreed(self, tracks: np.ndarray) -> np.ndarray:
+        """(T, N): whether each of ``tracks`` agrees with each marker so far."""
+        count, bad = self.checked[tracks], self.failed[tracks]
+        return (count - bad >= self.least) & (bad <= (1 - AGREE) * count)
+
+    def names(self, tracks: np.ndarray, free: np.ndarray) -> np.ndarray:
+        """The marker each of ``tracks`` (those seen now, named by nothing else) is to take, -1 for none: the only one
+        it agrees with, which no other of them agrees with, named elsewhere in none of its run's frames and ``free``
+        now."""
+        agree = self.agreed(tracks)
+        unique = agree & (agree.sum(axis=1, keepdims=True) == 1) & (agree.sum(axis=0, keepdims=True) == 1)
+        ok = unique & ~self.overlap[tracks] & free[None]
+        return np.where(ok.any(axis=1), ok.argmax(axis=1), -1)

@@ -33,8 +33,8 @@ Steps 2-4 repeat while they pose new segments, so a segment found in step 4 pose
 joints. Points that fit no marker (ghosts, markers the skeleton does not know) stay unnamed.
 
 The names then go with the points' tracks, as the labeller without a model follows them: frame by frame as far as the
-frames so far tell (``TrackedModelLabeller``, the live node's), or over a whole recording, by runs of trajectories, and
-where no frame alone names a trajectory, by what its frames tell together (``label_with_skeleton``). The method, its
+frames so far tell (``TrackedModelLabeller``, the live node's), or over a whole recording, by runs of trajectories
+(``label_with_skeleton``); in both, where no frame alone names a run, by what its frames tell together. The method, its
 workflow and its accuracy under stress: docs/labelling.md.
 """
 
@@ -50,7 +50,7 @@ from scipy.spatial.distance import cdist
 
 from mocapflow.mocap.labelling.assignment import assign, gated_cost, match, norm
 from mocapflow.mocap.labelling.config import FRAME_ACCEL_MM_S2, LabellerConfig, frame_gate
-from mocapflow.mocap.labelling.evidence import name_by_evidence
+from mocapflow.mocap.labelling.evidence import RunningEvidence, name_by_evidence
 from mocapflow.mocap.labelling.labeller import Labeller, own_gates
 from mocapflow.mocap.labelling.offline import label_sequence, run_starts, source_rows
 from mocapflow.mocap.model import SkeletonModel
@@ -539,8 +539,9 @@ class TrackedModelLabeller:
     were given, over its whole life and over its current run (the frames it has been seen in a row: one marker surely).
     A point then takes, the surest first and never a name another point of the frame took: its run's name (given to
     more than half of the run's points), else its track's (given to more than half of the named ones), else the name
-    :class:`ModelLabeller` gave it. The same rules as over a whole recording (:func:`label_with_skeleton`), known
-    only up to the current frame. A run whose name the poses give for a while to another run, which they name so
+    :class:`ModelLabeller` gave it, else the name its run's frames agree on (``RunningEvidence``: where no frame
+    poses its segment). The same rules as over a whole recording (:func:`label_with_skeleton`), known only up to the
+    current frame. A run whose name the poses give for a while to another run, which they name so
     throughout, and its own point another name, starts afresh (``_break_contested``)."""
 
     def __init__(self, skeleton: SkeletonModel, rate: float, config: ModelLabellerConfig | None = None) -> None:
@@ -554,6 +555,8 @@ class TrackedModelLabeller:
         self._run_length = np.zeros(0, np.int64)
         self._seen = np.zeros(0, bool)  # per track: seen in the last frame
         self._contested = np.zeros(0, np.int64)  # per track: frames in a row another run took its run's name
+        self._evidence = RunningEvidence(self.model.segments, self.model._snug, self.rate, self.model.config.joint_mm)
+        self._by_evidence = np.zeros(0, np.intp)  # per track: the name its run's evidence gave it, -1 for none
 
     @property
     def time(self) -> float:
@@ -574,10 +577,14 @@ class TrackedModelLabeller:
             self._run_length = np.concatenate([self._run_length, np.zeros(grow, np.int64)])
             self._seen = np.concatenate([self._seen, np.zeros(grow, bool)])
             self._contested = np.concatenate([self._contested, np.zeros(grow, np.int64)])
+            self._by_evidence = np.concatenate([self._by_evidence, np.full(grow, -1, np.intp)])
+            self._evidence.grow(len(self._seen))
         rows = np.flatnonzero(point_track >= 0)
         track = point_track[rows]
         fresh = track[~self._seen[track]]
         self._run[fresh], self._run_length[fresh], self._contested[fresh] = 0, 0, 0
+        self._by_evidence[fresh] = -1
+        self._evidence.restart(fresh)
         self._seen[:] = False
         self._seen[track] = True
         named = given[rows] >= 0
@@ -600,10 +607,37 @@ class TrackedModelLabeller:
             if not held[given[row]]:
                 marker[row] = given[row]
                 held[given[row]] = True
+        self._name_by_evidence(pts, point_track, marker, held)
         positions = np.full((len(self.labels), 3), np.nan)
         found = np.flatnonzero(marker >= 0)
         positions[marker[found]] = pts[found]
         return positions, marker
+
+    def _name_by_evidence(self, pts: np.ndarray, point_track: np.ndarray, marker: np.ndarray, held: np.ndarray) -> None:
+        """Name the tracked points left unnamed (``marker`` -1) by their runs' evidence (``RunningEvidence``), which
+        this frame adds to: a run keeps the name its evidence gave it while the checks hold and no other point holds
+        the name; the others take the name the evidence now gives them."""
+        rows = np.flatnonzero((marker < 0) & (point_track >= 0))
+        if not len(rows):
+            return
+        named = np.full((len(self.labels), 3), np.nan)
+        found = np.flatnonzero(marker >= 0)
+        named[marker[found]] = pts[found]
+        tracks = point_track[rows]
+        self._evidence.add(pts[rows], tracks, named, self.model.pose, self.model._level)
+        kept = self._by_evidence[tracks]
+        holds = (kept >= 0) & self._evidence.agreed(tracks)[np.arange(len(tracks)), np.maximum(kept, 0)]
+        self._by_evidence[tracks[~holds]] = -1
+        for row, name in zip(rows[holds], kept[holds], strict=True):
+            if not held[name]:
+                marker[row] = name
+                held[name] = True
+        left = marker[rows] < 0
+        names = self._evidence.names(tracks[left], ~held)
+        for row, name in zip(rows[left][names >= 0], names[names >= 0], strict=True):
+            marker[row] = name
+            held[name] = True
+            self._by_evidence[point_track[row]] = name
 
     def _break_contested(self, track: np.ndarray, given: np.ndarray) -> None:
         """Start afresh the runs of ``track`` (this frame's tracks, their points named ``given`` by the poses) whose
