@@ -369,6 +369,11 @@ class RunningEvidence:
         self.checked = np.zeros((0, markers), np.int64)
         self.failed = np.zeros((0, markers), np.int64)
         self.overlap = np.zeros((0, markers), bool)  # the marker named elsewhere in a frame of the run
+        # per segment, its layout's distances (n, n) and their tolerances
+        self._layout_distance = [norm(seg.local[:, None] - seg.local[None]) for seg in segments]
+        self._layout_tol = [seg.tol[:, None] + seg.tol[None] for seg in segments]
+        # per (segment, layout rows, tracks) of three runs at a layout's distances: frames checked, and failed
+        self._trios: dict[tuple[int, tuple[int, int, int], tuple[int, int, int]], np.ndarray] = {}
 
     def grow(self, tracks: int) -> None:
         """Room for ``tracks`` tracks in all."""
@@ -382,6 +387,9 @@ class RunningEvidence:
     def restart(self, tracks: np.ndarray) -> None:
         """Forget what the runs of ``tracks`` gathered: they start a new run."""
         self.checked[tracks], self.failed[tracks], self.overlap[tracks] = 0, 0, False
+        if len(tracks) and self._trios:
+            gone = set(tracks.tolist())
+            self._trios = {key: count for key, count in self._trios.items() if not gone & set(key[2])}
 
     def add(self, points: np.ndarray, tracks: np.ndarray, named: np.ndarray, poses: Sequence[tuple | None],
             level: np.ndarray) -> None:
@@ -391,6 +399,7 @@ class RunningEvidence:
         held = np.isfinite(named[:, 0])
         self.overlap[np.ix_(tracks, held)] = True
         centres, centre_tol = self._centres(named, poses, level)
+        self._placed = centres, centre_tol
         places = np.concatenate([named, centres, np.full((1, 3), np.nan)])
         tol = self._tol + np.concatenate([np.zeros(len(named)), centre_tol, [0.0]])[self._ref]
         d = norm(points[:, None, None] - places[self._ref][None])  # (P, N, references)
@@ -446,6 +455,76 @@ class RunningEvidence:
         d = norm(named[self._pairs[:, 0]] - named[self._pairs[:, 1]])
         broken = np.abs(d - self._pair_distance) > self._pair_tol  # False where either is not named
         return np.bincount(self._pair_segment[broken], minlength=len(self.segments))[self._segment_of] > 0
+
+    def refuted(self, tracks: np.ndarray) -> np.ndarray:
+        """(T, N): whether the checks of each of ``tracks`` as each marker failed in more frames than agreeing
+        allows."""
+        count, bad = self.checked[tracks], self.failed[tracks]
+        return (count >= self.least) & (bad > (1 - AGREE) * count)
+
+    def layouts(self, points: np.ndarray, tracks: np.ndarray, named: np.ndarray,
+                free: np.ndarray) -> list[tuple[int, int]]:
+        """(index into ``points``, marker) namings of three runs as three markers of a segment none of whose markers
+        is named (``named``, all the frame's names), gathering this frame (``points`` (P, 3) on ``tracks``, unnamed,
+        after ``add``): as over a whole recording (``_by_layout``), three points at the layout's distances whose
+        placed segment puts a joint centre where the neighbour's named markers keep their distances to it, or where
+        the posed neighbour puts it, in nearly all of ``CHECKED_S`` of frames or more. A triangle fits its mirror
+        image; the joint tells them apart. Taken when no run of them agrees with another place in a layout, no place
+        with another run, the names are ``free``, and no run's own checks refute its name nor was it named elsewhere
+        in a frame of the run."""
+        seen = set(tracks.tolist())  # a trio gathers while its three runs are seen unnamed
+        self._trios = {key: count for key, count in self._trios.items() if seen >= set(key[2])}
+        if len(points) < 3:
+            return []
+        centres, centre_tol = self._placed
+        d = norm(points[:, None] - points[None])
+        joint = 0
+        for s, seg in enumerate(self.segments):
+            first = joint
+            joint += len(seg.joints)
+            if len(seg.markers) < 3 or np.isfinite(named[seg.markers, 0]).any():
+                continue
+            # per joint its centre would check: where the neighbour's named markers and posed centre are, the centre's
+            # distances to them and their tolerances
+            refs = []
+            for k, (other, here, there, _) in enumerate(seg.joints):
+                o = self.segments[other]
+                where = np.concatenate([named[o.markers], centres[first + k][None]])
+                known = np.isfinite(where[:, 0])
+                if self.snug[s, other] <= self.joint_mm and known.any():
+                    refs.append((here, where[known], np.append(norm(o.local - there), 0.0)[known],
+                                 np.append(o.tol + self.snug[s, other], centre_tol[first + k])[known]))
+            if not refs:
+                continue
+            keeps = np.abs(d - self._layout_distance[s][..., None, None]) <= self._layout_tol[s][..., None, None]
+            for rows in combinations(range(len(seg.markers)), 3):
+                a, b, c = rows
+                trios = np.array([(i, j, k) for i, j in np.argwhere(keeps[a, b]) for k in np.flatnonzero(
+                    keeps[b, c, j] & keeps[a, c, i]) if len({i, j, k}) == 3], np.intp).reshape(-1, 3)
+                if not len(trios):
+                    continue
+                lay = np.broadcast_to(seg.local[list(rows)], (len(trios), 3, 3))
+                r, t, ok = kabsch(lay, points[trios], np.ones((len(trios), 3)))
+                failed = np.zeros(len(trios), bool)
+                for here, where, want, tol in refs:
+                    centre = np.einsum("tij,j->ti", r, here) + t
+                    failed |= (np.abs(norm(centre[:, None] - where[None]) - want) > tol).any(axis=1)
+                for trio, bad in zip(trios[ok], failed[ok], strict=True):
+                    key = (s, rows, (int(tracks[trio[0]]), int(tracks[trio[1]]), int(tracks[trio[2]])))
+                    self._trios.setdefault(key, np.zeros(2, np.int64))[:] += (1, int(bad))
+        agree = [key for key, (count, bad) in self._trios.items()
+                 if count - bad >= self.least and bad <= (1 - AGREE) * count]
+        place = [(track, s, row) for s, rows, trio in agree for track, row in zip(trio, rows, strict=True)]
+        index = {int(t): i for i, t in enumerate(tracks)}
+        refuted = self.refuted(tracks)
+        out = []
+        for track, s, row in set(place):
+            if all(track != q or (s, row) == (n, w) for q, n, w in place) and \
+                    all(s != n or row != w or track == q for q, n, w in place):
+                marker = int(self.segments[s].markers[row])
+                if free[marker] and not self.overlap[track, marker] and not refuted[index[track], marker]:
+                    out.append((index[track], marker))
+        return out
 
     def agreed(self, tracks: np.ndarray) -> np.ndarray:
         """(T, N): whether each of ``tracks`` agrees with each marker so far."""

@@ -615,29 +615,39 @@ class TrackedModelLabeller:
 
     def _name_by_evidence(self, pts: np.ndarray, point_track: np.ndarray, marker: np.ndarray, held: np.ndarray) -> None:
         """Name the tracked points left unnamed (``marker`` -1) by their runs' evidence (``RunningEvidence``), which
-        this frame adds to: a run keeps the name its evidence gave it while the checks hold and no other point holds
-        the name; the others take the name the evidence now gives them."""
+        this frame adds to: a run keeps the name its evidence gave it while no other point holds the name and the
+        checks do not refute it; the others take the name the evidence now gives them, by their distances to what is
+        known of the marker's segment, else three together as a segment none of whose markers is named."""
         rows = np.flatnonzero((marker < 0) & (point_track >= 0))
         if not len(rows):
             return
-        named = np.full((len(self.labels), 3), np.nan)
-        found = np.flatnonzero(marker >= 0)
-        named[marker[found]] = pts[found]
         tracks = point_track[rows]
-        self._evidence.add(pts[rows], tracks, named, self.model.pose, self.model._level)
         kept = self._by_evidence[tracks]
-        holds = (kept >= 0) & self._evidence.agreed(tracks)[np.arange(len(tracks)), np.maximum(kept, 0)]
-        self._by_evidence[tracks[~holds]] = -1
-        for row, name in zip(rows[holds], kept[holds], strict=True):
+        for row, name in zip(rows[kept >= 0], kept[kept >= 0], strict=True):
             if not held[name]:
                 marker[row] = name
                 held[name] = True
+        named = np.full((len(self.labels), 3), np.nan)
+        found = np.flatnonzero(marker >= 0)
+        named[marker[found]] = pts[found]
+        self._evidence.add(pts[rows], tracks, named, self.model.pose, self.model._level)
+        refuted = (kept >= 0) & self._evidence.refuted(tracks)[np.arange(len(tracks)), np.maximum(kept, 0)]
+        self._by_evidence[tracks[refuted]] = -1
+        marker[rows[refuted]] = -1
+        held[kept[refuted]] = False
         left = marker[rows] < 0
         names = self._evidence.names(tracks[left], ~held)
         for row, name in zip(rows[left][names >= 0], names[names >= 0], strict=True):
             marker[row] = name
             held[name] = True
             self._by_evidence[point_track[row]] = name
+        now = rows[marker[rows] >= 0]
+        named[marker[now]] = pts[now]
+        rest = rows[marker[rows] < 0]
+        for i, name in self._evidence.layouts(pts[rest], point_track[rest], named, ~held):
+            marker[rest[i]] = name
+            held[name] = True
+            self._by_evidence[point_track[rest[i]]] = name
 
     def _break_contested(self, track: np.ndarray, given: np.ndarray) -> None:
         """Start afresh the runs of ``track`` (this frame's tracks, their points named ``given`` by the poses) whose
