@@ -329,7 +329,8 @@ class RunningEvidence:
     too little over a run's first frames: a point of the next segment keeps it for a while as well. A run takes a
     marker's name when the checks hold in nearly all of at least ``CHECKED_S`` of frames (``AGREE``), it agrees with
     no other marker, no other run seen now agrees with that marker, and the marker was named elsewhere in none of the
-    run's frames; it keeps the name while the checks go on holding."""
+    run's frames. Three runs no such check names may take three names of a segment none of whose markers is named by
+    its layout (:meth:`layouts`). A run keeps its name while its checks do not refute it (:meth:`refuted`)."""
 
     def __init__(self, segments: Sequence[Segment], snug: dict[tuple[int, int], float], rate: float,
                  joint_mm: float) -> None:
@@ -374,6 +375,8 @@ class RunningEvidence:
         self._layout_tol = [seg.tol[:, None] + seg.tol[None] for seg in segments]
         # per (segment, layout rows, tracks) of three runs at a layout's distances: frames checked, and failed
         self._trios: dict[tuple[int, tuple[int, int, int], tuple[int, int, int]], np.ndarray] = {}
+        # the frame's joint centres and their tolerances (``_centres``), as ``add`` last placed them
+        self._placed = np.full((len(self._joints), 3), np.nan), np.zeros(len(self._joints))
 
     def grow(self, tracks: int) -> None:
         """Room for ``tracks`` tracks in all."""

@@ -608,10 +608,7 @@ class TrackedModelLabeller:
                 marker[row] = given[row]
                 held[given[row]] = True
         self._name_by_evidence(pts, point_track, marker, held)
-        positions = np.full((len(self.labels), 3), np.nan)
-        found = np.flatnonzero(marker >= 0)
-        positions[marker[found]] = pts[found]
-        return positions, marker
+        return self._named(pts, marker), marker
 
     def _name_by_evidence(self, pts: np.ndarray, point_track: np.ndarray, marker: np.ndarray, held: np.ndarray) -> None:
         """Name the tracked points left unnamed (``marker`` -1) by their runs' evidence (``RunningEvidence``), which
@@ -627,27 +624,31 @@ class TrackedModelLabeller:
             if not held[name]:
                 marker[row] = name
                 held[name] = True
-        named = np.full((len(self.labels), 3), np.nan)
-        found = np.flatnonzero(marker >= 0)
-        named[marker[found]] = pts[found]
-        self._evidence.add(pts[rows], tracks, named, self.model.pose, self.model._level)
+        self._evidence.add(pts[rows], tracks, self._named(pts, marker), self.model.pose, self.model._level)
         refuted = (kept >= 0) & self._evidence.refuted(tracks)[np.arange(len(tracks)), np.maximum(kept, 0)]
         self._by_evidence[tracks[refuted]] = -1
-        marker[rows[refuted]] = -1
-        held[kept[refuted]] = False
+        dropped = refuted & (marker[rows] == kept)  # the name the run kept this frame, now refuted
+        marker[rows[dropped]] = -1
+        held[kept[dropped]] = False
         left = marker[rows] < 0
         names = self._evidence.names(tracks[left], ~held)
         for row, name in zip(rows[left][names >= 0], names[names >= 0], strict=True):
             marker[row] = name
             held[name] = True
             self._by_evidence[point_track[row]] = name
-        now = rows[marker[rows] >= 0]
-        named[marker[now]] = pts[now]
         rest = rows[marker[rows] < 0]
-        for i, name in self._evidence.layouts(pts[rest], point_track[rest], named, ~held):
+        for i, name in self._evidence.layouts(pts[rest], point_track[rest], self._named(pts, marker), ~held):
             marker[rest[i]] = name
             held[name] = True
             self._by_evidence[point_track[rest[i]]] = name
+
+    def _named(self, pts: np.ndarray, marker: np.ndarray) -> np.ndarray:
+        """Each marker's position (N, 3) from the points named it (``marker`` per point, -1 for none); NaN where none
+        is."""
+        named = np.full((len(self.labels), 3), np.nan)
+        found = np.flatnonzero(marker >= 0)
+        named[marker[found]] = pts[found]
+        return named
 
     def _break_contested(self, track: np.ndarray, given: np.ndarray) -> None:
         """Start afresh the runs of ``track`` (this frame's tracks, their points named ``given`` by the poses) whose
