@@ -165,13 +165,23 @@ def _references(s: int, row: int, named: np.ndarray, centres: dict[tuple[int, in
     return out
 
 
-def _garbled(points: np.ndarray, seg: Segment) -> np.ndarray:
-    """Per frame, whether two of a segment's named markers (``points`` (F, n, 3), NaN where not named) are farther
-    from their layout distance than their tolerances allow: names that check nothing."""
-    pairs = np.array(list(combinations(range(len(seg.markers)), 2)), np.intp).reshape(-1, 2)
-    d = norm(points[:, pairs[:, 0]] - points[:, pairs[:, 1]])
-    want = norm(seg.local[pairs[:, 0]] - seg.local[pairs[:, 1]])
-    return (np.abs(d - want) > seg.tol[pairs[:, 0]] + seg.tol[pairs[:, 1]]).any(axis=1)
+class _Garbled:
+    """Tells, per frame, the segments whose named markers break their layout: two of them farther from their layout
+    distance than their tolerances allow (names that check nothing)."""
+
+    def __init__(self, segments: Sequence[Segment]) -> None:
+        rows = [(s, seg, i, j) for s, seg in enumerate(segments) for i, j in combinations(range(len(seg.markers)), 2)]
+        self.pairs = np.array([(seg.markers[i], seg.markers[j]) for _, seg, i, j in rows], np.intp).reshape(-1, 2)
+        self.distance = np.array([np.linalg.norm(seg.local[i] - seg.local[j]) for _, seg, i, j in rows])
+        self.tol = np.array([seg.tol[i] + seg.tol[j] for _, seg, i, j in rows])
+        self.member = np.zeros((len(rows), len(segments)))  # pair -> its segment
+        self.member[np.arange(len(rows)), [s for s, *_ in rows]] = 1.0
+
+    def __call__(self, named: np.ndarray) -> np.ndarray:
+        """(..., S) from the markers' positions ``named`` (..., N, 3), NaN where not named."""
+        d = norm(named[..., self.pairs[:, 0], :] - named[..., self.pairs[:, 1], :])
+        broken = np.abs(d - self.distance) > self.tol  # False where either is not named
+        return broken.astype(float) @ self.member > 0
 
 
 def _verdicts(points: np.ndarray, references: list[Reference]) -> tuple[np.ndarray, np.ndarray]:
@@ -203,8 +213,9 @@ def _by_references(positions: np.ndarray, open_part: np.ndarray, named: np.ndarr
     agrees = np.zeros((named.shape[1], open_part.shape[1]), bool)
     refuted = np.zeros_like(agrees)
     swapped = np.zeros((named.shape[1],) * 2, bool)  # [m, n]: the frames refute that n's point is m
+    garbled = _Garbled(segments)(named)
     for s, seg in enumerate(segments):
-        doubt = _garbled(named[:, seg.markers], seg)
+        doubt = garbled[:, s]
         for row, marker in enumerate(seg.markers):
             checked, failed = _verdicts(own, _references(s, row, named, centres, segments))
             failed |= checked & doubt[:, None]
@@ -359,14 +370,7 @@ class RunningEvidence:
                     self._tol[marker, k] = tol
             joint += len(seg.joints)
         self._centre = (self._ref >= markers) & (self._ref < markers + len(self._joints))
-        # every pair of mates, to tell a segment whose named markers break its layout (``_garbled``)
-        pairs = [(int(seg.markers[i]), int(seg.markers[j]), s) for s, seg in enumerate(segments)
-                 for i, j in combinations(range(len(seg.markers)), 2)]
-        self._pairs = np.array([(a, b) for a, b, _ in pairs], np.intp).reshape(-1, 2)
-        self._pair_segment = np.array([s for *_, s in pairs], np.intp)
-        seg_rows = [(seg, i, j) for seg in segments for i, j in combinations(range(len(seg.markers)), 2)]
-        self._pair_distance = np.array([np.linalg.norm(seg.local[i] - seg.local[j]) for seg, i, j in seg_rows])
-        self._pair_tol = np.array([seg.tol[i] + seg.tol[j] for seg, i, j in seg_rows])
+        self._garbled = _Garbled(segments)
         self.checked = np.zeros((0, markers), np.int64)
         self.failed = np.zeros((0, markers), np.int64)
         self.overlap = np.zeros((0, markers), bool)  # the marker named elsewhere in a frame of the run
@@ -410,7 +414,7 @@ class RunningEvidence:
         failed = (known & (np.abs(d - self._distance) > tol)).any(axis=2)
         checked = (known & self._centre).any(axis=2) | ((known & ~self._centre).sum(axis=2) >= 2) | failed
         self.checked[tracks] += checked
-        self.failed[tracks] += failed | (checked & self._garbled(named))
+        self.failed[tracks] += failed | (checked & self._garbled(named)[self._segment_of])
 
     def _centres(self, named: np.ndarray, poses: Sequence[tuple | None],
                  level: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -452,12 +456,6 @@ class RunningEvidence:
                 centres[j] = there_pose[0] @ there + there_pose[1]
                 tol[j] = held
         return centres, tol
-
-    def _garbled(self, named: np.ndarray) -> np.ndarray:
-        """Per marker (N,), whether its segment's named markers break the segment's layout (as ``_garbled``)."""
-        d = norm(named[self._pairs[:, 0]] - named[self._pairs[:, 1]])
-        broken = np.abs(d - self._pair_distance) > self._pair_tol  # False where either is not named
-        return np.bincount(self._pair_segment[broken], minlength=len(self.segments))[self._segment_of] > 0
 
     def refuted(self, tracks: np.ndarray) -> np.ndarray:
         """(T, N): whether the checks of each of ``tracks`` as each marker failed in more frames than agreeing
