@@ -537,12 +537,14 @@ class TrackedModelLabeller:
     wrong keeps its wrong names while its markers are followed. The model-free labeller (``Labeller``) follows the
     same points as tracks, one marker each across most gaps, with no name. Each track counts the names its points
     were given, over its whole life and over its current run (the frames it has been seen in a row: one marker surely).
-    A point then takes, the surest first and never a name another point of the frame took: its run's name (given to
-    more than half of the run's points), else its track's (given to more than half of the named ones), else the name
-    :class:`ModelLabeller` gave it, else the name its run's frames agree on (``RunningEvidence``: where no frame
-    poses its segment). The same rules as over a whole recording (:func:`label_with_skeleton`), known only up to the
-    current frame. A run whose name the poses give for a while to another run, which they name so
-    throughout, and its own point another name, starts afresh (``_break_contested``)."""
+    A point then takes, the surest first and never a name another point of the frame took: its run's name (given to more
+    than half of the run's points), else its track's (given to more than half of the named ones), else the name
+    :class:`ModelLabeller` gave it, else the name its run's frames agree on (``RunningEvidence``: where no frame poses
+    its segment). The same rules as over a whole recording (:func:`label_with_skeleton`), known only up to the current
+    frame, but for one: a track's name stands only once the poses gave it in two frames or more. Live, on the stress
+    cases, a name they gave in one frame alone was a chance placement's; over a whole recording, the backward pass votes
+    too. A run whose name the poses give for a while to another run, which they name so throughout, and its own point
+    another name, starts afresh (``_break_contested``)."""
 
     def __init__(self, skeleton: SkeletonModel, rate: float, config: ModelLabellerConfig | None = None) -> None:
         self.model = ModelLabeller(skeleton, rate, config)
@@ -598,7 +600,7 @@ class TrackedModelLabeller:
         own, usual = run.argmax(axis=1), votes.argmax(axis=1)
         own_votes, usual_votes = run.max(axis=1, initial=0), votes.max(axis=1, initial=0)
         for choice, count, sure in ((own, own_votes, 2 * own_votes > self._run_length[track]),
-                                    (usual, usual_votes, (usual_votes > 0) & (2 * usual_votes > votes.sum(axis=1)))):
+                                    (usual, usual_votes, (usual_votes > 1) & (2 * usual_votes > votes.sum(axis=1)))):
             for i in np.argsort(-count, kind="stable"):
                 if sure[i] and marker[rows[i]] < 0 and not held[choice[i]]:
                     marker[rows[i]] = choice[i]
