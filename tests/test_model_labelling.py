@@ -263,6 +263,39 @@ def test_a_name_the_poses_gave_a_track_in_one_frame_names_it_in_that_frame_only(
 
 
 @pytest.mark.integration
+def test_a_segment_posed_on_other_markers_points_is_placed_anew_where_its_layout_lands_on_more(data_dir: Path) -> None:
+    """The Vicon lower-body file's first 1500 frames, the second half under stress damage, streamed, named from a
+    skeleton calibrated on its first half. In the first frame the left shank (six markers) was posed on three points of
+    the right shank, at its layout's distances with the knee centre, and followed them: RSH1-3 were named LSH3, LSH1 and
+    LSH2 for up to 583 frames, to the end of the trial. Now a segment posed by its markers is placed anew where its
+    layout lands on more points, its own and those left over: the left shank's own markers, come back, take it within
+    0.5 s, and the right shank is found on its own points."""
+    from mocapflow.io.markers import read_markers
+
+    data = read_markers(data_dir / "lowerbody_clusters_knee_0401.c3d")
+    positions = data.positions[:1500]  # as the stress benchmark's --quick cases
+    half = len(positions) // 2
+    skeleton = calibrate(positions[:half], data.labels, data.rate)
+    points, identity = unlabel(positions, data.rate, seed=6, stationary=True, **STRESS)
+    live = TrackedModelLabeller(skeleton, data.rate)
+    right = [data.labels.index(name) for name in ("RSH1", "RSH2", "RSH3")]
+    mirrored = [live.labels.index(name) for name in ("LSH1", "LSH2", "LSH3")]
+    wrong_frames, named, seen = [], 0, 0
+    for f, (p, ids) in enumerate(zip(points[half:], identity[half:], strict=True)):
+        given = live.update(p, f / data.rate)[1]
+        mine = np.isin(ids, right)
+        if np.isin(given[mine], mirrored).any():
+            wrong_frames.append(f)
+        named += sum(g >= 0 and live.labels[g] == data.labels[m] for m, g in zip(ids[mine], given[mine], strict=True))
+        seen += int(mine.sum())
+    print(f"\nRSH1-3 named as the left shank in frames {wrong_frames[:1]}..{wrong_frames[-1:]}; {named} of {seen} "
+          "points named right")
+    assert wrong_frames and wrong_frames[0] == 0, "the left shank is no longer posed wrong at the start"
+    assert wrong_frames[-1] < 0.5 * data.rate
+    assert named >= 0.85 * seen
+
+
+@pytest.mark.integration
 @pytest.mark.parametrize(("capture", "seed"), [("cmu_85_02.c3d", 3), ("hamner_run200.trc", 4)])
 def test_the_trajectories_evidence_adds_no_wrong_name(data_dir: Path, monkeypatch: pytest.MonkeyPatch, capture: str,
                                                       seed: int) -> None:

@@ -27,9 +27,12 @@ whatever the point order and however long a marker was hidden:
    the frame, a neighbour is surely posed with their joint centre where it puts it. When nothing else poses a
    segment, a segment of three markers whose look-alike has no pose either (both feet unposed, a deadlock) is placed
    on three points together with an unposed neighbour whose own three points or more lie where the joint puts them
-   (``_pair``).
+   (``_pair``);
+5. a segment posed by three of its markers or more is placed anew where its layout lands on more points, its own and
+   those left over, its joint centres where segments posed so put them (``_challenge``): one placed on chance points
+   (at a cold start) and followed on them is found again where its own markers show.
 
-Steps 2-4 repeat while they pose new segments, so a segment found in step 4 poses its neighbours through their
+Steps 2-5 repeat while they pose new segments, so a segment found in step 4 poses its neighbours through their
 joints. Points that fit no marker (ghosts, markers the skeleton does not know) stay unnamed.
 
 The names then go with the points' tracks, as the labeller without a model follows them: frame by frame as far as the
@@ -207,7 +210,8 @@ class ModelLabeller:
             posed = self._pose_segments(poses, cur, taken, refused)
             self._take_predicted(poses, cur, taken, z, time, refused)
             found = self._search(poses, cur, taken, z, searched, seeds)
-            if not (posed or found or self._search_pairs(poses, cur, taken, z)):
+            if not (posed or found or self._search_pairs(poses, cur, taken, z)
+                    or self._challenge(poses, cur, taken, z)):
                 break
         for s in seeds:
             if not self._confirmed(s, poses):
@@ -438,6 +442,33 @@ class ModelLabeller:
                 seeds.append(s)
             placed = True
         return placed
+
+    def _challenge(self, poses: list, cur: np.ndarray, taken: np.ndarray, z: np.ndarray) -> bool:
+        """Place anew each segment posed by three of its markers or more where its layout lands on more points, among
+        the points left over and its own, its joint centres to segments so posed kept within their tolerances, when
+        that placement is clearly best (``_place_layout``). A segment placed on chance points (at a cold start, three
+        of another segment's) is followed on them while its own markers go unmatched: where they show, it is found
+        again. True when one was placed."""
+        moved = False
+        count = np.bincount(self._segment_of[np.isfinite(cur[:, 0])], minlength=len(self.segments))
+        for s in np.flatnonzero((self._level == 0) & (count < (self._slots >= 0).sum(axis=1))).tolist():
+            left = np.flatnonzero(taken < 0)
+            if not len(left):
+                break  # its own points alone land no more than it has
+            seg, have = self.segments[s], int(count[s])
+            free = np.concatenate([left, np.flatnonzero(np.isin(taken, seg.markers))])
+            free = free[_could_hold(seg, z[free], have + 1)]
+            if len(free) <= have:
+                continue
+            anchors = [(here, poses[other][0] @ there + poses[other][1], tol, self._joint_weight(tol))
+                       for other, here, there, tol in seg.joints if self._level[other] == 0]
+            best = _place_layout(seg.local, z[free], seg.tol, self._weight[seg.markers], anchors, least=have + 1)
+            if best is None:
+                continue
+            points = {slot: int(free[p]) for slot, p in best[0].items()}
+            self._place(s, points, best[1], best[2], 0, poses, cur, taken, z)
+            moved = True
+        return moved
 
     def _place(self, s: int, points: dict[int, int], rot: np.ndarray, shift: np.ndarray, level: int, poses: list,
                cur: np.ndarray, taken: np.ndarray, z: np.ndarray) -> None:
@@ -677,7 +708,8 @@ class TrackedModelLabeller:
 def _place_layout(layout: np.ndarray, cloud: np.ndarray, tol: np.ndarray, weight: np.ndarray,
                   anchors: list[tuple[np.ndarray, np.ndarray, float, float]],
                   around: tuple[np.ndarray, float] | None = None, posture: list[np.ndarray] | None = None,
-                  alone: bool = False) -> tuple[dict[int, int], np.ndarray, np.ndarray] | None:
+                  alone: bool = False,
+                  least: int | None = None) -> tuple[dict[int, int], np.ndarray, np.ndarray] | None:
     """The placement of a segment's layout ``(n, 3)`` on ``cloud`` that fits clearly better than any other (more
     points, or a third of the misfit): the points it lands on by layout row, its rotation and translation; None when
     no placement is that sure. ``tol`` and ``weight`` (n,) are each layout point's tolerance (mm) and weight in the
@@ -690,13 +722,16 @@ def _place_layout(layout: np.ndarray, cloud: np.ndarray, tol: np.ndarray, weight
     segment's centre must lie ``around`` (centre, radius) where it was lately, or when it is ``alone``: a segment of
     three markers whose look-alikes (``_look_alikes``), which could take those points, are all surely posed.
 
+    ``least``, when given, is the fewest layout points a placement must land instead.
+
     Placements that fit equally well (a symmetric layout: two markers at the same distances from the third and from
     the joint, each hidden in turn) are told apart by ``posture``: the rotations the segment would have if it kept,
     to each anchoring neighbour, the relative rotation it last had. The placement turned least from them is taken
     when every rival is turned at least ``POSTURE_DEG`` more; a joint does not flip a segment over between two
     sightings.
     """
-    least = (4 if around is None and not alone else 3) if not anchors else 2 if len(anchors) == 1 else 1
+    if least is None:
+        least = (4 if around is None and not alone else 3) if not anchors else 2 if len(anchors) == 1 else 1
     found = _placements(layout, cloud, tol, weight, anchors, least, around)
     if not found:
         return None
@@ -754,6 +789,23 @@ def _placements(layout: np.ndarray, cloud: np.ndarray, tol: np.ndarray, weight: 
         if key not in found or misfit < found[key][1]:
             found[key] = (hits, misfit, rot, shift)
     return list(found.values())
+
+
+def _could_hold(seg: _Segment, cloud: np.ndarray, least: int) -> np.ndarray:
+    """Which points of ``cloud`` could be among ``least`` of them that a placement of the segment's layout lands on:
+    each such point lies at one of the layout's distances (within the two markers' tolerances together) from
+    ``least - 1`` others of them. A quick bound before the search."""
+    rows, cols = np.triu_indices(len(seg.local), 1)
+    d_layout = norm(seg.local[rows] - seg.local[cols])
+    tol = seg.tol[rows] + seg.tol[cols]
+    d = cdist(cloud, cloud)
+    linked = (np.abs(d[..., None] - d_layout) < tol).any(axis=2)
+    keep = np.ones(len(cloud), bool)
+    while True:
+        drop = keep & ((linked & keep[None]).sum(axis=1) < least - 1)
+        if not drop.any():
+            return keep
+        keep &= ~drop
 
 
 def _look_alikes(segments: list[_Segment]) -> list[list[int]]:
