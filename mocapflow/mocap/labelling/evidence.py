@@ -64,12 +64,16 @@ tolerance on that distance (F,)."""
 
 class Segment(Protocol):
     """A segment of the labeller from a skeleton: its markers' indices, their layout in its frame ``(n, 3)`` and
-    tolerances (mm), and its joints (neighbour, centre in this frame, centre in the neighbour's, tolerance)."""
+    tolerances (mm), its joints (neighbour, centre in this frame, centre in the neighbour's, tolerance), and between
+    each two of its markers the layout's distance ``sides`` (n, n) and how far two points keeping it may stray
+    ``slack`` (n, n: their tolerances together)."""
 
     markers: np.ndarray
     local: np.ndarray
     tol: np.ndarray
     joints: list[tuple[int, np.ndarray, np.ndarray, float]]
+    sides: np.ndarray
+    slack: np.ndarray
 
 
 def name_by_evidence(positions: np.ndarray, owner: np.ndarray, segments: Sequence[Segment],
@@ -172,8 +176,8 @@ class _Garbled:
     def __init__(self, segments: Sequence[Segment]) -> None:
         rows = [(s, seg, i, j) for s, seg in enumerate(segments) for i, j in combinations(range(len(seg.markers)), 2)]
         self.pairs = np.array([(seg.markers[i], seg.markers[j]) for _, seg, i, j in rows], np.intp).reshape(-1, 2)
-        self.distance = np.array([np.linalg.norm(seg.local[i] - seg.local[j]) for _, seg, i, j in rows])
-        self.tol = np.array([seg.tol[i] + seg.tol[j] for _, seg, i, j in rows])
+        self.distance = np.array([seg.sides[i, j] for _, seg, i, j in rows])
+        self.tol = np.array([seg.slack[i, j] for _, seg, i, j in rows])
         self.member = np.zeros((len(rows), len(segments)))  # pair -> its segment
         self.member[np.arange(len(rows)), [s for s, *_ in rows]] = 1.0
 
@@ -308,8 +312,7 @@ def _trios(pos: np.ndarray, seg: Segment, rows: tuple[int, int, int], least: int
     """Three trajectory parts (columns of ``pos`` (F, P, 3), in layout-row order) whose distances keep the layout's
     between ``rows`` in nearly every frame all three are seen, and in enough of them."""
     a, b, c = rows
-    ab, bc, ac = (_keeps(pos, float(np.linalg.norm(seg.local[i] - seg.local[j])), seg.tol[i] + seg.tol[j], least)
-                  for i, j in ((a, b), (b, c), (a, c)))
+    ab, bc, ac = (_keeps(pos, float(seg.sides[i, j]), seg.slack[i, j], least) for i, j in ((a, b), (b, c), (a, c)))
     return [(int(i), int(j), int(k)) for i, j in np.argwhere(ab) for k in np.flatnonzero(bc[j] & ac[i])
             if len({i, j, k}) == 3]
 
@@ -374,9 +377,6 @@ class RunningEvidence:
         self.checked = np.zeros((0, markers), np.int64)
         self.failed = np.zeros((0, markers), np.int64)
         self.overlap = np.zeros((0, markers), bool)  # the marker named elsewhere in a frame of the run
-        # per segment, its layout's distances (n, n) and their tolerances
-        self._layout_distance = [norm(seg.local[:, None] - seg.local[None]) for seg in segments]
-        self._layout_tol = [seg.tol[:, None] + seg.tol[None] for seg in segments]
         # per (segment, layout rows, tracks) of three runs at a layout's distances: frames checked, and failed
         self._trios: dict[tuple[int, tuple[int, int, int], tuple[int, int, int]], np.ndarray] = {}
         # the frame's joint centres and their tolerances (``_centres``), as ``add`` last placed them
@@ -497,7 +497,7 @@ class RunningEvidence:
                                  np.append(o.tol + self.snug[s, other], centre_tol[first + k])[known]))
             if not refs:
                 continue
-            keeps = np.abs(d - self._layout_distance[s][..., None, None]) <= self._layout_tol[s][..., None, None]
+            keeps = np.abs(d - seg.sides[..., None, None]) <= seg.slack[..., None, None]
             for rows in combinations(range(len(seg.markers)), 3):
                 a, b, c = rows
                 trios = np.array([(i, j, k) for i, j in np.argwhere(keeps[a, b]) for k in np.flatnonzero(

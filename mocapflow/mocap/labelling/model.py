@@ -107,6 +107,10 @@ class _Segment:
     # (other segment, centre in this frame, centre in the other's, largest distance between the centres the two put)
     joints: list[tuple[int, np.ndarray, np.ndarray, float]]
 
+    def __post_init__(self) -> None:
+        self.sides = norm(self.local[:, None] - self.local[None])  # (n, n) the layout's distances
+        self.slack = self.tol[:, None] + self.tol[None]  # (n, n) how far two points keeping them may stray
+
 
 class ModelLabeller:
     """Streaming labeller that names points with a skeleton's marker names; feed frames in time order to
@@ -796,10 +800,8 @@ def _could_hold(seg: _Segment, cloud: np.ndarray, least: int) -> np.ndarray:
     each such point lies at one of the layout's distances (within the two markers' tolerances together) from
     ``least - 1`` others of them. A quick bound before the search."""
     rows, cols = np.triu_indices(len(seg.local), 1)
-    d_layout = norm(seg.local[rows] - seg.local[cols])
-    tol = seg.tol[rows] + seg.tol[cols]
     d = cdist(cloud, cloud)
-    linked = (np.abs(d[..., None] - d_layout) < tol).any(axis=2)
+    linked = (np.abs(d[..., None] - seg.sides[rows, cols]) < seg.slack[rows, cols]).any(axis=2)
     keep = np.ones(len(cloud), bool)
     while True:
         drop = keep & ((linked & keep[None]).sum(axis=1) < least - 1)
