@@ -26,8 +26,8 @@ whatever the point order and however long a marker was hidden:
    across two segments of another limb among them: a segment with joints placed by it stands only if, by the end of
    the frame, a neighbour is surely posed with their joint centre where it puts it. When nothing else poses a
    segment, a segment of three markers whose look-alike has no pose either (both feet unposed, a deadlock) is placed
-   on three points together with an unposed neighbour whose own three points or more lie where the joint puts them
-   (``_pair``);
+   on three points together with an unposed neighbour whose own three points or more (both, for a neighbour of two
+   markers) lie where the joint puts them (``_pair``);
 5. a segment posed by three of its markers or more is placed anew where its layout lands on more points, its own and
    those left over, its joint centres where segments posed so put them (``_challenge``): one placed on chance points
    (at a cold start) and followed on them is found again where its own markers show.
@@ -505,15 +505,16 @@ class ModelLabeller:
     def _pair(self, s: int, seg: _Segment, poses: list, taken: np.ndarray,
               z: np.ndarray) -> dict[int, tuple[dict[int, int], np.ndarray, np.ndarray]] | None:
         """Segment ``s`` placed on three points with a neighbour that has no pose either, placed on three or more of its
-        own points and their joint centre (within the largest distance calibration saw between the centres the two
-        put, or ``fit_mm``), when exactly one set of points for ``s`` lets a neighbour be placed so: per segment, its
-        points by layout row (indices into ``z``), rotation and translation; else None.
+        own points (both, for a neighbour of two markers: a shank, its shin and ankle markers) and their joint centre
+        (within the largest distance calibration saw between the centres the two put, or ``fit_mm``), when exactly one
+        set of points for ``s`` lets a neighbour be placed so: per segment, its points by layout row (indices into
+        ``z``), rotation and translation; else None.
 
         A triangle alone could be its look-alike's (a triangle fits its mirror image). Its joint centre tells: a
         layout placed on its mirror image's points puts the centre on the wrong side of their plane, where the
         neighbour's points do not lie."""
         hinged = [(o, here, there, self._snug[s, o]) for o, here, there, _ in seg.joints
-                  if poses[o] is None and len(self.segments[o].markers) >= 3]
+                  if poses[o] is None and len(self.segments[o].markers) >= 2]
         if not hinged:
             return None
         free = np.flatnonzero((taken < 0) | np.isin(taken, seg.markers))
@@ -528,7 +529,7 @@ class ModelLabeller:
                 rest = np.flatnonzero(open_to[o] & ~np.isin(np.arange(len(z)), list(points.values())))
                 anchor = [(there, rot @ here + shift, tol, self._joint_weight(tol))]
                 best = _place_layout(other.local, z[rest], other.tol, self._weight[other.markers], anchor)
-                if best is not None and len(best[0]) >= 3:
+                if best is not None and len(best[0]) >= min(3, len(other.markers)):
                     key = frozenset(points.items())
                     found.setdefault(key, {s: (points, rot, shift),
                                            o: ({slot: int(rest[p]) for slot, p in best[0].items()}, best[1], best[2])})
