@@ -16,18 +16,19 @@ whatever the point order and however long a marker was hidden:
    the layout, whatever marker happens to lie near it. A segment posed through joints or its previous pose gives a
    point (inside ``weak_gate_mm``) only to a marker whose layout distances to the segment's seen markers and joint
    centres it keeps, and only when neither has another such candidate;
-4. a segment with no pose (the first frame, or after its markers and its neighbours' were hidden) is searched for
-   among the points left over, and its own markers matched so far, by its layout (``_place_layout``): points at the
-   layout's distances and its joint centres where its posed neighbours put them, placed by a proper rotation, taken
-   when one placement fits clearly best, or, among placements of a symmetric layout that fit alike, turns the
-   segment clearly least from its last posture to its neighbours. With no posed neighbour it takes four points, or
-   three: near where it was lately, or, for a segment of three markers, once every segment with a triangle like its
-   own (the other foot) is surely posed elsewhere. The last rule takes any triangle at the layout's distances, one
-   across two segments of another limb among them: a segment with joints placed by it stands only if, by the end of
-   the frame, a neighbour is surely posed with their joint centre where it puts it. When nothing else poses a
-   segment, a segment of three markers whose look-alike has no pose either (both feet unposed, a deadlock) is placed
-   on three points together with an unposed neighbour whose own three points or more (both, for a neighbour of two
-   markers) lie where the joint puts them (``_pair``);
+4. a segment with no pose (the first frame, or after its markers and its neighbours' were hidden) is searched for among
+   the points left over, and its own markers matched so far, by its layout (``_place_layout``): points at the layout's
+   distances and its joint centres where its posed neighbours put them, placed by a proper rotation, taken when one
+   placement fits clearly best, or, among placements of a symmetric layout that fit alike, turns the segment clearly
+   least from its last posture to its neighbours. With no posed neighbour it takes four points, or three: near where it
+   was lately, or, for a segment of three markers, once every segment with a triangle like its own (the other foot) is
+   surely posed elsewhere. The last rule takes any triangle at the layout's distances, one across two segments of
+   another limb among them: a segment with joints placed by it stands only if, by the end of the frame, a neighbour is
+   surely posed with their joint centre where it puts it, or, no neighbour posed at all, once it has been so placed, at
+   the same place, in every frame for ``held_s`` (a chance triangle across a joint keeps its shape only while the joint
+   keeps still). When nothing else poses a segment, a segment of three markers whose look-alike has no pose either (both
+   feet unposed, a deadlock) is placed on three points together with an unposed neighbour whose own three points or more
+   (both, for a neighbour of two markers) lie where the joint puts them (``_pair``);
 5. a segment posed by three of its markers or more is placed anew where its layout lands on more points, its own and
    those left over, its joint centres where segments posed so put them (``_challenge``): one placed on chance points
    (at a cold start) and followed on them is found again where its own markers show.
@@ -94,6 +95,8 @@ class ModelLabellerConfig(BaseModel):
     max_coast_s: float = Field(0.1, ge=0, description="a marker whose segment has no pose is coasted at constant "
                                "velocity this long")
     recent_s: float = Field(2.0, ge=0, description="a segment posed this recently is looked for near where it was")
+    held_s: float = Field(0.2, ge=0, description="a segment placed on three points alone, with no posed neighbour to "
+                          "confirm it, stands once so placed at the same place in every frame this long")
     max_speed_mm_s: float = Field(3000.0, gt=0, description="fastest a segment moves, bounding where to look for it")
     velocity_smoothing: float = Field(0.7, gt=0, le=1, description="weight of the newest velocity in a marker's "
                                       "smoothed velocity")
@@ -177,6 +180,10 @@ class ModelLabeller:
         self._last_time = np.full(len(self.segments), -np.inf)
         # each segment's rotation relative to each neighbour, when both were last surely posed: its posture there
         self._posture: dict[tuple[int, int], np.ndarray] = {}
+        # per segment placed on three points alone with no posed neighbour: since when so placed in every frame, and
+        # where in the last
+        self._doubted_since = np.full(len(self.segments), np.nan)
+        self._doubted_at = np.full((len(self.segments), 3), np.nan)
         self._time = -np.inf
 
     @property
@@ -193,7 +200,7 @@ class ModelLabeller:
         cfg = self.config
         if time <= self._time:
             raise ValueError(f"frame times must increase: {time} after {self._time}")
-        self._time = time
+        dt_frame, self._time = time - self._time, time
         pts = np.asarray(points, dtype=float).reshape(-1, 3)
         rows = np.flatnonzero(np.isfinite(pts).all(axis=1))
         z = pts[rows]
@@ -217,10 +224,12 @@ class ModelLabeller:
             if not (posed or found or self._search_pairs(poses, cur, taken, z)
                     or self._challenge(poses, cur, taken, z)):
                 break
+        doubted = np.zeros(len(self.segments), bool)
         for s in seeds:
-            if not self._confirmed(s, poses):
+            if not self._confirmed(s, poses) and not self._held(s, poses, dt_frame, doubted):
                 self._give_back(self.segments[s].markers, cur, taken, refused)
                 poses[s], self._level[s] = None, 3
+        self._doubted_since[~doubted] = np.nan
         self._observe(cur, time)
         self.pose = poses
         for s, pose in enumerate(poses):
@@ -416,7 +425,8 @@ class ModelLabeller:
         A segment with joints placed on its three points for want of a look-alike elsewhere (``alone``), with no joint
         centre to hold it and not near where it was lately, is added to ``seeds``: any three points at its layout's
         distances fit it, a chance triangle across two segments of another limb among them when its own markers are
-        hidden, so it stands only if a neighbour is posed at their joint in the same frame (``_confirmed``)."""
+        hidden, so it stands only if a neighbour is posed at their joint in the same frame (``_confirmed``), or, no
+        neighbour posed, once so placed for a while (``_held``)."""
         cfg = self.config
         placed = False
         for s, seg in enumerate(self.segments):
@@ -551,6 +561,22 @@ class ModelLabeller:
         return any(self._sure(other, poses)
                    and np.linalg.norm(rot @ here + shift - poses[other][0] @ there - poses[other][1]) <= tol
                    for other, here, there, tol in self.segments[s].joints)
+
+    def _held(self, s: int, poses: list, dt: float, doubted: np.ndarray) -> bool:
+        """Whether segment ``s``, placed on three points alone (a seed) with no neighbour posed to confirm it, has
+        been so placed in every frame for ``held_s``, each time within ``max_speed_mm_s`` of the frame before (plus
+        ``fit_mm``): a chance triangle across two segments of another limb keeps the layout's distances only while
+        that joint keeps still, where the segment's own markers keep them as it moves. Marks ``s`` in ``doubted``."""
+        if any(poses[other] is not None for other, *_ in self.segments[s].joints):
+            return False  # a neighbour posed elsewhere refutes it
+        cfg = self.config
+        shift = poses[s][1]
+        near = np.linalg.norm(shift - self._doubted_at[s]) <= cfg.max_speed_mm_s * dt + cfg.fit_mm
+        if np.isnan(self._doubted_since[s]) or not near:  # not so placed in the frame before, or elsewhere
+            self._doubted_since[s] = self._time
+        self._doubted_at[s] = shift
+        doubted[s] = True
+        return self._time - self._doubted_since[s] >= cfg.held_s
 
     def _observe(self, cur: np.ndarray, time: float) -> None:
         seen = np.isfinite(cur[:, 0])
