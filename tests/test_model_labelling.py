@@ -376,6 +376,42 @@ def test_a_foot_placed_alone_whose_shank_is_hidden_stands_once_so_placed_for_a_w
 
 
 @pytest.mark.integration
+def test_a_point_a_marker_of_an_unposed_segment_only_followed_goes_to_the_marker_a_sure_pose_puts_there(
+        data_dir: Path) -> None:
+    """The breakdance's first 1500 frames, the second half under stress damage (seed 6), streamed, named from a
+    skeleton calibrated on the first half. LTHI (its thigh of two markers, seldom posed) took STRN's point at frame 176
+    and followed it from frame to frame; when the trunk was posed again by its other markers, its prediction of STRN
+    lay on that point, held, and the poses went on naming it LTHI (in 43 frames of a trunk posed so); the track's
+    votes then held LTHI to frame 668 (493 frames). Now a segment posed by its markers takes back the points that
+    markers of unposed segments only follow, and a run whose name only such a segment backs starts afresh once a sure
+    pose names its point otherwise for ``confirm_frames`` frames."""
+    from mocapflow.io.markers import read_markers
+
+    data = read_markers(data_dir / "cmu_85_12_breakdance.c3d")
+    positions = data.positions[:1500]  # as the stress benchmark's --quick cases
+    half = len(positions) // 2
+    skeleton = calibrate(positions[:half], data.labels, data.rate)
+    points, identity = unlabel(positions, data.rate, seed=6, stationary=True, **STRESS)
+    poses, live = ModelLabeller(skeleton, data.rate), TrackedModelLabeller(skeleton, data.rate)
+    strn, lthi = data.labels.index("STRN"), live.labels.index("LTHI")
+    trunk = poses._segment_of[poses.labels.index("STRN")]
+    sure_for = 0  # frames in a row the trunk was posed by its markers
+    by_poses = by_live = late = 0
+    for f, (p, ids) in enumerate(zip(points[half:], identity[half:], strict=True)):
+        given, named = poses.update(p, f / data.rate)[1], live.update(p, f / data.rate)[1]
+        sure_for = sure_for + 1 if poses._level[trunk] == 0 else 0
+        mine = ids == strn
+        by_poses += int(sure_for > 0 and (given[mine] == lthi).any())
+        by_live += int((named[mine] == lthi).any())
+        late += int(sure_for > live.tracks.config.confirm_frames and (named[mine] == lthi).any())
+    print(f"\nSTRN named LTHI: by the poses of a surely posed trunk in {by_poses} frames; live in {by_live}, {late} of "
+          "them after the trunk was posed surely for longer than confirm_frames")
+    assert by_live > 0, "LTHI no longer takes STRN's point: the case no longer tests the rule"
+    assert by_poses == 0
+    assert late == 0
+
+
+@pytest.mark.integration
 @pytest.mark.parametrize(("capture", "seed"), [("cmu_85_02.c3d", 3), ("hamner_run200.trc", 4)])
 def test_the_trajectories_evidence_adds_no_wrong_name(data_dir: Path, monkeypatch: pytest.MonkeyPatch, capture: str,
                                                       seed: int) -> None:

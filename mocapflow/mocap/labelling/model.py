@@ -11,11 +11,13 @@ whatever the point order and however long a marker was hidden:
    previous frame, carried by a neighbour's motion where it has a posture to it (which only settles the turn about
    their line). A marker far from where the fit puts it gives its point back (a swap, a ghost), and so do all of a
    segment's markers when the fit puts a joint centre far from where its neighbour does;
-3. the markers of posed segments not matched yet are predicted from the pose, and the points left over are
-   assigned to these predictions by cost (distance, inside ``gate_mm``): a returning marker takes its own slot in
-   the layout, whatever marker happens to lie near it. A segment posed through joints or its previous pose gives a
-   point (inside ``weak_gate_mm``) only to a marker whose layout distances to the segment's seen markers and joint
-   centres it keeps, and only when neither has another such candidate;
+3. the markers of posed segments not matched yet are predicted from the pose, and the points left over are assigned to
+   these predictions by cost (distance, inside ``gate_mm``): a returning marker takes its own slot in the layout,
+   whatever marker happens to lie near it. A segment posed through joints or its previous pose gives a point (inside
+   ``weak_gate_mm``) only to a marker whose layout distances to the segment's seen markers and joint centres it keeps,
+   and only when neither has another such candidate. A segment posed by three markers or more first takes back, for its
+   markers, the points there that markers of segments with no pose hold (``_reclaim``): such a marker only follows its
+   point from frame to frame;
 4. a segment with no pose (the first frame, or after its markers and its neighbours' were hidden) is searched for among
    the points left over, and its own markers matched so far, by its layout (``_place_layout``): points at the layout's
    distances and its joint centres where its posed neighbours put them, placed by a proper rotation, taken when one
@@ -372,6 +374,7 @@ class ModelLabeller:
         such candidate. No marker takes a point its segment's fit gave back from it this frame (``refused``).
         """
         cfg = self.config
+        self._reclaim(poses, cur, taken, z, refused)
         missing = np.flatnonzero(np.isnan(cur[:, 0]))
         free = np.flatnonzero(taken < 0)
         if not len(missing) or not len(free):
@@ -415,6 +418,31 @@ class ModelLabeller:
         mi, fi = match(cost)
         cur[missing[known[mi]]] = z[free[fi]]
         taken[free[fi]] = missing[known[mi]]
+
+    def _reclaim(self, poses: list, cur: np.ndarray, taken: np.ndarray, z: np.ndarray, refused: np.ndarray) -> None:
+        """Give the unmatched markers of segments posed by three markers or more the points where their poses put them
+        (within ``gate_mm``, as step 3) that markers of segments with no pose hold: such a marker only followed its
+        point from frame to frame, and once it had taken another marker's, nothing else would take it back. The marker
+        that held the point gives it back (``_give_back``)."""
+        unposed = np.array([pose is None for pose in poses])
+        held = np.flatnonzero((taken >= 0) & unposed[self._segment_of[np.maximum(taken, 0)]])
+        missing = np.flatnonzero(np.isnan(cur[:, 0]) & (self._level[self._segment_of] == 0)
+                                 & ~unposed[self._segment_of])
+        if not len(held) or not len(missing):
+            return
+        pred = np.empty((len(missing), 3))
+        for s in np.unique(self._segment_of[missing]).tolist():
+            slot = np.flatnonzero(self._segment_of[missing] == s)
+            rot, shift = poses[s]
+            pred[slot] = self.segments[s].local[missing[slot] - self.segments[s].markers[0]] @ rot.T + shift
+        gate = self.config.gate_mm + self._tol[missing] - self.config.fit_mm
+        cost = np.where(refused[np.ix_(missing, held)], 0.0, gated_cost(pred, gate, z[held]))
+        mi, hi = match(cost)
+        if not len(mi):
+            return
+        self._give_back(taken[held[hi]], cur, taken, refused)
+        cur[missing[mi]] = z[held[hi]]
+        taken[held[hi]] = missing[mi]
 
     def _search(self, poses: list, cur: np.ndarray, taken: np.ndarray, z: np.ndarray, searched: dict,
                 seeds: list) -> bool:
@@ -606,7 +634,8 @@ class TrackedModelLabeller:
     frame, but for one: a track's name stands only once the poses gave it in two frames or more. Live, on the stress
     cases, a name they gave in one frame alone was a chance placement's; over a whole recording, the backward pass votes
     too. A run whose name the poses give for a while to another run, which they name so throughout, and its own point
-    another name, starts afresh (``_break_contested``)."""
+    another name, starts afresh (``_break_contested``), and so does a run whose name only a segment not posed by its
+    markers backs, its point named otherwise by one so posed."""
 
     def __init__(self, skeleton: SkeletonModel, rate: float, config: ModelLabellerConfig | None = None) -> None:
         self.model = ModelLabeller(skeleton, rate, config)
@@ -720,15 +749,19 @@ class TrackedModelLabeller:
         and that they have named so in every frame of it, and their own point another name. Such a run took its name
         while its segment was posed wrong (a mate hidden, the layout fitted one marker over), and the marker whose
         name it is has come back: without this, the run's votes would hold the name as long as the run lasts, and
-        that marker would go unnamed. A run the poses name otherwise for a while with no such rival keeps its name
-        (a segment posed wrong for a moment)."""
+        that marker would go unnamed. So does a run whose name's segment is not posed by three of its markers or more
+        while one so posed names its point otherwise, ``confirm_frames`` frames in a row: its name rests on a marker
+        that only followed the point, or on a looser pose. Any other run the poses name otherwise for a while keeps
+        its name (a segment posed wrong for a moment)."""
         run, length = self._run[track], self._run_length[track]
         top = run.max(axis=1, initial=0)
         claim = np.where(2 * top > length, run.argmax(axis=1), -1)
         whole = top == length  # the poses named every point of the run so
         backed = np.zeros(len(self.labels) + 1, np.int64)  # per name: runs claiming it, named so in every frame
         np.add.at(backed, np.where((claim >= 0) & (given == claim) & whole, claim, len(self.labels)), 1)
-        contested = (claim >= 0) & (given >= 0) & (given != claim) & (backed[claim] > 0)
+        sure = self.model._level[self.model._segment_of] == 0  # per marker: its segment posed by its markers
+        contested = (claim >= 0) & (given >= 0) & (given != claim) & (
+            (backed[claim] > 0) | (sure[np.maximum(given, 0)] & ~sure[np.maximum(claim, 0)]))
         self._contested[track] = np.where(contested, self._contested[track] + 1, 0)
         due = self._contested[track] >= self.tracks.config.confirm_frames
         broken = track[due]
