@@ -33,6 +33,19 @@ def _named(named: np.ndarray, names: list[str], points: np.ndarray, identity: np
     return score.right, score.wrong, score.total
 
 
+def _stressed_half(data_dir: Path, capture: str, seed: int) -> tuple[Any, SkeletonModel, np.ndarray, np.ndarray]:
+    """A real capture's first 1500 frames (as the stress benchmark's --quick cases), a skeleton calibrated on their
+    first half, and their second half under stress damage: the capture, the skeleton, the points and their markers."""
+    from mocapflow.io.markers import read_markers
+
+    data = read_markers(data_dir / capture)
+    positions = data.positions[:1500]
+    half = len(positions) // 2
+    skeleton = calibrate(positions[:half], data.labels, data.rate)
+    points, identity = unlabel(positions, data.rate, seed=seed, stationary=True, **STRESS)
+    return data, skeleton, points[half:], identity[half:]
+
+
 def test_new_trial_of_the_same_subject_is_named_from_its_skeleton() -> None:
     """Calibrated on one trial, the skeleton names the shuffled points of another, hidden in 0.2-1 s gaps and with
     one-frame ghosts, from its first frame: no point gets another marker's name."""
@@ -178,15 +191,8 @@ def test_a_leg_that_no_single_frame_poses_is_named_along_its_trajectories(data_d
     frame. Along their trajectories the frames add up: the shin marker keeps its distance to the knee centre, the
     ankle marker to the shin marker, the foot's triangle puts the ankle centre where the shank's markers keep theirs.
     Every point of the left shank and foot is named right, and no point wrong."""
-    from mocapflow.io.markers import read_markers
-
     monkeypatch.setattr(ModelLabeller, "_search_pairs", lambda *_: False)
-
-    data = read_markers(data_dir / "cmu_dribble_shoot_basketball.c3d")
-    half = len(data.positions) // 2
-    skeleton = calibrate(data.positions[:half], data.labels, data.rate)
-    points, identity = unlabel(data.positions, data.rate, seed=1, stationary=True, **STRESS)
-    points, identity = points[half:], identity[half:]
+    data, skeleton, points, identity = _stressed_half(data_dir, "cmu_dribble_shoot_basketball.c3d", 1)
     leg = [data.labels.index(name) for name in ("LSHN", "LANK", "LHEE", "LTOE", "LMT5")]
     labeller = ModelLabeller(skeleton, data.rate)
     theirs = [labeller.labels.index(data.labels[m]) for m in leg]
@@ -214,14 +220,8 @@ def test_the_live_labeller_names_a_shank_and_foot_no_frame_poses_from_what_their
     checks do not refute them. Then the foot's three runs keep the foot's layout, and placed on them the foot puts the
     ankle centre where the shank's named markers keep their distances to it. Measured: 170 of the shank's 198 points
     and 412 of the foot's 518 named right, none wrong."""
-    from mocapflow.io.markers import read_markers
-
     monkeypatch.setattr(ModelLabeller, "_search_pairs", lambda *_: False)
-    data = read_markers(data_dir / "cmu_dribble_shoot_basketball.c3d")
-    half = len(data.positions) // 2
-    skeleton = calibrate(data.positions[:half], data.labels, data.rate)
-    points, identity = unlabel(data.positions, data.rate, seed=1, stationary=True, **STRESS)
-    points, identity = points[half:], identity[half:]
+    data, skeleton, points, identity = _stressed_half(data_dir, "cmu_dribble_shoot_basketball.c3d", 1)
     segments = {"shank": ("RSHN", "RANK"), "foot": ("RHEE", "RTOE", "RMT5")}
     leg = [data.labels.index(name) for names in segments.values() for name in names]
     poses, live = ModelLabeller(skeleton, data.rate), TrackedModelLabeller(skeleton, data.rate)
@@ -251,15 +251,10 @@ def test_a_name_the_poses_gave_a_track_in_one_frame_names_it_in_that_frame_only(
     and never again: cmu_85_02's LBHD as C7, hamner's RTOE as LCAL. A track named nothing else took such a name from
     that one vote and kept it while it was seen: 17 and 44 frames. Now a track is named by its votes once the poses gave
     the name in two frames or more; a single frame's name is that frame's."""
-    from mocapflow.io.markers import read_markers
-
-    data = read_markers(data_dir / capture)
-    half = len(data.positions) // 2
-    skeleton = calibrate(data.positions[:half], data.labels, data.rate)
-    points, identity = unlabel(data.positions, data.rate, seed=seed, stationary=True, **STRESS)
+    data, skeleton, points, identity = _stressed_half(data_dir, capture, seed)
     poses, live = ModelLabeller(skeleton, data.rate), TrackedModelLabeller(skeleton, data.rate)
     by_poses = by_live = 0
-    for f, (p, ids) in enumerate(zip(points[half:], identity[half:], strict=True)):
+    for f, (p, ids) in enumerate(zip(points, identity, strict=True)):
         mine = ids == data.labels.index(true)
         by_poses += int((poses.update(p, f / data.rate)[1][mine] == poses.labels.index(name)).sum())
         by_live += int((live.update(p, f / data.rate)[1][mine] == live.labels.index(name)).sum())
@@ -276,18 +271,12 @@ def test_a_segment_posed_on_other_markers_points_is_placed_anew_where_its_layout
     LSH2 for up to 583 frames, to the end of the trial. Now a segment posed by its markers is placed anew where its
     layout lands on more points, its own and those left over: the left shank's own markers, come back, take it within
     0.5 s, and the right shank is found on its own points."""
-    from mocapflow.io.markers import read_markers
-
-    data = read_markers(data_dir / "lowerbody_clusters_knee_0401.c3d")
-    positions = data.positions[:1500]  # as the stress benchmark's --quick cases
-    half = len(positions) // 2
-    skeleton = calibrate(positions[:half], data.labels, data.rate)
-    points, identity = unlabel(positions, data.rate, seed=6, stationary=True, **STRESS)
+    data, skeleton, points, identity = _stressed_half(data_dir, "lowerbody_clusters_knee_0401.c3d", 6)
     live = TrackedModelLabeller(skeleton, data.rate)
     right = [data.labels.index(name) for name in ("RSH1", "RSH2", "RSH3")]
     mirrored = [live.labels.index(name) for name in ("LSH1", "LSH2", "LSH3")]
     wrong_frames, named, seen = [], 0, 0
-    for f, (p, ids) in enumerate(zip(points[half:], identity[half:], strict=True)):
+    for f, (p, ids) in enumerate(zip(points, identity, strict=True)):
         given = live.update(p, f / data.rate)[1]
         mine = np.isin(ids, right)
         if np.isin(given[mine], mirrored).any():
@@ -309,20 +298,14 @@ def test_a_foot_whose_look_alike_has_no_pose_is_placed_with_a_shank_of_two_marke
     markers seen in all 247 frames, was posed in none, and 168 of its 741 points were named right (the first frames',
     by their tracks). A foot is now placed together with a neighbour of two markers too, when both of these lie where
     the foot puts their joint centre."""
-    from mocapflow.io.markers import read_markers
-
-    data = read_markers(data_dir / "cmu_dribble_shoot_basketball.c3d")
-    positions = data.positions[:1500]  # as the stress benchmark's --quick cases
-    half = len(positions) // 2
-    skeleton = calibrate(positions[:half], data.labels, data.rate)
-    points, identity = unlabel(positions, data.rate, seed=1, stationary=True, **STRESS)
+    data, skeleton, points, identity = _stressed_half(data_dir, "cmu_dribble_shoot_basketball.c3d", 1)
     live = TrackedModelLabeller(skeleton, data.rate)
     foot = [data.labels.index(name) for name in ("LHEE", "LTOE", "LMT5")]
     segment = live.model._segment_of[live.labels.index("LHEE")]
     assert sorted(live.labels[m] for m in live.model.segments[segment].markers) == ["LHEE", "LMT5", "LTOE"]
     assert all(len(live.model.segments[o].markers) == 2 for o, *_ in live.model.segments[segment].joints)
     whole = posed = named = seen = 0
-    for f, (p, ids) in enumerate(zip(points[half:], identity[half:], strict=True)):
+    for f, (p, ids) in enumerate(zip(points, identity, strict=True)):
         given = live.update(p, f / data.rate)[1]
         mine = np.isin(ids, foot) & np.isfinite(p[:, 0])
         if mine.sum() == 3:
@@ -344,13 +327,7 @@ def test_a_foot_placed_alone_whose_shank_is_hidden_stands_once_so_placed_for_a_w
     posed: the right foot is placed on its three points alone, but with no neighbour posed to confirm it (a chance
     triangle across another limb's joint fits too), it was given back every time: posed in none of them, none of its
     429 points named. A placement so found in every frame, at the same place, for ``held_s`` now stands."""
-    from mocapflow.io.markers import read_markers
-
-    data = read_markers(data_dir / "cmu_02_05.c3d")
-    positions = data.positions[:1500]  # as the stress benchmark's --quick cases
-    half = len(positions) // 2
-    skeleton = calibrate(positions[:half], data.labels, data.rate)
-    points, identity = unlabel(positions, data.rate, seed=1, stationary=True, **STRESS)
+    data, skeleton, points, identity = _stressed_half(data_dir, "cmu_02_05.c3d", 1)
     live = TrackedModelLabeller(skeleton, data.rate)
     foot = [data.labels.index(name) for name in ("RHEE", "RTOE", "RMT5")]
     shank = [data.labels.index(name) for name in ("RANK", "RSHN")]
@@ -358,7 +335,7 @@ def test_a_foot_placed_alone_whose_shank_is_hidden_stands_once_so_placed_for_a_w
     assert [live.model.segments[o].markers.tolist() for o, *_ in live.model.segments[segment].joints] == \
         [[live.labels.index(data.labels[m]) for m in shank]]
     frames = posed = right = wrong = 0
-    for f, (p, ids) in enumerate(zip(points[half:], identity[half:], strict=True)):
+    for f, (p, ids) in enumerate(zip(points, identity, strict=True)):
         given = live.update(p, f / data.rate)[1]
         mine = np.isin(ids, foot) & np.isfinite(p[:, 0])
         if mine.sum() == 3 and not np.isin(ids, shank).any():
@@ -385,19 +362,13 @@ def test_a_point_a_marker_of_an_unposed_segment_only_followed_goes_to_the_marker
     votes then held LTHI to frame 668 (493 frames). Now a segment posed by its markers takes back the points that
     markers of unposed segments only follow, and a run whose name only such a segment backs starts afresh once a sure
     pose names its point otherwise for ``confirm_frames`` frames."""
-    from mocapflow.io.markers import read_markers
-
-    data = read_markers(data_dir / "cmu_85_12_breakdance.c3d")
-    positions = data.positions[:1500]  # as the stress benchmark's --quick cases
-    half = len(positions) // 2
-    skeleton = calibrate(positions[:half], data.labels, data.rate)
-    points, identity = unlabel(positions, data.rate, seed=6, stationary=True, **STRESS)
+    data, skeleton, points, identity = _stressed_half(data_dir, "cmu_85_12_breakdance.c3d", 6)
     poses, live = ModelLabeller(skeleton, data.rate), TrackedModelLabeller(skeleton, data.rate)
     strn, lthi = data.labels.index("STRN"), live.labels.index("LTHI")
     trunk = poses._segment_of[poses.labels.index("STRN")]
     sure_for = 0  # frames in a row the trunk was posed by its markers
     by_poses = by_live = late = 0
-    for f, (p, ids) in enumerate(zip(points[half:], identity[half:], strict=True)):
+    for f, (p, ids) in enumerate(zip(points, identity, strict=True)):
         given, named = poses.update(p, f / data.rate)[1], live.update(p, f / data.rate)[1]
         sure_for = sure_for + 1 if poses._level[trunk] == 0 else 0
         mine = ids == strn
@@ -421,15 +392,10 @@ def test_the_trajectories_evidence_adds_no_wrong_name(data_dir: Path, monkeypatc
     took RFIN's name for 405 points, hamner's RTH1 RTH2's for 25. A distance to a mate now checks a name only where
     the frames refute the swap, and a frame whose names break the layout checks nothing. The evidence still names
     parts here, each with its own marker's name."""
-    from mocapflow.io.markers import read_markers
     from mocapflow.mocap.labelling import model
     from mocapflow.mocap.labelling.offline import source_rows
 
-    data = read_markers(data_dir / capture)
-    half = len(data.positions) // 2
-    skeleton = calibrate(data.positions[:half], data.labels, data.rate)
-    points, identity = unlabel(data.positions, data.rate, seed=seed, stationary=True, **STRESS)
-    points, identity = points[half:], identity[half:]
+    data, skeleton, points, identity = _stressed_half(data_dir, capture, seed)
     calls = []
     real = model.name_by_evidence
 
