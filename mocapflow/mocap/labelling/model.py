@@ -255,7 +255,7 @@ class ModelLabeller:
             while progress:
                 progress = False
                 # markers matched per segment: only a segment's own fit changes its count
-                count = np.bincount(self._segment_of[np.isfinite(cur[:, 0])], minlength=len(self.segments))
+                count = self._matched(cur)
                 for s, seg in enumerate(self.segments):
                     if poses[s] is not None or count[s] < (3 if level == 0 else 1):
                         continue
@@ -276,6 +276,10 @@ class ModelLabeller:
                     self._level[s] = level
                     any_posed = progress = True
         return any_posed
+
+    def _matched(self, cur: np.ndarray) -> np.ndarray:
+        """Per segment, how many of its markers are matched (``cur`` finite)."""
+        return np.bincount(self._segment_of[np.isfinite(cur[:, 0])], minlength=len(self.segments))
 
     def _give_back(self, markers: np.ndarray, cur: np.ndarray, taken: np.ndarray, refused: np.ndarray) -> None:
         """Unmatch ``markers``: their points are free again, but not to them (``refused``) until the next frame."""
@@ -379,20 +383,14 @@ class ModelLabeller:
         free = np.flatnonzero(taken < 0)
         if not len(missing) or not len(free):
             return
-        pred = np.full((len(missing), 3), np.nan)
-        gate = np.full(len(missing), cfg.gate_mm)
+        pred, gate = self._predicted(missing, poses)
         allowed = np.ones((len(missing), len(free)), bool)
         owner = self._segment_of[missing]
         for s in np.unique(owner).tolist():
-            if poses[s] is None:
-                continue
-            seg = self.segments[s]
-            rot, shift = poses[s]
-            slot = np.flatnonzero(owner == s)
-            rows = missing[slot] - seg.markers[0]
-            pred[slot] = seg.local[rows] @ rot.T + shift
-            gate[slot] += seg.tol[rows] - cfg.fit_mm
-            if self._level[s] > 0:
+            if poses[s] is not None and self._level[s] > 0:
+                seg = self.segments[s]
+                slot = np.flatnonzero(owner == s)
+                rows = missing[slot] - seg.markers[0]
                 gate[slot] = cfg.weak_gate_mm
                 if not (cdist(pred[slot], z[free]) < cfg.weak_gate_mm).any():
                     continue  # no point to take: what could be is not worked out
@@ -419,23 +417,31 @@ class ModelLabeller:
         cur[missing[known[mi]]] = z[free[fi]]
         taken[free[fi]] = missing[known[mi]]
 
+    def _predicted(self, markers: np.ndarray, poses: list) -> tuple[np.ndarray, np.ndarray]:
+        """Where each of ``markers`` lies by its segment's pose ``(M, 3)``, NaN where its segment has none, and its
+        gate (M,): ``gate_mm``, widened by as much as the marker's tolerance exceeds ``fit_mm`` where posed."""
+        pred = np.full((len(markers), 3), np.nan)
+        gate = np.full(len(markers), self.config.gate_mm)
+        owner = self._segment_of[markers]
+        for s in np.unique(owner).tolist():
+            if poses[s] is not None:
+                rot, shift = poses[s]
+                slot = np.flatnonzero(owner == s)
+                pred[slot] = self.segments[s].local[markers[slot] - self.segments[s].markers[0]] @ rot.T + shift
+                gate[slot] += self._tol[markers[slot]] - self.config.fit_mm
+        return pred, gate
+
     def _reclaim(self, poses: list, cur: np.ndarray, taken: np.ndarray, z: np.ndarray, refused: np.ndarray) -> None:
         """Give the unmatched markers of segments posed by three markers or more the points where their poses put them
         (within ``gate_mm``, as step 3) that markers of segments with no pose hold: such a marker only followed its
         point from frame to frame, and once it had taken another marker's, nothing else would take it back. The marker
         that held the point gives it back (``_give_back``)."""
-        unposed = np.array([pose is None for pose in poses])
-        held = np.flatnonzero((taken >= 0) & unposed[self._segment_of[np.maximum(taken, 0)]])
-        missing = np.flatnonzero(np.isnan(cur[:, 0]) & (self._level[self._segment_of] == 0)
-                                 & ~unposed[self._segment_of])
+        level = self._level[self._segment_of]  # per marker: how its segment was posed (3: not)
+        held = np.flatnonzero((taken >= 0) & (level[np.maximum(taken, 0)] == 3))
+        missing = np.flatnonzero(np.isnan(cur[:, 0]) & (level == 0))
         if not len(held) or not len(missing):
             return
-        pred = np.empty((len(missing), 3))
-        for s in np.unique(self._segment_of[missing]).tolist():
-            slot = np.flatnonzero(self._segment_of[missing] == s)
-            rot, shift = poses[s]
-            pred[slot] = self.segments[s].local[missing[slot] - self.segments[s].markers[0]] @ rot.T + shift
-        gate = self.config.gate_mm + self._tol[missing] - self.config.fit_mm
+        pred, gate = self._predicted(missing, poses)
         cost = np.where(refused[np.ix_(missing, held)], 0.0, gated_cost(pred, gate, z[held]))
         mi, hi = match(cost)
         if not len(mi):
@@ -492,7 +498,7 @@ class ModelLabeller:
         of another segment's) is followed on them while its own markers go unmatched: where they show, it is found
         again. True when one was placed."""
         moved = False
-        count = np.bincount(self._segment_of[np.isfinite(cur[:, 0])], minlength=len(self.segments))
+        count = self._matched(cur)
         for s in np.flatnonzero((self._level == 0) & (count < (self._slots >= 0).sum(axis=1))).tolist():
             left = np.flatnonzero(taken < 0)
             if not len(left):
