@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from mocapflow.mocap.evaluation import STRESS, LabellingScore, score_labelling, unlabel
+from mocapflow.mocap.evaluation import STRESS, LabellingScore, held_markers, score_labelling, unlabel
 from mocapflow.mocap.labelling import (
     Labeller,
     LabellerConfig,
@@ -397,13 +397,33 @@ def test_a_join_across_a_gap_onto_another_marker_is_cut_offline() -> None:
     tracks = truth.copy()
     tracks[200:220, [0, 5]] = tracks[300:320, 1] = np.nan
     tracks[220:, 0], tracks[220:, 5] = truth[220:, 5], truth[220:, 0]
-    out = split_doubtful_joins(tracks)
-    assert out.shape[1] == 14
+    out, doubtful = split_doubtful_joins(tracks)
+    assert out.shape[1] == 14 and doubtful == []
     pieces = [np.flatnonzero(np.isfinite(out[:, k, 0])) for k in range(14)]
     for k, frames in enumerate(pieces):  # each column is one marker now
         marker = np.flatnonzero(np.isclose(truth[frames[0]], out[frames[0], k]).all(axis=1))[0]
         assert np.allclose(out[frames, k], truth[frames, marker])
     assert len(pieces[1]) == len(truth) - 20  # marker 1's join stands
+
+
+def test_a_join_its_neighbours_leave_in_doubt_is_looked_at_again_once_merged_offline() -> None:
+    """The labelling benchmark's simulated human under the stress damage (seed 1, gaps under way from the first
+    frame). Streaming took LBHD's lost track for CLAV's point 17 frames on (the back of the head and the clavicle, each
+    seen with few neighbours), and LTOE's and LMT5's lost tracks for each other's points: joins whose neighbours place
+    neither side within the gate of the other, but not off by enough to cut. Cut once the fragments are merged, each
+    piece finds its own marker's track; the joins no piece can better are joined again (before: 5 swaps, 97.87 %
+    right, 1.19 tracks per marker)."""
+    rec = simulate(SimulatorConfig(rig="human", rate=120, noise_mm=0.5, seed=7), 1500)
+    points, identity = unlabel(rec.positions, 120.0, seed=1, stationary=True, **STRESS)
+    tracks, _ = label_sequence(list(points), 120.0)
+    markers = len(rec.labels)
+    score = score_labelling(tracks, list(points), list(identity), markers)
+    assert score.swaps <= 1 and score.accuracy > 0.99
+    assert score.tracks <= 1.15 * markers
+    held, _, _ = held_markers(tracks, list(points), list(identity), markers)
+    for pair in (("LBHD", "CLAV"), ("LTOE", "LMT5")):
+        one, other = (rec.labels.index(name) for name in pair)
+        assert not any((h == one).any() and (h == other).any() for h in held.T), pair
 
 
 def test_merge_tracks_joins_fragments_only() -> None:

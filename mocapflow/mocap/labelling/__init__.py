@@ -35,9 +35,10 @@ unlabelled live, so it waits 4 frames by default; offline, where a confirmed poi
 :func:`label_sequence` waits ``offline_confirm_frames`` (5), which keeps more short-lived pieces out of its merging.
 It also cuts the tracks that streaming carried across a gap onto another marker
 (:func:`~.offline.split_doubtful_joins`), merges what streaming could not (the thesis's *Marker Set* merging,
-:func:`merge_tracks`), drops tracks too short to be markers, and follows every track from its ends, back in time and
-on, into the points left to no track (:func:`~.offline.extend_tracks`: a fast foot's first frames, which streaming
-could not tell from its mates' with no velocity known).
+:func:`merge_tracks`; then again at the joins it left in doubt, once the fragments are merged), drops tracks too short
+to be markers, and follows every track from its ends, back in time and on, into the points left to no track
+(:func:`~.offline.extend_tracks`: a fast foot's first frames, which streaming could not tell from its mates' with no
+velocity known).
 
 With a skeleton of the subject (``mocapflow calibrate`` on a labelled trial), :mod:`.model` names every point with
 the skeleton's own marker names instead, by fitting its segments' marker layouts frame by frame; offline, where no

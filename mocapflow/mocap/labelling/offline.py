@@ -249,26 +249,30 @@ def _set_score(state: _Round, i: int, j: int, cfg: LabellerConfig) -> float:
     return _median(best) if len(best) else np.inf
 
 
-def split_doubtful_joins(tracks: np.ndarray, config: LabellerConfig | None = None) -> np.ndarray:
-    """Tracks ``(F, T, 3)`` cut where a run after a gap is surely another marker than the track before it.
+def split_doubtful_joins(tracks: np.ndarray,
+                         config: LabellerConfig | None = None) -> tuple[np.ndarray, list[tuple[int, int]]]:
+    """Tracks ``(F, T, 3)`` cut where a run after a gap is surely another marker than the track before it, and the
+    joins left in doubt: (column of the tracks returned, frame the run starts).
 
     Streaming re-identifies a lost track on a point that fits its hypotheses then; now and then the point is another
     marker's (a segment mate, a marker of the other side), and the track goes on as that marker. Offline, each run
     after a gap is compared with the track's frames before it (since its last cut) as fragments are
     (``_set_score``, both ways, the other tracks whole): where the neighbours of either place the other ``LOOSE``
-    gates off or more, both ways, the run starts a new track, for merging to join to its own marker. Where either
-    way has nothing to place, the join stands.
+    gates off or more, both ways, the run starts a new track, for merging to join to its own marker. Where neither
+    way places the other within the gate (a way with nothing to place confirms nothing), the join stands but is in
+    doubt: ``label_sequence`` looks at it again once the fragments are merged (``_second_look``).
     """
     cfg = config or LabellerConfig()
     seen = np.isfinite(tracks[..., 0])
     starts, ends = run_starts(seen), run_starts(seen[::-1])[::-1]
     joined = np.flatnonzero(starts.sum(axis=0) >= 2)
     if not len(joined):
-        return tracks
+        return tracks, []
     count = tracks.shape[1]
     work = np.concatenate([tracks, np.full((len(tracks), 1, 3), np.nan)], axis=1)  # the last column: a run
     state = _Round(work, cfg)
     cuts: dict[int, list[int]] = {}
+    doubts: list[tuple[int, int, int]] = []  # (track, cuts before it, frame)
     for t in joined.tolist():
         first, last = np.flatnonzero(starts[:, t]), np.flatnonzero(ends[:, t]) + 1
         begin = first[0]
@@ -282,18 +286,68 @@ def split_doubtful_joins(tracks: np.ndarray, config: LabellerConfig | None = Non
             if LOOSE <= min(scores) and max(scores) < np.inf:
                 cuts.setdefault(t, []).append(int(first[run]))
                 begin = first[run]
+            elif min(scores) >= 1.0:
+                doubts.append((t, len(cuts.get(t, [])), int(first[run])))
         work[:, t] = tracks[:, t]  # the other joins are judged against the tracks as streamed
     work[:, count] = np.nan
     out = work[:, :count]
-    pieces = []
+    pieces: list[np.ndarray] = []
+    column: dict[tuple[int, int], int] = {}  # (track, cuts before it) -> the column of that piece
     for t, at in cuts.items():
+        column.update({(t, k + 1): count + len(pieces) + k for k in range(len(at))})
         bounds = [*at, len(tracks)]
         out[at[0]:, t] = np.nan
         for begin, end in zip(bounds[:-1], bounds[1:], strict=True):
             piece = np.full((len(tracks), 3), np.nan)
             piece[begin:end] = tracks[begin:end, t]
             pieces.append(piece)
-    return np.concatenate([out, *[p[:, None] for p in pieces]], axis=1)
+    doubtful = [(column.get((t, k), t), frame) for t, k, frame in doubts]
+    return np.concatenate([out, *[p[:, None] for p in pieces]], axis=1), doubtful
+
+
+def _second_look(merged: np.ndarray, doubtful: list[tuple[int, int]], rate: float, cfg: LabellerConfig,
+                 progress: Progress | None) -> np.ndarray:
+    """Merged tracks ``(F, T, 3)`` looked at again at the joins left in doubt (``doubtful``: (column, frame), from
+    ``split_doubtful_joins``).
+
+    A join the neighbours confirm neither way may be right (a marker whose neighbours were hidden with it) or another
+    marker's run (a segment mate that came back first). Its fragments merged, each merged track is cut at its joins
+    in doubt, and the pieces are merged again, with the whole recording's evidence: a piece that is another marker
+    finds that marker's track. Two pieces of one track whose merged tracks never share a frame are then one marker
+    still, and joined again (the nearest piece before first), so that a join merging cannot better is never lost,
+    and no more tracks are left than before.
+    """
+    if not doubtful:
+        return merged
+    at: dict[int, set[int]] = {}
+    for k, frame in doubtful:
+        at.setdefault(k, set()).add(frame)
+    pieces: list[np.ndarray] = []
+    chains: list[list[int]] = []  # per merged track, the columns of its pieces in order
+    for k in range(merged.shape[1]):
+        track = merged[:, k]
+        bounds = [0, *sorted(at.get(k, ())), len(track)]
+        chain = []
+        for begin, end in zip(bounds[:-1], bounds[1:], strict=True):
+            if np.isfinite(track[begin:end, 0]).any():
+                piece = np.full_like(track, np.nan)
+                piece[begin:end] = track[begin:end]
+                chain.append(len(pieces))
+                pieces.append(piece)
+        chains.append(chain)
+    cut = np.stack(pieces, axis=1)
+    seen = np.isfinite(cut[..., 0])
+    again = merge_tracks(cut, rate, cfg, progress)
+    where = {c: k for k, group in enumerate(again) for c in group}
+    for chain in chains:
+        for k, b in enumerate(chain):
+            for a in chain[k - 1::-1] if k else ():  # the pieces before it, nearest first
+                ga, gb = where[a], where[b]
+                if ga != gb and not (seen[:, again[ga]].any(axis=1) & seen[:, again[gb]].any(axis=1)).any():
+                    where.update({c: ga for c in again[gb]})
+                    again[ga], again[gb] = again[ga] + again[gb], []
+                    break
+    return np.stack([np.fmax.reduce(cut[:, group], axis=1) for group in again if group], axis=1)
 
 
 def extend_tracks(tracks: np.ndarray, clouds: list[np.ndarray], config: LabellerConfig | None = None) -> np.ndarray:
@@ -521,13 +575,13 @@ def label_sequence(frames: Iterable[np.ndarray], rate: float, config: LabellerCo
                    progress: Progress | None = None) -> tuple[np.ndarray, list[str]]:
     """Label a whole recording of point clouds: ``(F, T, 3)`` trajectories of the ``T`` markers found, and labels.
 
-    Knowing the whole recording allows more than streaming: points a track collected while still tentative are
-    filled in, tracks carried across a gap onto another marker are cut there (:func:`split_doubtful_joins`), tracks
-    of one marker are merged (:func:`merge_tracks`), tracks seen for less than ``min_track_s``
-    in all are dropped unless rigid partners explain them (``_explained``, at this recording's rigidity:
-    ``_rigid_sd``), and the tracks kept are followed from their ends into the points left to none
-    (:func:`extend_tracks`). Markers are labelled ``M001``... in order of first appearance. ``progress`` is told how the
-    merging goes (its cost grows with the square of the number of tracks).
+    Knowing the whole recording allows more than streaming: points a track collected while still tentative are filled
+    in, tracks carried across a gap onto another marker are cut there (:func:`split_doubtful_joins`), tracks of one
+    marker are merged (:func:`merge_tracks`), tracks seen for less than ``min_track_s`` in all are dropped unless rigid
+    partners explain them (``_markers``), the joins left in doubt are looked at again on the tracks kept
+    (``_second_look``; a piece it leaves too short is dropped so too), and the tracks kept are followed from their ends
+    into the points left to none (:func:`extend_tracks`). Markers are labelled ``M001``... in order of first appearance.
+    ``progress`` is told how the merging goes (its cost grows with the square of the number of tracks).
     """
     cfg = config or LabellerConfig()
     labeller = Labeller(cfg.model_copy(update={"confirm_frames": cfg.offline_confirm_frames}), rate)
@@ -544,18 +598,31 @@ def label_sequence(frames: Iterable[np.ndarray], rate: float, config: LabellerCo
         tracks[i, : len(row)] = row
     for track, idx, pos in late:
         tracks[idx, track] = pos
-    tracks = split_doubtful_joins(tracks, cfg)
+    tracks, doubtful = split_doubtful_joins(tracks, cfg)
+    groups = merge_tracks(tracks, rate, cfg, progress)
     # the tracks of a group never share a frame
-    merged = [np.fmax.reduce(tracks[:, group], axis=1) for group in merge_tracks(tracks, rate, cfg, progress)]
+    merged = [np.fmax.reduce(tracks[:, group], axis=1) for group in groups]
     joined = np.stack(merged, axis=1) if merged else np.full((len(rows), 0, 3), np.nan)
-    seen = np.isfinite(joined[..., 0])
-    long = seen.sum(axis=0) >= cfg.min_track_s * rate
-    rigid_sd = _rigid_sd(joined, seen, np.flatnonzero(long), cfg) if not long.all() else cfg.rigid_sd_mm
-    markers = [m for k, m in enumerate(merged)
-               if long[k] or _explained(joined, seen, k, rigid_sd, cfg.offline_confirm_frames)]
-    markers.sort(key=lambda m: np.flatnonzero(np.isfinite(m[:, 0]))[0])
-    out = np.stack(markers, axis=1) if markers else np.full((len(rows), 0, 3), np.nan)
+    kept = _markers(joined, rate, cfg)
+    # the joins in doubt on the tracks kept, by column of those: a track dropped takes up no piece of another marker
+    column = {k: c for c, k in enumerate(kept)}
+    where = {t: column[k] for k, group in enumerate(groups) if k in column for t in group}
+    joined = _second_look(joined[:, kept], [(where[t], frame) for t, frame in doubtful if t in where], rate, cfg,
+                          progress)
+    out = joined[:, _markers(joined, rate, cfg)]
+    out = out[:, np.argsort([np.flatnonzero(np.isfinite(out[:, k, 0]))[0] for k in range(out.shape[1])],
+                           kind="stable")]
     return extend_tracks(out, clouds, cfg), [f"M{k + 1:03d}" for k in range(out.shape[1])]
+
+
+def _markers(tracks: np.ndarray, rate: float, cfg: LabellerConfig) -> list[int]:
+    """The columns of ``tracks`` ``(F, T, 3)`` that are markers: seen for ``min_track_s`` in all, or explained by
+    rigid partners (``_explained``, at this recording's rigidity: ``_rigid_sd``)."""
+    seen = np.isfinite(tracks[..., 0])
+    long = seen.sum(axis=0) >= cfg.min_track_s * rate
+    rigid_sd = _rigid_sd(tracks, seen, np.flatnonzero(long), cfg) if not long.all() else cfg.rigid_sd_mm
+    return [k for k in range(tracks.shape[1])
+            if long[k] or _explained(tracks, seen, k, rigid_sd, cfg.offline_confirm_frames)]
 
 
 def source_rows(positions: np.ndarray, cloud: np.ndarray) -> np.ndarray:
