@@ -73,7 +73,7 @@ def merge_tracks(tracks: np.ndarray, rate: float, config: LabellerConfig | None 
     rounds = 0
     while groups:
         rounds += 1
-        state = _Round(np.stack([np.fmax.reduce(tracks[:, g], axis=1) for g in groups], axis=1), cfg)
+        state = _Round(_joined(tracks, groups), cfg)
         joins = _junctions(state, rate, cfg)
         scored = []
         pairs = np.argwhere(np.triu(state.overlap == 0, 1))
@@ -101,6 +101,14 @@ def merge_tracks(tracks: np.ndarray, rate: float, config: LabellerConfig | None 
         if not taken:
             break
     return groups
+
+
+def _joined(tracks: np.ndarray, groups: list[list[int]]) -> np.ndarray:
+    """Each group of columns of ``tracks`` ``(F, T, 3)`` as one track, ``(F, G, 3)``: the tracks of a group (from
+    ``merge_tracks``) never share a frame."""
+    if not groups:
+        return np.full((len(tracks), 0, 3), np.nan)
+    return np.stack([np.fmax.reduce(tracks[:, group], axis=1) for group in groups], axis=1)
 
 
 def _mutual(both: np.ndarray, long: np.ndarray) -> list[tuple[float, int, int]]:
@@ -347,7 +355,7 @@ def _second_look(merged: np.ndarray, doubtful: list[tuple[int, int]], rate: floa
                     where.update({c: ga for c in again[gb]})
                     again[ga], again[gb] = again[ga] + again[gb], []
                     break
-    return np.stack([np.fmax.reduce(cut[:, group], axis=1) for group in again if group], axis=1)
+    return _joined(cut, [group for group in again if group])
 
 
 def extend_tracks(tracks: np.ndarray, clouds: list[np.ndarray], config: LabellerConfig | None = None) -> np.ndarray:
@@ -600,9 +608,7 @@ def label_sequence(frames: Iterable[np.ndarray], rate: float, config: LabellerCo
         tracks[idx, track] = pos
     tracks, doubtful = split_doubtful_joins(tracks, cfg)
     groups = merge_tracks(tracks, rate, cfg, progress)
-    # the tracks of a group never share a frame
-    merged = [np.fmax.reduce(tracks[:, group], axis=1) for group in groups]
-    joined = np.stack(merged, axis=1) if merged else np.full((len(rows), 0, 3), np.nan)
+    joined = _joined(tracks, groups)
     kept = _markers(joined, rate, cfg)
     # the joins in doubt on the tracks kept, by column of those: a track dropped takes up no piece of another marker
     column = {k: c for c, k in enumerate(kept)}
