@@ -246,7 +246,8 @@ def _build(positions: np.ndarray, labels: Sequence[str], rate: float, groups: Se
                               hinge_placement, name, progress)
             shapes.append(shape)
             offsets.update({(s, e): shape.extra_offsets[j] for j, e in enumerate(attached)})
-        motion = {e: _relative_motion(shapes[e[0]].pose, shapes[e[1]].pose) for e in edges}  # deg, deg, estimate
+        # deg, deg, mean rotation (deg), estimate
+        motion = {e: _relative_motion(shapes[e[0]].pose, shapes[e[1]].pose) for e in edges}
         still = [e for e in edges if motion[e][0] < MIN_ROTATION_DEG and e not in fixed]
         if not still or attempt:
             break
@@ -256,7 +257,7 @@ def _build(positions: np.ndarray, labels: Sequence[str], rate: float, groups: Se
                         "locate it", names[parent], names[child], motion[parent, child][0], MIN_ROTATION_DEG)
             tracks[parent, child] = _closest_track(positions[chosen], groups[parent], groups[child])
         fixed |= set(still)
-    estimates = {e: est for e, (_, _, est) in motion.items() if est is not None}
+    estimates = {e: est for e, (*_, est) in motion.items() if est is not None}
     # a hinge needs both segments' orientations (a segment of two markers is posed through its joints, unless they
     # all lie on a line)
     oriented = {e for e in edges if not (shapes[e[0]].in_line or shapes[e[1]].in_line) and e not in fixed
@@ -271,6 +272,7 @@ def _build(positions: np.ndarray, labels: Sequence[str], rate: float, groups: Se
             p_near and c_near and _level_fits(est, [_offset(estimates[e], e, parent) for e in p_near],
                                               [_offset(estimates[e], e, child) for e in c_near])))
         p_off, c_off = offsets[parent, (parent, child)], offsets[child, (parent, child)]
+        posture = motion[parent, child][2]
         axis = est.axis if hinge and est is not None else None
         if est is not None and hinge and hinge_placement == "neighbours":
             p_off, c_off = place_on_axis(p_off, c_off, est.axis, est.child_axis, [offsets[parent, e] for e in p_near],
@@ -288,7 +290,7 @@ def _build(positions: np.ndarray, labels: Sequence[str], rate: float, groups: Se
             axis=_vec(axis) if axis is not None else None, cost=float(costs[parent, child]), distance_mean=mean,
             distance_sd=sd, gap_mm=_rms(apart), rotation_deg=float(motion[parent, child][0]),
             uncertainty_mm=uncertainty, located=uncertainty <= LOCATED_MM,
-            motion_sd_deg=_vec(motion[parent, child][1])))
+            motion_sd_deg=_vec(motion[parent, child][1]), posture=_vec(posture) if posture is not None else None))
     spread = distance_spread(positions, pair_frames(rate))
     segments_out = [Segment(name=names[s], markers=[labels[m] for m in g],
                             marker_offsets=[_vec(o) for o in shapes[s].marker_offsets],
@@ -419,17 +421,19 @@ def _offset(est: CoREstimate, edge: tuple[int, int], segment: int) -> np.ndarray
     return est.parent_offset if segment == edge[0] else est.child_offset
 
 
-def _relative_motion(parent: PoseFit, child: PoseFit) -> tuple[float, np.ndarray, CoREstimate | None]:
+def _relative_motion(parent: PoseFit,
+                     child: PoseFit) -> tuple[float, np.ndarray, np.ndarray | None, CoREstimate | None]:
     """RMS angle (deg) of the child's rotation relative to the parent about its mean, its SDs (deg) about its three
-    principal axes (largest first), and the closed-form centre of rotation with its hinge test (none without two
-    frames where both poses are known)."""
+    principal axes (largest first), the mean as a rotation vector (deg), and the closed-form centre of rotation with
+    its hinge test (no mean and no centre without two frames where both poses are known)."""
     rp, rc = parent.rotation_matrices, child.rotation_matrices
     known = (np.isfinite(rp).all((1, 2)) & np.isfinite(rc).all((1, 2)) & np.isfinite(parent.translations).all(1)
              & np.isfinite(child.translations).all(1))
     if known.sum() < 2:
-        return 0.0, np.zeros(3), None
+        return 0.0, np.zeros(3), None, None
     rel = Rotation.from_matrix(np.einsum("fba,fbc->fac", rp[known], rc[known]))
-    about = (rel.mean().inv() * rel).as_rotvec()
+    mean = rel.mean()
+    about = (mean.inv() * rel).as_rotvec()
     spread = float(np.degrees(np.sqrt(np.mean((about**2).sum(axis=1)))))
     sds = np.degrees(np.sqrt(np.maximum(np.linalg.eigvalsh(about.T @ about / len(about))[::-1], 0.0)))
-    return spread, sds, closed_form(parent, child)
+    return spread, sds, np.degrees(mean.as_rotvec()), closed_form(parent, child)

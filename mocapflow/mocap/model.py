@@ -70,6 +70,11 @@ class Joint(BaseModel):
     motion_sd_deg: Vec3 | None = Field(
         default=None, description="SD of the child's rotation relative to the parent about the three principal axes "
                                   "of that rotation, largest first (deg): what motion the data held")
+    posture: Vec3 | None = Field(
+        default=None, description="how the two segments mostly stood: the child's mean rotation relative to the "
+                                  "parent over the calibration data, as a rotation vector in the parent's local frame "
+                                  "(deg); it tells a segment of two markers from its mirror image the first time it "
+                                  "is found")
 
 
 class SegmentModel(BaseModel):

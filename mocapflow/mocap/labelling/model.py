@@ -53,6 +53,7 @@ from itertools import combinations, permutations
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 from scipy.spatial.distance import cdist
+from scipy.spatial.transform import Rotation
 
 from mocapflow.mocap.labelling.assignment import assign, gated_cost, match, norm
 from mocapflow.mocap.labelling.config import FRAME_ACCEL_MM_S2, LabellerConfig, frame_gate
@@ -132,6 +133,7 @@ class ModelLabeller:
         self.segments: list[_Segment] = []
         index: dict[str, int] = {}
         self._snug: dict[tuple[int, int], float] = {}  # per joint (both ways), see below
+        postures: list[tuple[int, int, np.ndarray]] = []  # per joint with one: parent, child, mean posture
         for seg in skeleton.segments:
             if seg.marker_offsets is None or len(seg.markers) == 0:
                 continue
@@ -156,6 +158,8 @@ class ModelLabeller:
                                                           self.config.spread_sigmas * (joint.gap_mm or 0.0))
                 self.segments[p].joints.append((c, po, co, held))
                 self.segments[c].joints.append((p, co, po, held))
+                if joint.posture is not None:
+                    postures.append((p, c, np.array(joint.posture)))
         width = max(len(one.markers) for one in self.segments)
         self._slots = np.full((len(self.segments), width), -1, np.intp)  # markers of each segment, -1 padding
         self._layouts = np.zeros((len(self.segments), width, 3))
@@ -182,6 +186,10 @@ class ModelLabeller:
         self._last_time = np.full(len(self.segments), -np.inf)
         # each segment's rotation relative to each neighbour, when both were last surely posed: its posture there
         self._posture: dict[tuple[int, int], np.ndarray] = {}
+        self._calibrated: dict[tuple[int, int], np.ndarray] = {}  # the same, as they mostly stood in calibration
+        for p, c, mean in postures:
+            self._calibrated[c, p] = Rotation.from_rotvec(np.radians(mean)).as_matrix()
+            self._calibrated[p, c] = self._calibrated[c, p].T
         # per segment placed on three points alone with no posed neighbour: since when so placed in every frame, and
         # where in the last
         self._doubted_since = np.full(len(self.segments), np.nan)
@@ -460,7 +468,12 @@ class ModelLabeller:
         centre to hold it and not near where it was lately, is added to ``seeds``: any three points at its layout's
         distances fit it, a chance triangle across two segments of another limb among them when its own markers are
         hidden, so it stands only if a neighbour is posed at their joint in the same frame (``_confirmed``), or, no
-        neighbour posed, once so placed for a while (``_held``)."""
+        neighbour posed, once so placed for a while (``_held``).
+        A segment of two markers as far from its joint (a foot's toe and fifth metatarsal, each 122 mm from the ankle)
+        fits its points both ways round, and no posture to its neighbour tells the two apart until it has been posed
+        once: until then, the posture it mostly had to that neighbour in calibration does (``Joint.posture``). Not for
+        larger segments, which a live posture soon serves, and which a calibration that did not cover the capture's
+        postures would mirror."""
         cfg = self.config
         placed = False
         for s, seg in enumerate(self.segments):
@@ -471,6 +484,8 @@ class ModelLabeller:
             anchors = [(here, poses[other][0] @ there + poses[other][1], tol, self._joint_weight(tol))
                        for other, here, there, tol in sure]
             posture = [poses[other][0] @ self._posture[s, other] for other, *_ in sure if (s, other) in self._posture]
+            prior = [poses[other][0] @ self._calibrated[s, other] for other, *_ in sure
+                     if (s, other) in self._calibrated] if len(seg.markers) == 2 and not posture else []
             alone = self._alone(s, poses)
             if searched.get(s, (-1, False)) >= (len(anchors), alone):
                 continue
@@ -481,7 +496,7 @@ class ModelLabeller:
             dt = self._time - self._last_time[s]
             around = (self._last_seen[s], 100.0 + cfg.max_speed_mm_s * dt) if dt <= cfg.recent_s else None
             best = _place_layout(seg.local, z[free], seg.tol, self._weight[seg.markers], anchors, around, posture,
-                                 alone)
+                                 alone, prior=prior)
             if best is None:
                 continue
             points = {slot: int(free[p]) for slot, p in best[0].items()}
@@ -779,7 +794,8 @@ def _place_layout(layout: np.ndarray, cloud: np.ndarray, tol: np.ndarray, weight
                   anchors: list[tuple[np.ndarray, np.ndarray, float, float]],
                   around: tuple[np.ndarray, float] | None = None, posture: list[np.ndarray] | None = None,
                   alone: bool = False,
-                  least: int | None = None) -> tuple[dict[int, int], np.ndarray, np.ndarray] | None:
+                  least: int | None = None, prior: list[np.ndarray] | None = None,
+                  ) -> tuple[dict[int, int], np.ndarray, np.ndarray] | None:
     """The placement of a segment's layout ``(n, 3)`` on ``cloud`` that fits clearly better than any other (more
     points, or a third of the misfit): the points it lands on by layout row, its rotation and translation; None when
     no placement is that sure. ``tol`` and ``weight`` (n,) are each layout point's tolerance (mm) and weight in the
@@ -798,7 +814,8 @@ def _place_layout(layout: np.ndarray, cloud: np.ndarray, tol: np.ndarray, weight
     the joint, each hidden in turn) are told apart by ``posture``: the rotations the segment would have if it kept,
     to each anchoring neighbour, the relative rotation it last had. The placement turned least from them is taken
     when every rival is turned at least ``POSTURE_DEG`` more; a joint does not flip a segment over between two
-    sightings.
+    sightings. With no ``posture``, ``prior`` (rotations as ``posture``, from the mean postures of calibration) tells
+    apart, in the same way, only rivals that land on the same points: a placement and its mirror image.
     """
     if least is None:
         least = (4 if around is None and not alone else 3) if not anchors else 2 if len(anchors) == 1 else 1
@@ -809,6 +826,8 @@ def _place_layout(layout: np.ndarray, cloud: np.ndarray, tol: np.ndarray, weight
     top = ranked[0]
     rivals = [f for f in ranked if len(f[0]) == len(top[0]) and f[1] < 3.0 * top[1] + 1.0]
     if len(rivals) > 1:
+        if not posture and len({frozenset(f[0].values()) for f in rivals}) == 1:
+            posture = prior
         if not posture:
             return None
         turn = sorted((np.mean([_angle(f[2], expected) for expected in posture]), i) for i, f in enumerate(rivals))
