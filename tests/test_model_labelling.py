@@ -696,6 +696,30 @@ def test_skeleton_validation() -> None:
         labeller.update(np.zeros((0, 3)), 0.0)
 
 
+def test_a_skeleton_file_with_a_place_that_is_no_number_is_refused_in_one_line(tmp_path: Path) -> None:
+    """A marker offset, joint centre or posture that is NaN or infinite (a hand-edited file, a broken writer) is no
+    place: reading the file fails with one line naming the field, as for any malformed skeleton."""
+    import json
+
+    from mocapflow.errors import MocapFileError
+    from mocapflow.io.skeleton import read_skeleton, write_skeleton
+
+    path = tmp_path / "subject.json"
+    write_skeleton(path, subject())
+    assert read_skeleton(path) == subject()
+    for field, value in (("marker_offsets", float("nan")), ("parent_offset", float("inf"))):
+        data = json.loads(path.read_text())
+        if field == "marker_offsets":
+            data["segments"][0][field][0][1] = value
+        else:
+            data["joints"][0][field][2] = value
+        broken = tmp_path / f"{field}.json"
+        broken.write_text(json.dumps(data))
+        with pytest.raises(MocapFileError, match=rf"{field}\.\d+(\.\d+)?: Input should be a finite number") as caught:
+            read_skeleton(broken)
+        assert "\n" not in str(caught.value)
+
+
 def test_label_command_with_a_skeleton(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """A new trial named from its subject's skeleton; another subject's skeleton names few points, and the command
     says so; a missing or broken skeleton file is a one-line error."""

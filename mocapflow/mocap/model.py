@@ -10,9 +10,9 @@ from __future__ import annotations
 
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, FiniteFloat
 
-Vec3 = tuple[float, float, float]
+Vec3 = tuple[FiniteFloat, FiniteFloat, FiniteFloat]  # a NaN offset or axis is no place: refused on reading
 
 
 class Segment(BaseModel):
