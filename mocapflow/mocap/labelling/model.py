@@ -133,7 +133,8 @@ class ModelLabeller:
         self.segments: list[_Segment] = []
         index: dict[str, int] = {}
         self._snug: dict[tuple[int, int], float] = {}  # per joint (both ways), see below
-        postures: list[tuple[int, int, np.ndarray]] = []  # per joint with one: parent, child, mean posture
+        # per joint (both ways): each segment's rotation relative to the other as they mostly stood in calibration
+        self._calibrated: dict[tuple[int, int], np.ndarray] = {}
         for seg in skeleton.segments:
             if seg.marker_offsets is None or len(seg.markers) == 0:
                 continue
@@ -159,7 +160,8 @@ class ModelLabeller:
                 self.segments[p].joints.append((c, po, co, held))
                 self.segments[c].joints.append((p, co, po, held))
                 if joint.posture is not None:
-                    postures.append((p, c, np.array(joint.posture)))
+                    self._calibrated[c, p] = Rotation.from_rotvec(np.radians(joint.posture)).as_matrix()
+                    self._calibrated[p, c] = self._calibrated[c, p].T
         width = max(len(one.markers) for one in self.segments)
         self._slots = np.full((len(self.segments), width), -1, np.intp)  # markers of each segment, -1 padding
         self._layouts = np.zeros((len(self.segments), width, 3))
@@ -186,10 +188,6 @@ class ModelLabeller:
         self._last_time = np.full(len(self.segments), -np.inf)
         # each segment's rotation relative to each neighbour, when both were last surely posed: its posture there
         self._posture: dict[tuple[int, int], np.ndarray] = {}
-        self._calibrated: dict[tuple[int, int], np.ndarray] = {}  # the same, as they mostly stood in calibration
-        for p, c, mean in postures:
-            self._calibrated[c, p] = Rotation.from_rotvec(np.radians(mean)).as_matrix()
-            self._calibrated[p, c] = self._calibrated[c, p].T
         # per segment placed on three points alone with no posed neighbour: since when so placed in every frame, and
         # where in the last
         self._doubted_since = np.full(len(self.segments), np.nan)
@@ -484,8 +482,6 @@ class ModelLabeller:
             anchors = [(here, poses[other][0] @ there + poses[other][1], tol, self._joint_weight(tol))
                        for other, here, there, tol in sure]
             posture = [poses[other][0] @ self._posture[s, other] for other, *_ in sure if (s, other) in self._posture]
-            prior = [poses[other][0] @ self._calibrated[s, other] for other, *_ in sure
-                     if (s, other) in self._calibrated] if len(seg.markers) == 2 and not posture else []
             alone = self._alone(s, poses)
             if searched.get(s, (-1, False)) >= (len(anchors), alone):
                 continue
@@ -495,6 +491,8 @@ class ModelLabeller:
                 continue
             dt = self._time - self._last_time[s]
             around = (self._last_seen[s], 100.0 + cfg.max_speed_mm_s * dt) if dt <= cfg.recent_s else None
+            prior = [poses[other][0] @ self._calibrated[s, other] for other, *_ in sure
+                     if (s, other) in self._calibrated] if len(seg.markers) == 2 and not posture else []
             best = _place_layout(seg.local, z[free], seg.tol, self._weight[seg.markers], anchors, around, posture,
                                  alone, prior=prior)
             if best is None:

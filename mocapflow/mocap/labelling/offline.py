@@ -303,14 +303,21 @@ def split_doubtful_joins(tracks: np.ndarray,
     column: dict[tuple[int, int], int] = {}  # (track, cuts before it) -> the column of that piece
     for t, at in cuts.items():
         column.update({(t, k + 1): count + len(pieces) + k for k in range(len(at))})
-        bounds = [*at, len(tracks)]
         out[at[0]:, t] = np.nan
-        for begin, end in zip(bounds[:-1], bounds[1:], strict=True):
-            piece = np.full((len(tracks), 3), np.nan)
-            piece[begin:end] = tracks[begin:end, t]
-            pieces.append(piece)
+        pieces += _cut(tracks[:, t], [*at, len(tracks)])
     doubtful = [(column.get((t, k), t), frame) for t, k, frame in doubts]
     return np.concatenate([out, *[p[:, None] for p in pieces]], axis=1), doubtful
+
+
+def _cut(track: np.ndarray, bounds: list[int]) -> list[np.ndarray]:
+    """``track`` ``(F, 3)`` cut at ``bounds`` (frames, increasing): one track per span between two bounds, NaN
+    elsewhere."""
+    pieces = []
+    for begin, end in zip(bounds[:-1], bounds[1:], strict=True):
+        piece = np.full_like(track, np.nan)
+        piece[begin:end] = track[begin:end]
+        pieces.append(piece)
+    return pieces
 
 
 def _second_look(merged: np.ndarray, doubtful: list[tuple[int, int]], rate: float, cfg: LabellerConfig,
@@ -333,16 +340,10 @@ def _second_look(merged: np.ndarray, doubtful: list[tuple[int, int]], rate: floa
     pieces: list[np.ndarray] = []
     chains: list[list[int]] = []  # per merged track, the columns of its pieces in order
     for k in range(merged.shape[1]):
-        track = merged[:, k]
-        bounds = [0, *sorted(at.get(k, ())), len(track)]
-        chain = []
-        for begin, end in zip(bounds[:-1], bounds[1:], strict=True):
-            if np.isfinite(track[begin:end, 0]).any():
-                piece = np.full_like(track, np.nan)
-                piece[begin:end] = track[begin:end]
-                chain.append(len(pieces))
-                pieces.append(piece)
-        chains.append(chain)
+        held = [piece for piece in _cut(merged[:, k], [0, *sorted(at.get(k, ())), len(merged)])
+                if np.isfinite(piece[:, 0]).any()]
+        chains.append(list(range(len(pieces), len(pieces) + len(held))))
+        pieces += held
     cut = np.stack(pieces, axis=1)
     seen = np.isfinite(cut[..., 0])
     again = merge_tracks(cut, rate, cfg, progress)
