@@ -6,7 +6,7 @@ from pydantic import Field
 
 from mocapflow.io.skeleton import read_skeleton
 from mocapflow.messages import MarkerFrame
-from mocapflow.mocap.compiled import compile_fits, compile_labelling
+from mocapflow.mocap.compiled import compile_fits, compile_model_labelling
 from mocapflow.mocap.labelling.model import ModelLabellerConfig, TrackedModelLabeller
 from mocapflow.runtime.node import Input, Node, Output
 
@@ -25,7 +25,7 @@ class SkeletonLabeller(Node[SkeletonLabellerConfig]):
     Config = SkeletonLabellerConfig
     inputs = {"markers": Input(MarkerFrame, doc="raw points, unlabelled")}
     outputs = {"markers": Output(MarkerFrame, doc="the skeleton's markers, NaN where not found")}
-    kernels = (compile_fits, compile_labelling)
+    kernels = (compile_fits, compile_model_labelling)
 
     def setup(self) -> None:
         self.skeleton = read_skeleton(self.config.skeleton)

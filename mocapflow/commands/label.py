@@ -52,7 +52,7 @@ def _config(args: argparse.Namespace) -> LabellerConfig:
 
 def run(args: argparse.Namespace) -> int:
     from mocapflow.io.markers import MarkerData, write_markers
-    from mocapflow.mocap.compiled import compile_fits, compile_labelling
+    from mocapflow.mocap.compiled import compile_fits, compile_labelling, compile_model_labelling
     from mocapflow.mocap.labelling import label_sequence
     from mocapflow.progress import Reporter, progress
     from mocapflow.runtime.kernels import compile_kernels
@@ -63,7 +63,7 @@ def run(args: argparse.Namespace) -> int:
     points = data.positions
     if not np.isfinite(points).all(axis=2).any():
         raise MocapflowError(f"{args.input}: no points to label")
-    stages = (compile_labelling,) if args.skeleton is None else (compile_fits, compile_labelling)
+    stages = (compile_labelling,) if args.skeleton is None else (compile_fits, compile_model_labelling)
     compile_kernels(sys.stderr, *stages)  # the input is read and checked: the work is to be done
     if args.skeleton is not None:
         from mocapflow.io.skeleton import read_skeleton

@@ -21,6 +21,7 @@ import numpy as np
 from mocapflow.mocap.filling import FillerConfig, GapFiller
 from mocapflow.mocap.labelling import Labeller, LabellerConfig
 from mocapflow.mocap.labelling.labeller import own_gates
+from mocapflow.mocap.labelling.model import TrackedModelLabeller
 from mocapflow.mocap.model import Joint, Segment, SkeletonModel
 from mocapflow.mocap.reacquire import Reacquirer
 from mocapflow.mocap.rigidfit import fit_one, fit_pose, kabsch, quaternion_matrices, rotor
@@ -40,6 +41,7 @@ def compile_all() -> None:
     process, as each stage's loader runs once."""
     compile_fits()
     compile_labelling()
+    compile_model_labelling()
     compile_filling()
 
 
@@ -72,6 +74,16 @@ def compile_labelling() -> None:
     for i, (points, _) in zip(range(2), _turning(), strict=False):
         reacquire(points, 4.0 + i / 100)
     own_gates(1.0, 2.0, np.zeros((1, 3)), np.zeros(1))  # as reacquire follows the tracks it found
+
+
+@cache
+def compile_model_labelling() -> None:
+    """The search for a segment's marker layout among a frame's points, by which a skeleton's names are given
+    (``labelling.model``); once a process."""
+    compile_labelling()
+    labeller = TrackedModelLabeller(SKELETON, 100.0)
+    for i, (points, far) in enumerate(_turning()):
+        labeller.update(np.vstack([points[::-1], far]), i / 100)
 
 
 @cache

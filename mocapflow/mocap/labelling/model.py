@@ -46,11 +46,12 @@ workflow and its accuracy under stress: docs/labelling.md.
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from itertools import combinations, permutations
 
 import numpy as np
+from numba import njit
 from pydantic import BaseModel, ConfigDict, Field
 from scipy.spatial.distance import cdist
 from scipy.spatial.transform import Rotation
@@ -62,7 +63,7 @@ from mocapflow.mocap.labelling.labeller import Labeller, own_gates
 from mocapflow.mocap.labelling.offline import label_sequence, run_starts, source_rows
 from mocapflow.mocap.model import SkeletonModel
 from mocapflow.mocap.report import Progress, steps
-from mocapflow.mocap.rigidfit import fit_one, kabsch
+from mocapflow.mocap.rigidfit import fit_one, kabsch, kabsch_into
 
 PRIOR_WEIGHT = 1e-3
 """Weight of a segment's previous pose in its fit, against 1 for each marker or joint centre seen now."""
@@ -841,41 +842,148 @@ def _placements(layout: np.ndarray, cloud: np.ndarray, tol: np.ndarray, weight: 
                 ) -> list[tuple[dict[int, int], float, np.ndarray, np.ndarray]]:
     """Every placement of a layout on ``cloud`` (arguments as for ``_place_layout``) that lands ``least`` layout
     points or more on distinct cloud points, each within its tolerance, with every anchor within its own: the points
-    it lands on by layout row, its RMS misfit (markers and anchors, mm), rotation and translation."""
+    it lands on by layout row, its RMS misfit (markers and anchors, mm), rotation and translation. The search is
+    compiled (``_placed``): at a cold start, or with a third of the markers hidden, it runs many times a frame."""
     if len(layout) < least:
         return []
-    found: dict[frozenset, tuple[dict[int, int], float, np.ndarray, np.ndarray]] = {}
-    local_a = np.array([a[0] for a in anchors]).reshape(-1, 3)
-    world_a = np.array([a[1] for a in anchors]).reshape(-1, 3)
-    joint_tol = np.array([a[2] for a in anchors])
-    joint_weight = np.array([a[3] for a in anchors])
-    d_cloud = cdist(cloud, cloud)
-    d_anchor = cdist(cloud, world_a)
-    d_local = cdist(layout, local_a)
-    for target_rows, target in _triples(layout, cloud, d_cloud, d_anchor, d_local, tol, joint_tol):
-        fitted = fit_one(np.concatenate([layout[list(target_rows)], local_a]),
-                         np.concatenate([cloud[list(target)], world_a]),
-                         np.concatenate([weight[list(target_rows)], joint_weight]))
-        if fitted is None:
+    local_a = np.array([a[0] for a in anchors], dtype=np.float64).reshape(-1, 3)
+    world_a = np.array([a[1] for a in anchors], dtype=np.float64).reshape(-1, 3)
+    joint_tol = np.array([a[2] for a in anchors], dtype=np.float64)
+    joint_weight = np.array([a[3] for a in anchors], dtype=np.float64)
+    centre, reach = (np.full(3, np.nan), -1.0) if around is None else (np.asarray(around[0], np.float64),
+                                                                         float(around[1]))
+    hits, misfit, rot, shift = _placed(np.ascontiguousarray(layout, np.float64),
+                                       np.ascontiguousarray(cloud, np.float64), np.asarray(tol, np.float64),
+                                       np.asarray(weight, np.float64), local_a, world_a, joint_tol, joint_weight,
+                                       least, centre, reach)
+    return [({int(r): int(h[r]) for r in np.flatnonzero(h >= 0)}, float(misfit[i]), rot[i], shift[i])
+            for i, h in enumerate(hits)]
+
+
+@njit(cache=True)
+def _distances(a: np.ndarray, b: np.ndarray) -> np.ndarray:  # pragma: no cover
+    """(len(a), len(b)) Euclidean distances between two point sets."""
+    out = np.empty((len(a), len(b)))
+    for i in range(len(a)):
+        for j in range(len(b)):
+            dx, dy, dz = a[i, 0] - b[j, 0], a[i, 1] - b[j, 1], a[i, 2] - b[j, 2]
+            out[i, j] = np.sqrt(dx * dx + dy * dy + dz * dz)
+    return out
+
+
+@njit(cache=True)
+def _placed(layout: np.ndarray, cloud: np.ndarray, tol: np.ndarray, weight: np.ndarray, local_a: np.ndarray,
+            world_a: np.ndarray, joint_tol: np.ndarray, joint_weight: np.ndarray, least: int, centre: np.ndarray,
+            reach: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:  # pragma: no cover
+    """``_placements``, compiled: per placement found, the cloud point of each layout row (-1 for none), its misfit,
+    rotation and translation, the best of each set of points landed on, in the order first found. Each placement
+    starts from layout rows and cloud points that, with the anchors, make three points at the layout's distances
+    (within the larger of the two rows' tolerances; to an anchor, within its ``joint_tol``): a marker with two
+    anchors or more, two markers with one, three markers without. ``reach`` below 0: no ``around``."""
+    n, m, k = len(layout), len(cloud), len(local_a)
+    d_cloud, d_layout = _distances(cloud, cloud), _distances(layout, layout)
+    d_anchor, d_local = _distances(cloud, world_a), _distances(layout, local_a)
+    width = 3 - min(k, 2)
+    # the starting rows and points, ``width`` of each per start, in the order searched
+    count = 0
+    buffer = np.empty((16, 2, 3), np.intp)
+    for a in range(n):
+        for b in range(a + 1, n) if width > 1 else range(a, a + 1):
+            for c in range(b + 1, n) if width > 2 else range(b, b + 1):
+                for i in range(m):
+                    for j in range(m) if width > 1 else range(i, i + 1):
+                        if width > 1 and not abs(d_cloud[i, j] - d_layout[a, b]) < max(tol[a], tol[b]):
+                            continue
+                        for p in range(m) if width > 2 else range(j, j + 1):
+                            if width > 2 and (p == i or p == j
+                                              or not abs(d_cloud[i, p] - d_layout[a, c]) < max(tol[a], tol[c])
+                                              or not abs(d_cloud[j, p] - d_layout[b, c]) < max(tol[b], tol[c])):
+                                continue
+                            rows, points = (a, b, c), (i, j, p)
+                            good = True
+                            for t in range(width if width < 3 else 0):  # each marker at its distances to the anchors
+                                for q in range(k):
+                                    if abs(d_anchor[points[t], q] - d_local[rows[t], q]) > joint_tol[q]:
+                                        good = False
+                            if not good:
+                                continue
+                            if count == len(buffer):
+                                grown = np.empty((2 * count, 2, 3), np.intp)
+                                grown[:count] = buffer
+                                buffer = grown
+                            for t in range(3):
+                                buffer[count, 0, t], buffer[count, 1, t] = rows[t], points[t]
+                            count += 1
+    starts = buffer[:count]
+    hits = np.full((max(count, 1), n), -1, np.intp)
+    misfits, rots, shifts = np.empty(max(count, 1)), np.empty((max(count, 1), 3, 3)), np.empty((max(count, 1), 3))
+    found = 0
+    q = width + k
+    here, there, w = np.empty((q, 3)), np.empty((q, 3)), np.empty(q)
+    rot, shift = np.empty((3, 3)), np.empty(3)
+    anchor_err, fit, point = np.empty(k), np.empty(n), np.empty(n, np.intp)
+    hit = np.empty(n, np.intp)
+    for start in range(count):
+        for t in range(width):
+            row, at = starts[start, 0, t], starts[start, 1, t]
+            here[t], there[t], w[t] = layout[row], cloud[at], weight[row]
+        for t in range(k):
+            here[width + t], there[width + t], w[width + t] = local_a[t], world_a[t], joint_weight[t]
+        if not kabsch_into(here, there, w / w.sum(), rot, shift):
             continue
-        rot, shift = fitted
-        anchor_err = np.linalg.norm(local_a @ rot.T + shift - world_a, axis=1)
-        if (anchor_err > joint_tol).any() or (around is not None and np.linalg.norm(shift - around[0]) > around[1]):
+        bad = False
+        for t in range(k):
+            e = 0.0
+            for c in range(3):
+                v = local_a[t, 0] * rot[c, 0] + local_a[t, 1] * rot[c, 1] + local_a[t, 2] * rot[c, 2] + shift[c] \
+                    - world_a[t, c]
+                e += v * v
+            anchor_err[t] = np.sqrt(e)
+            bad |= anchor_err[t] > joint_tol[t]
+        if bad or (reach >= 0 and np.sqrt(np.sum((shift - centre) ** 2)) > reach):
             continue
-        near = cdist(layout @ rot.T + shift, cloud)
-        point = near.argmin(axis=1)
-        fit = near[np.arange(len(layout)), point]
-        inside = fit < tol
-        if inside.sum() < least or len(set(point[inside].tolist())) < inside.sum():
+        inside = 0
+        for r in range(n):
+            moved = np.empty(3)
+            for c in range(3):
+                moved[c] = layout[r, 0] * rot[c, 0] + layout[r, 1] * rot[c, 1] + layout[r, 2] * rot[c, 2] + shift[c]
+            best, nearest = np.inf, -1
+            for j in range(m):
+                dx, dy, dz = moved[0] - cloud[j, 0], moved[1] - cloud[j, 1], moved[2] - cloud[j, 2]
+                d = np.sqrt(dx * dx + dy * dy + dz * dz)
+                if d < best:
+                    best, nearest = d, j
+            fit[r], point[r] = best, nearest
+            hit[r] = nearest if best < tol[r] else -1
+            inside += best < tol[r]
+        if inside < least:
             continue
-        hits = {int(r): int(point[r]) for r in np.flatnonzero(inside)}
-        key = frozenset(hits.items())
+        distinct = True
+        for r in range(n):
+            for r2 in range(r + 1, n):
+                if hit[r] >= 0 and hit[r] == hit[r2]:
+                    distinct = False
+        if not distinct:
+            continue
         # a joint known to gape counts its misfit as a marker counts a straying marker's: scaled down with its weight
-        anchor_misfit = np.sum(anchor_err**2 * joint_weight / JOINT_WEIGHT)
-        misfit = float(np.sqrt((np.sum(fit[inside] ** 2) + anchor_misfit) / (inside.sum() + len(anchor_err))))
-        if key not in found or misfit < found[key][1]:
-            found[key] = (hits, misfit, rot, shift)
-    return list(found.values())
+        squares = 0.0
+        for r in range(n):
+            if hit[r] >= 0:
+                squares += fit[r] ** 2
+        anchor_misfit = 0.0
+        for t in range(k):
+            anchor_misfit += anchor_err[t] ** 2 * joint_weight[t] / JOINT_WEIGHT
+        misfit = np.sqrt((squares + anchor_misfit) / (inside + k))
+        same = -1
+        for f in range(found):
+            if (hits[f] == hit).all():
+                same = f
+        if same < 0:
+            same, found = found, found + 1
+        elif misfit >= misfits[same]:
+            continue
+        hits[same], misfits[same], rots[same], shifts[same] = hit, misfit, rot, shift
+    return hits[:found], misfits[:found], rots[:found], shifts[:found]
 
 
 def _could_hold(seg: _Segment, cloud: np.ndarray, least: int) -> np.ndarray:
@@ -920,37 +1028,6 @@ def _look_alikes(segments: list[_Segment]) -> list[list[int]]:
 def _angle(rot: np.ndarray, other: np.ndarray) -> float:
     """The angle between two rotations, in degrees."""
     return float(np.degrees(np.arccos(np.clip((np.trace(rot.T @ other) - 1.0) / 2.0, -1.0, 1.0))))
-
-
-def _triples(layout: np.ndarray, cloud: np.ndarray, d_cloud: np.ndarray, d_anchor: np.ndarray, d_local: np.ndarray,
-             tol: np.ndarray, joint_tol: np.ndarray) -> Iterable[tuple[tuple[int, ...], tuple[int, ...]]]:
-    """Layout rows and cloud points that, with the anchors, make three points at the layout's distances (within the
-    larger of the two rows' tolerances; to an anchor, within its ``joint_tol``): a marker with two anchors or more, two
-    markers with one, three markers without."""
-    width = 3 - min(len(joint_tol), 2)
-    d_layout = cdist(layout, layout)
-    pair_tol = np.maximum(tol[:, None], tol[None, :])
-
-    def fits_anchors(rows: tuple[int, ...], points: tuple[int, ...]) -> bool:
-        return all((np.abs(d_anchor[p] - d_local[r]) <= joint_tol).all() for r, p in zip(rows, points, strict=True))
-
-    if width == 1:
-        for a in range(len(layout)):
-            for i in np.flatnonzero((np.abs(d_anchor - d_local[a]) <= joint_tol).all(axis=1)):
-                yield (a,), (int(i),)
-        return
-    for rows in combinations(range(len(layout)), width):
-        a, b = rows[0], rows[1]
-        for i, j in np.argwhere(np.abs(d_cloud - d_layout[a, b]) < pair_tol[a, b]):
-            if width == 2:
-                if fits_anchors((a, b), (i, j)):
-                    yield (a, b), (int(i), int(j))
-                continue
-            c = rows[2]
-            ks = np.flatnonzero((np.abs(d_cloud[i] - d_layout[a, c]) < pair_tol[a, c])
-                                & (np.abs(d_cloud[j] - d_layout[b, c]) < pair_tol[b, c]))
-            for k in ks[(ks != i) & (ks != j)]:
-                yield (a, b, c), (int(i), int(j), int(k))
 
 
 def label_with_skeleton(frames: Sequence[np.ndarray] | np.ndarray, rate: float, skeleton: SkeletonModel,
