@@ -12,7 +12,13 @@ from conftest import graph_file, run_cli
 
 from mocapflow.mocap.calibration import calibrate
 from mocapflow.mocap.evaluation import STRESS, score_naming, unlabel
-from mocapflow.mocap.labelling.model import ModelLabeller, TrackedModelLabeller, _track_names, label_with_skeleton
+from mocapflow.mocap.labelling.model import (
+    ModelLabeller,
+    TrackedModelLabeller,
+    _placements,
+    _track_names,
+    label_with_skeleton,
+)
 from mocapflow.mocap.model import SkeletonModel
 from mocapflow.mocap.simulator import Simulator, SimulatorConfig, simulate, truth_skeleton
 
@@ -445,6 +451,34 @@ def test_the_trajectories_evidence_adds_no_wrong_name(data_dir: Path, monkeypatc
     assert added, "the evidence names nothing here: the case no longer tests it"
     wrong = [(given, own) for given, own in added if given != own]
     assert not wrong, f"{len(wrong)} of {len(added)} points named wrong, e.g. {wrong[0]}"
+
+
+def test_a_layout_is_placed_on_its_own_points_among_ghosts_with_or_without_its_joint() -> None:
+    rng = np.random.default_rng(7)
+    layout = np.array([[0.0, 0.0, 0.0], [120.0, 0.0, 0.0], [0.0, 80.0, 0.0], [30.0, 40.0, 90.0]])
+    c, s = np.cos(0.9), np.sin(0.9)
+    rotation = np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]]) @ np.array([[1.0, 0.0, 0.0], [0.0, c, -s],
+                                                                                   [0.0, s, c]])
+    shift = np.array([400.0, -250.0, 900.0])
+    order = rng.permutation(16)  # the markers among twelve ghosts, shuffled
+    cloud = np.vstack([layout @ rotation.T + shift, rng.uniform(-600.0, 600.0, (12, 3)) + shift])[order]
+    at = [int(np.flatnonzero(order == r)[0]) for r in range(4)]  # each marker's point
+    tol, weight = np.full(4, 5.0), np.ones(4)
+    found = _placements(layout, cloud, tol, weight, [], 4)
+    assert len(found) == 1
+    hits, misfit, rot, moved = found[0]
+    assert hits == dict(enumerate(at)) and misfit < 1e-6
+    np.testing.assert_allclose(rot, rotation, atol=1e-9)
+    np.testing.assert_allclose(moved, shift, atol=1e-6)
+    # two markers hidden: the two seen and the joint centre their neighbour puts fix the pose
+    centre = np.array([0.0, 0.0, -50.0])
+    seen = np.delete(cloud, at[2:], axis=0)
+    anchor = [(centre, rotation @ centre + shift, 10.0, 0.1)]
+    found = _placements(layout, seen, tol, weight, anchor, 2)
+    assert [f[0] for f in found] == [{0: int(np.flatnonzero(seen[:, 0] == cloud[at[0], 0])[0]),
+                                      1: int(np.flatnonzero(seen[:, 0] == cloud[at[1], 0])[0])}]
+    np.testing.assert_allclose(found[0][2], rotation, atol=1e-9)
+    assert _placements(layout, seen, tol, weight, [], 3) == []  # two points alone place nothing
 
 
 def test_a_segment_is_placed_on_three_points_once_its_look_alike_is_posed() -> None:

@@ -174,7 +174,8 @@ class RigidFit:
 
     def __init__(self, local: np.ndarray, weight: np.ndarray) -> None:
         self.weight = np.ascontiguousarray(weight / np.maximum(weight.sum(axis=1), 1e-300)[:, None], dtype=np.float64)
-        self.local = np.ascontiguousarray(local, dtype=np.float64)
+        # writable too: a read-only view (a layout broadcast over a batch of one) would be compiled for anew
+        self.local = np.require(local, np.float64, ["C", "W"])
         self.enough = (weight > 0).sum(axis=1) >= 3
 
     def __call__(self, world: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

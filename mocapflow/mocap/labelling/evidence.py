@@ -31,7 +31,7 @@ from typing import Protocol
 import numpy as np
 
 from mocapflow.mocap.labelling.assignment import norm
-from mocapflow.mocap.rigidfit import kabsch
+from mocapflow.mocap.rigidfit import fit_one, kabsch
 
 AGREE = 0.9
 """Share of the frames that check a naming in which it must hold."""
@@ -442,9 +442,9 @@ class RunningEvidence:
                 lay = np.concatenate([seg.local[have]] + [here[None] for here, _, _ in joints])
                 x = np.concatenate([named[seg.markers[have]]] + [where[None] for _, where, _ in joints])
                 limit = np.concatenate([seg.tol[have], [held for _, _, held in joints]])
-                r, t, ok = kabsch(lay[None], x[None], np.ones((1, len(x))))
-                if ok[0] and (norm(lay @ r[0].T + t[0] - x) <= limit).all():
-                    pose[s] = (r[0], t[0])
+                fitted = fit_one(lay, x, np.ones(len(x)))
+                if fitted is not None and (norm(lay @ fitted[0].T + fitted[1] - x) <= limit).all():
+                    pose[s] = fitted
                     slack[s] = max((held for _, _, held in joints), default=0.0)
                     changed = True
         centres = np.full((len(self._joints), 3), np.nan)
