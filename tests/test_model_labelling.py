@@ -144,6 +144,20 @@ def test_two_runs_holding_each_others_names_trade_them() -> None:
     assert (names[30:40] == -1).all()
 
 
+def test_a_trajectory_seen_in_two_runs_after_being_joined_to_the_other_marker_trades_both() -> None:
+    """As above, but the joins came late: each trajectory is mostly its own marker, and after the gap trajectory 0
+    is seen in two runs (hidden a while between them), each holding the name of trajectory 0's marker in frames
+    where trajectory 1's run holds the other. No two runs alone can trade; the three do."""
+    frames = 100
+    track_row = np.full((frames, 2), -1, np.intp)
+    track_row[:60] = track_row[70:90] = track_row[95:] = [0, 1]
+    track_row[90:95, 1] = 1
+    named = [np.array([0, 1]) if f < 60 else np.array([1, 0]) for f in range(frames)]
+    names = _track_names(track_row, named, 2)
+    assert (names[:60] == [0, 1]).all()
+    assert (names[70:90] == [1, 0]).all() and (names[95:] == [1, 0]).all() and (names[90:95, 1] == 0).all()
+
+
 def _footless_trial(gone: list[tuple[list[str], slice]],
                     feet: tuple[str, ...] = ("right_foot",)) -> tuple[SkeletonModel, np.ndarray, np.ndarray, list[str]]:
     """The subject's skeleton with no joint to its ``feet`` (as where calibration could not locate them), and a

@@ -1085,7 +1085,8 @@ def _track_names(track_row: np.ndarray, named: list[np.ndarray], markers: int) -
     trajectory was joined to it across a gap. The name it leaves is tried again by the runs it held back (a run of
     a trajectory that took another marker's points for a while holds that marker's name until it takes its own).
     Two runs that each hold, in frames they share, the name the other's points were mostly given trade names: two
-    trajectories each joined across a gap to the other's marker (neither could take its own name first). Where the
+    trajectories each joined across a gap to the other's marker (neither could take its own name first); where one
+    of them is seen in several runs after that gap, they all trade with the other. Where the
     names of a whole segment were given turned (a layout that fits a quarter turn), the other runs of that segment
     hold them, and the trajectories' names stand."""
     frames, count = track_row.shape
@@ -1133,19 +1134,26 @@ def _track_names(track_row: np.ndarray, named: list[np.ndarray], markers: int) -
 
     def trade(r: int) -> bool:
         """Run ``r`` takes its own name from the one run holding it in its frames, if that run's own name is the one
-        ``r`` holds: they trade (neither could take its own first, the other holding it); whether they did."""
+        ``r`` holds: they trade (neither could take its own first, the other holding it), and with ``r`` the other
+        runs holding that name in the other run's frames whose own name is the other's; whether they did."""
         held = np.unique(holder[first[r]:first[r] + length[r], own[r]])
         held = held[(held >= 0) & (held != r)]
         if len(held) != 1 or not mostly[held[0]] or own[held[0]] != name_of[r]:
             return False
         q = int(held[0])
         mine, theirs = int(name_of[r]), int(name_of[q])
-        drop(r)
-        drop(q)
-        if give(r, theirs) and give(q, mine):
+        # with r, the other runs holding ``mine`` in q's frames whose own name is ``theirs``: the rest of r's
+        # trajectory, when it is seen in more than one run after the two trajectories were joined each to the other
+        span = holder[first[q]:first[q] + length[q], mine]
+        group = [r] + [int(p) for p in np.unique(span[span >= 0]) if p != r and mostly[p] and own[p] == theirs]
+        for p in (*group, q):
+            drop(p)
+        if all([give(p, theirs) for p in group]) and give(q, mine):
             return True
-        drop(r)  # a third run holds ``mine`` in q's frames: as they were
-        give(r, mine)
+        for p in (*group, q):  # a third run holds ``mine`` in q's frames, or ``theirs`` in one of theirs: as they were
+            drop(p)
+        for p in group:
+            give(p, mine)
         give(q, theirs)
         return False
 
