@@ -922,7 +922,7 @@ def _placed(layout: np.ndarray, cloud: np.ndarray, tol: np.ndarray, weight: np.n
     here, there, w = np.empty((q, 3)), np.empty((q, 3)), np.empty(q)
     rot, shift = np.empty((3, 3)), np.empty(3)
     anchor_err, fit, point = np.empty(k), np.empty(n), np.empty(n, np.intp)
-    hit = np.empty(n, np.intp)
+    hit, moved = np.empty(n, np.intp), np.empty(3)
     for start in range(count):
         for t in range(width):
             row, at = starts[start, 0, t], starts[start, 1, t]
@@ -944,7 +944,6 @@ def _placed(layout: np.ndarray, cloud: np.ndarray, tol: np.ndarray, weight: np.n
             continue
         inside = 0
         for r in range(n):
-            moved = np.empty(3)
             for c in range(3):
                 moved[c] = layout[r, 0] * rot[c, 0] + layout[r, 1] * rot[c, 1] + layout[r, 2] * rot[c, 2] + shift[c]
             best, nearest = np.inf, -1
@@ -1086,9 +1085,9 @@ def _track_names(track_row: np.ndarray, named: list[np.ndarray], markers: int) -
     a trajectory that took another marker's points for a while holds that marker's name until it takes its own).
     Two runs that each hold, in frames they share, the name the other's points were mostly given trade names: two
     trajectories each joined across a gap to the other's marker (neither could take its own name first); where one
-    of them is seen in several runs after that gap, they all trade with the other. Where the
-    names of a whole segment were given turned (a layout that fits a quarter turn), the other runs of that segment
-    hold them, and the trajectories' names stand."""
+    of them is seen in several runs after that gap, they all trade with the other. Where the names of a whole segment
+    were given turned (a layout that fits a quarter turn), the other runs of that segment hold them, and the
+    trajectories' names stand."""
     frames, count = track_row.shape
     seen = track_row >= 0
     starts = run_starts(seen)
