@@ -56,14 +56,14 @@ from pydantic import BaseModel, ConfigDict, Field
 from scipy.spatial.distance import cdist
 from scipy.spatial.transform import Rotation
 
-from mocapflow.mocap.labelling.assignment import assign, gated_cost, match, norm
+from mocapflow.mocap.labelling.assignment import assign, distance, gated_cost, match, norm
 from mocapflow.mocap.labelling.config import FRAME_ACCEL_MM_S2, LabellerConfig, frame_gate
 from mocapflow.mocap.labelling.evidence import RunningEvidence, name_by_evidence
 from mocapflow.mocap.labelling.labeller import Labeller, own_gates
 from mocapflow.mocap.labelling.offline import label_sequence, run_starts, source_rows
 from mocapflow.mocap.model import SkeletonModel
 from mocapflow.mocap.report import Progress, steps
-from mocapflow.mocap.rigidfit import fit_one, kabsch, kabsch_into
+from mocapflow.mocap.rigidfit import fit_one, kabsch, kabsch_into, place
 
 PRIOR_WEIGHT = 1e-3
 """Weight of a segment's previous pose in its fit, against 1 for each marker or joint centre seen now."""
@@ -866,8 +866,7 @@ def _distances(a: np.ndarray, b: np.ndarray) -> np.ndarray:  # pragma: no cover
     out = np.empty((len(a), len(b)))
     for i in range(len(a)):
         for j in range(len(b)):
-            dx, dy, dz = a[i, 0] - b[j, 0], a[i, 1] - b[j, 1], a[i, 2] - b[j, 2]
-            out[i, j] = np.sqrt(dx * dx + dy * dy + dz * dz)
+            out[i, j] = distance(a[i], b[j])
     return out
 
 
@@ -921,7 +920,7 @@ def _placed(layout: np.ndarray, cloud: np.ndarray, tol: np.ndarray, weight: np.n
     q = width + k
     here, there, w = np.empty((q, 3)), np.empty((q, 3)), np.empty(q)
     rot, shift = np.empty((3, 3)), np.empty(3)
-    anchor_err, fit, point = np.empty(k), np.empty(n), np.empty(n, np.intp)
+    anchor_err, fit = np.empty(k), np.empty(n)
     hit, moved = np.empty(n, np.intp), np.empty(3)
     for start in range(count):
         for t in range(width):
@@ -933,26 +932,20 @@ def _placed(layout: np.ndarray, cloud: np.ndarray, tol: np.ndarray, weight: np.n
             continue
         bad = False
         for t in range(k):
-            e = 0.0
-            for c in range(3):
-                v = local_a[t, 0] * rot[c, 0] + local_a[t, 1] * rot[c, 1] + local_a[t, 2] * rot[c, 2] + shift[c] \
-                    - world_a[t, c]
-                e += v * v
-            anchor_err[t] = np.sqrt(e)
+            place(rot, local_a[t], shift, moved)
+            anchor_err[t] = distance(moved, world_a[t])
             bad |= anchor_err[t] > joint_tol[t]
-        if bad or (reach >= 0 and np.sqrt(np.sum((shift - centre) ** 2)) > reach):
+        if bad or (reach >= 0 and distance(shift, centre) > reach):
             continue
         inside = 0
         for r in range(n):
-            for c in range(3):
-                moved[c] = layout[r, 0] * rot[c, 0] + layout[r, 1] * rot[c, 1] + layout[r, 2] * rot[c, 2] + shift[c]
+            place(rot, layout[r], shift, moved)
             best, nearest = np.inf, -1
             for j in range(m):
-                dx, dy, dz = moved[0] - cloud[j, 0], moved[1] - cloud[j, 1], moved[2] - cloud[j, 2]
-                d = np.sqrt(dx * dx + dy * dy + dz * dz)
+                d = distance(moved, cloud[j])
                 if d < best:
                     best, nearest = d, j
-            fit[r], point[r] = best, nearest
+            fit[r] = best
             hit[r] = nearest if best < tol[r] else -1
             inside += best < tol[r]
         if inside < least:
