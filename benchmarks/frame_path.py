@@ -12,12 +12,14 @@ Frames are produced as fast as they are handled, so each step's time is its cost
 Zenoh's own transport is what ``mocapflow bench`` measures next to it. Printed: per step, the wall-clock time per
 call (p50 / p99 over the frames after the skeleton model arrived) and per frame (all its calls' time, spread over the
 frames), then the sum of the p50s along the frame's path and the group's whole work per frame: a process that cannot
-do that work within one frame period falls behind.
+do that work within one frame period falls behind. Last, that work by node and by second of capture, before the
+skeleton model arrives and after: where in a capture the group comes near its frame period.
 """
 
 from __future__ import annotations
 
 import argparse
+import gc
 import tempfile
 import time
 from collections import defaultdict
@@ -63,14 +65,21 @@ def main() -> None:
         group = {name for name, spec in graph.items() if spec.get("group") == "frame"}
         costs: dict[str, list[float]] = defaultdict(list)
         skeleton_at: int | None = None
+        frames = int(args.seconds * args.rate)
+        work: dict[str, np.ndarray] = defaultdict(lambda: np.zeros(frames))  # per group node: its time per frame
+        index = 0
 
         def step(key: str, fn: Any, *a: Any) -> Any:
             t = time.perf_counter()
             out = fn(*a)
             costs[key].append((time.perf_counter() - t) * 1e6)
+            if (node := key.split(":")[0]) in group:
+                work[node][index] += costs[key][-1]
             return out
 
-        frames = int(args.seconds * args.rate)
+        # as a worker does once its nodes are set up (runtime.worker): what exists now is kept out of the collector's
+        # full passes, which would otherwise stop a frame for tens of milliseconds now and then
+        gc.freeze()
         for index in range(frames):
             sent.clear()
             step("tracker: simulate", nodes["tracker"].emit, index)
@@ -98,7 +107,7 @@ def main() -> None:
     start = skeleton_at if skeleton_at is not None else 0
     print(f"quickstart frame path at {args.rate:g} Hz: {frames} frames, skeleton model from frame {skeleton_at}; "
           f"wall-clock us per call since (p50 / p99), and per frame (all its calls' time over the frames)")
-    path = work = 0.0
+    path = total = 0.0
     counted = frames - start
     for key, values in costs.items():
         node = key.split(":")[0]
@@ -108,12 +117,19 @@ def main() -> None:
         p50, p99 = np.percentile(tail, [50, 99])
         share = tail.sum() / (counted if per_frame else frames)
         if where == "frame group":
-            work += share
+            total += share
             path += p50 if per_frame else 0.0
         print(f"  {key:<28} {where:<12} {p50:8.0f} {p99:8.0f} {share:8.1f}"
               + ("" if per_frame else f"   ({len(values)} calls)"))
-    print(f"  frame group, sum of p50 per frame: {path:.0f} us; all its work per frame: {work:.0f} us "
+    print(f"  frame group, sum of p50 per frame: {path:.0f} us; all its work per frame: {total:.0f} us "
           f"(one frame every {1e6 / args.rate:.0f} us)")
+    per_second = int(args.rate)
+    print("the frame group's work per frame, us, by second of capture ('*': the skeleton model arrived then)")
+    print("  second " + " ".join(f"{node:>9}" for node in work) + "      all")
+    for first in range(0, frames, per_second):
+        row = [float(w[first:first + per_second].mean()) for w in work.values()]
+        mark = "*" if skeleton_at is not None and first <= skeleton_at < first + per_second else " "
+        print(f"  {first // per_second:5d}{mark} " + " ".join(f"{v:9.0f}" for v in row) + f" {sum(row):8.0f}")
 
 if __name__ == "__main__":
     main()

@@ -190,9 +190,20 @@ def _pipeline(graph: str, rate: float, seconds: float, separate: bool) -> dict[s
         "skipped": sum(int(n.get("skipped", 0)) for n in nodes.values()),
         "latency": [lat for _, lat in seen["skeleton/pose"]],
         "filled": [lat for _, lat in seen["filler/markers"]],
+        "seconds": _by_second(seen["filler/markers"], rate, poses[0] if poses else None),
         "filler": tuple(nodes.get("filler", {}).get(f"latency_{p}_ms") for p in ("p50", "p99")),
         "backlog_max_ms": {n: v["backlog_max_ms"] for n, v in nodes.items() if v.get("backlog_max_ms")},
     }
+
+
+def _by_second(latencies: list[tuple[int, float]], rate: float, first_pose: int | None) -> str:
+    """The p99 latency of each second of capture (by frame number), '|' before the second of the first pose: where
+    in a run the tail lies, before the skeleton model and with it."""
+    per: dict[int, list[float]] = {}
+    for frame, latency in latencies:
+        per.setdefault(int(frame // rate), []).append(latency)
+    marks = {int(first_pose // rate)} if first_pose is not None else set()
+    return " ".join(("| " if s in marks else "") + f"{np.percentile(v, 99):.1f}" for s, v in sorted(per.items()))
 
 
 def run_pipeline(args: argparse.Namespace) -> int:
@@ -214,6 +225,7 @@ def run_pipeline(args: argparse.Namespace) -> int:
             print(f"{'':12}filled       {_percentiles(result['filled'])}" + (
                 "" if None in result["filler"] else  # the rest is the way out: Zenoh's threads and the router
                 f"   as the filler put them: p50 {result['filler'][0]:.3f} ms, p99 {result['filler'][1]:.3f} ms"))
+            print(f"{'':12}filled p99 by second of capture, ms ('|': the first pose): {result['seconds']}")
             print(f"{'':12}filled markers: frames {result['delivered']}/{result['frames']}"
                   f"{'' if result['in_order'] else ' (OUT OF ORDER)'}, drops {result['drops']}, skipped "
                   f"{result['skipped']}; longest wait in an inbox: " +
