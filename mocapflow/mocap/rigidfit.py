@@ -85,14 +85,24 @@ def _horn(x: np.ndarray, y: np.ndarray, w: np.ndarray, q: np.ndarray) -> float: 
     return (values[0] - values[1]) / max(values[3], 1e-300)
 
 
+CLOSED_FORM_GAP = 0.05
+"""The relative gap between the two largest eigenvalues of Horn's matrix above which ``_quaternion`` takes its
+closed form: there the eigenvector is found to about 1e-14 (its error grows as the gap shrinks); below it, the
+Jacobi method, accurate at any gap."""
+
+
 @njit(cache=True)
 def _quaternion(xx: float, xy: float, xz: float, yx: float, yy: float, yz: float, zx: float, zy: float, zz: float,
                 q: np.ndarray, values: np.ndarray) -> None:  # pragma: no cover
     """The eigenvector of the largest eigenvalue of Horn's symmetric 4x4 matrix N built from S (entries ``xx`` ..
-    ``zz``), as a scalar-last quaternion into ``q`` (Horn's is (w, x, y, z)); into ``values`` the three largest
-    eigenvalues, in order, and the largest magnitude of any. The eigenvalues of N are sums of S's singular values with
-    signs (Horn 1987): the largest is s1 + s2 + s3, the second s1 - s2 - s3, the third -s1 + s2 - s3 (s3 taken
-    negative where det S is), so the first two give the first singular value, the first and third the second."""
+    ``zz``), as a scalar-last quaternion into ``q`` (Horn's is (w, x, y, z)), its scalar part never negative; into
+    ``values`` the three largest eigenvalues, in order, and the largest magnitude of any. The eigenvalues of N are
+    sums of S's singular values with signs (Horn 1987): the largest is s1 + s2 + s3, the second s1 - s2 - s3, the
+    third -s1 + s2 - s3 (s3 taken negative where det S is), so the first two give the first singular value, the first
+    and third the second. Where the first two stand clear of each other (``CLOSED_FORM_GAP``), in closed form
+    (``_closed_form``, a sixth of the time); else by the Jacobi method."""
+    if _closed_form(xx, xy, xz, yx, yy, yz, zx, zy, zz, q, values):
+        return
     n = np.empty((4, 4))  # filled entry by entry: a nested list would cost an allocation per row
     n[0, 0], n[0, 1], n[0, 2], n[0, 3] = xx + yy + zz, yz - zy, zx - xz, xy - yx
     n[1, 0], n[1, 1], n[1, 2], n[1, 3] = yz - zy, xx - yy - zz, xy + yx, zx + xz
@@ -108,13 +118,94 @@ def _quaternion(xx: float, xy: float, xz: float, yx: float, yy: float, yz: float
             first, second = i, first
         elif n[i, i] > n[second, second]:
             second = i
-    q[0], q[1], q[2], q[3] = vectors[1, first], vectors[2, first], vectors[3, first], vectors[0, first]
+    sign = 1.0 if vectors[0, first] >= 0 else -1.0
+    q[0], q[1], q[2], q[3] = (sign * vectors[1, first], sign * vectors[2, first], sign * vectors[3, first],
+                              sign * vectors[0, first])
     scale, third = 0.0, -np.inf
     for i in range(4):
         scale = max(scale, abs(n[i, i]))
         if i != first and i != second:
             third = max(third, n[i, i])
     values[0], values[1], values[2], values[3] = n[first, first], n[second, second], third, scale
+
+
+@njit(cache=True)
+def _closed_form(xx: float, xy: float, xz: float, yx: float, yy: float, yz: float, zx: float, zy: float, zz: float,
+                 q: np.ndarray, values: np.ndarray) -> bool:  # pragma: no cover
+    """``_quaternion`` without iterating, where the largest eigenvalue of N stands clear of the second; False (and
+    nothing written) elsewhere. S's singular values come from the eigenvalues of S^T S (the trigonometric solution of
+    a symmetric 3x3's cubic), the smallest as det S / (s1 s2), which keeps it exact when the points are flat; the
+    largest eigenvalue of N, s1 + s2 + s3, is polished by Newton's method on N's characteristic polynomial,
+    x^4 - 2 |S|^2 x^2 - 8 det S x + det N (Horn 1987), and the eigenvector is the best-scaled column of the adjugate
+    of N minus it (a singular symmetric matrix of rank three: its adjugate is a multiple of v v^T)."""
+    m00, m11, m22 = xx * xx + yx * yx + zx * zx, xy * xy + yy * yy + zy * zy, xz * xz + yz * yz + zz * zz
+    m01, m02, m12 = xx * xy + yx * yy + zx * zy, xx * xz + yx * yz + zx * zz, xy * xz + yy * yz + zy * zz
+    det = xx * (yy * zz - yz * zy) - xy * (yx * zz - yz * zx) + xz * (yx * zy - yy * zx)
+    mean = (m00 + m11 + m22) / 3.0
+    d0, d1, d2 = m00 - mean, m11 - mean, m22 - mean
+    spread = np.sqrt((d0 * d0 + d1 * d1 + d2 * d2 + 2.0 * (m01 * m01 + m02 * m02 + m12 * m12)) / 6.0)
+    if not spread > 0.0:  # S^T S a multiple of the identity, or not finite
+        return False
+    half_det = (d0 * (d1 * d2 - m12 * m12) - m01 * (m01 * d2 - m12 * m02) + m02 * (m01 * m12 - d1 * m02)) / (
+        2.0 * spread * spread * spread)
+    angle = np.arccos(min(max(half_det, -1.0), 1.0)) / 3.0
+    e1 = mean + 2.0 * spread * np.cos(angle)
+    e3 = mean + 2.0 * spread * np.cos(angle + 2.0 * np.pi / 3.0)
+    s1, s2 = np.sqrt(max(e1, 0.0)), np.sqrt(max(3.0 * mean - e1 - e3, 0.0))
+    if not s2 > 0.0:
+        return False
+    s3 = det / (s1 * s2)
+    scale = s1 + s2 + abs(s3)
+    if not 2.0 * (s2 + s3) >= CLOSED_FORM_GAP * scale:
+        return False
+    a00, a01, a02, a03 = xx + yy + zz, yz - zy, zx - xz, xy - yx
+    a11, a12, a13 = xx - yy - zz, xy + yx, zx + xz
+    a22, a23 = -xx + yy - zz, yz + zy
+    a33 = -xx - yy + zz
+    # det N by its 2x2 minors: rows 0-1 (u) against rows 2-3 (w)
+    u0, u1, u2 = a00 * a11 - a01 * a01, a00 * a12 - a01 * a02, a00 * a13 - a01 * a03
+    u3, u4, u5 = a01 * a12 - a11 * a02, a01 * a13 - a11 * a03, a02 * a13 - a12 * a03
+    w0, w1, w2 = a02 * a13 - a03 * a12, a02 * a23 - a03 * a22, a02 * a33 - a03 * a23
+    w3, w4, w5 = a12 * a23 - a13 * a22, a12 * a33 - a13 * a23, a22 * a33 - a23 * a23
+    det_n = u0 * w5 - u1 * w4 + u2 * w3 + u3 * w2 - u4 * w1 + u5 * w0
+    square = -2.0 * (m00 + m11 + m22)
+    top = s1 + s2 + s3
+    for _ in range(2):
+        slope = 4.0 * top * top * top + 2.0 * square * top - 8.0 * det
+        if slope == 0.0:
+            break
+        top -= ((top * top + square) * top * top - 8.0 * det * top + det_n) / slope
+    a00, a11, a22, a33 = a00 - top, a11 - top, a22 - top, a33 - top
+    u0, u1, u2 = a00 * a11 - a01 * a01, a00 * a12 - a01 * a02, a00 * a13 - a01 * a03
+    u3, u4, u5 = a01 * a12 - a11 * a02, a01 * a13 - a11 * a03, a02 * a13 - a12 * a03
+    w0, w1, w2 = a02 * a13 - a03 * a12, a02 * a23 - a03 * a22, a02 * a33 - a03 * a23
+    w3, w4, w5 = a12 * a23 - a13 * a22, a12 * a33 - a13 * a23, a22 * a33 - a23 * a23
+    b00, b11 = a11 * w5 - a12 * w4 + a13 * w3, a00 * w5 - a02 * w2 + a03 * w1
+    b22, b33 = a03 * u4 - a13 * u2 + a33 * u0, a02 * u3 - a12 * u1 + a22 * u0
+    column, size = 0, abs(b00)  # the column of the adjugate whose diagonal entry is largest: the best scaled
+    for k, b in enumerate((b11, b22, b33)):
+        if abs(b) > size:
+            column, size = k + 1, abs(b)
+    if column == 0:
+        v0, v1, v2, v3 = b00, -a01 * w5 + a02 * w4 - a03 * w3, a13 * u5 - a23 * u4 + a33 * u3, \
+            -a12 * u5 + a22 * u4 - a23 * u3
+    elif column == 1:
+        v0, v1, v2, v3 = -a01 * w5 + a12 * w2 - a13 * w1, b11, -a03 * u5 + a23 * u2 - a33 * u1, \
+            a02 * u5 - a22 * u2 + a23 * u1
+    elif column == 2:
+        v0, v1, v2, v3 = a01 * w4 - a11 * w2 + a13 * w0, -a00 * w4 + a01 * w2 - a03 * w0, b22, \
+            -a02 * u4 + a12 * u2 - a23 * u0
+    else:
+        v0, v1, v2, v3 = -a01 * w3 + a11 * w1 - a12 * w0, a00 * w3 - a01 * w1 + a02 * w0, \
+            -a03 * u3 + a13 * u1 - a23 * u0, b33
+    norm = np.sqrt(v0 * v0 + v1 * v1 + v2 * v2 + v3 * v3)
+    if not norm > 0.0:
+        return False
+    if v0 < 0:
+        norm = -norm
+    q[0], q[1], q[2], q[3] = v1 / norm, v2 / norm, v3 / norm, v0 / norm
+    values[0], values[1], values[2], values[3] = top, s1 - s2 - s3, -s1 + s2 - s3, scale
+    return True
 
 
 @njit(cache=True)
