@@ -45,19 +45,20 @@ def distance(p: np.ndarray, q: np.ndarray) -> float:  # pragma: no cover
 
 @njit(cache=True)
 def gated_cost_compiled(pred: np.ndarray, gate: np.ndarray, points: np.ndarray) -> np.ndarray:  # pragma: no cover
-    """``gated_cost`` on ``(A, H, 3)`` hypotheses and ``(A, H)`` gates, for compiled callers."""
+    """``gated_cost`` on ``(A, H, 3)`` hypotheses and ``(A, H)`` gates, for compiled callers: each hypothesis read
+    once, its points compared in scalar arithmetic, the best of its hypotheses kept in place."""
     cost = np.zeros((pred.shape[0], len(points)))
     for a in range(pred.shape[0]):
-        for b in range(len(points)):
-            best = np.inf
-            for h in range(pred.shape[1]):
-                if abs(pred[a, h, 0] - points[b, 0]) >= gate[a, h]:  # as far along x alone: outside the gate
+        for h in range(pred.shape[1]):
+            reach, x, y, z = gate[a, h], pred[a, h, 0], pred[a, h, 1], pred[a, h, 2]
+            for b in range(len(points)):
+                dx = x - points[b, 0]
+                if abs(dx) >= reach:  # as far along x alone: outside the gate
                     continue
-                ratio = distance(pred[a, h], points[b]) / gate[a, h]
-                if ratio < best:  # NaN (no hypothesis) never is
-                    best = ratio
-            if best < 1.0:
-                cost[a, b] = best - 1.0
+                dy, dz = y - points[b, 1], z - points[b, 2]
+                inside = np.sqrt(dx * dx + dy * dy + dz * dz) / reach - 1.0
+                if inside < cost[a, b]:  # within the gate, and nearer than another hypothesis; NaN never is
+                    cost[a, b] = inside
     return cost
 
 
