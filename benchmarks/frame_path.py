@@ -46,18 +46,19 @@ def main() -> None:
     graph = yaml.safe_load(QUICKSTART.read_text())["nodes"]
     graph["tracker"]["config"]["rate"] = args.rate
     sent: list[tuple[str, str, Any]] = []
+    links: dict[tuple[str, str], list[tuple[str, str]]] = defaultdict(list)  # (node, output) -> inputs
+
+    def build(name: str, publish: Any) -> Any:
+        spec = graph[name]
+        cls = load(spec["plugin"])
+        node = cls(cls.Config.model_validate(spec.get("config", {})), publish, name)
+        node.linked = frozenset(spec.get("inputs", {}))  # as the runtime tells it
+        node.audience = lambda port: bool(links.get((name, port)))  # with no one watching
+        return node
+
     with tempfile.TemporaryDirectory() as tmp:
         graph["recorder"]["config"]["path"] = str(Path(tmp) / "out.c3d")
-        nodes = {}
-        for name, spec in graph.items():
-            cls = load(spec["plugin"])
-            def publish(port: str, msg: Any, name: str = name) -> None:
-                sent.append((name, port, msg))
-
-            nodes[name] = cls(cls.Config.model_validate(spec.get("config", {})), publish, name)
-            nodes[name].linked = frozenset(spec.get("inputs", {}))  # as the runtime tells it
-            nodes[name].audience = lambda port, name=name: bool(links.get((name, port)))  # with no one watching
-        links: dict[tuple[str, str], list[tuple[str, str]]] = defaultdict(list)  # (node, output) -> inputs
+        nodes = {name: build(name, lambda port, msg, name=name: sent.append((name, port, msg))) for name in graph}
         for name, spec in graph.items():
             for port, link in spec.get("inputs", {}).items():
                 src, _, out = link.partition("/")
@@ -67,6 +68,7 @@ def main() -> None:
         skeleton_at: int | None = None
         frames = int(args.seconds * args.rate)
         work: dict[str, np.ndarray] = defaultdict(lambda: np.zeros(frames))  # per group node: its time per frame
+        given: dict[str, list[tuple[int, str, Any]]] = defaultdict(list)  # per group node: (frame, port, message)
         index = 0
 
         def step(key: str, fn: Any, *a: Any) -> Any:
@@ -99,12 +101,17 @@ def main() -> None:
                 if src == "joints" and skeleton_at is None:
                     skeleton_at = index
                 for target, port in targets:
+                    if target in group:
+                        given[target].append((index, port, message))
                     label = f"{target}: {port}" if port != "markers" else target
                     step(label, nodes[target].process, port, message)
                     queue.extend(sent)
                     sent.clear()
         nodes["recorder"].finish()
-    start = skeleton_at if skeleton_at is not None else 0
+        start = skeleton_at if skeleton_at is not None else 0
+        graph["recorder"]["config"]["path"] = str(Path(tmp) / "alone.c3d")
+        alone = {name: _alone(build(name, lambda port, msg: None), given[name], start, frames)
+                 for name in sorted(group, key=list(graph).index)}
     print(f"quickstart frame path at {args.rate:g} Hz: {frames} frames, skeleton model from frame {skeleton_at}; "
           f"wall-clock us per call since (p50 / p99), and per frame (all its calls' time over the frames)")
     path = total = 0.0
@@ -130,6 +137,32 @@ def main() -> None:
         row = [float(w[first:first + per_second].mean()) for w in work.values()]
         mark = "*" if skeleton_at is not None and first <= skeleton_at < first + per_second else " "
         print(f"  {first // per_second:5d}{mark} " + " ".join(f"{v:9.0f}" for v in row) + f" {sum(row):8.0f}")
+    print("each node of the frame group alone (its inputs of the run handed to a new node, nothing else in between): "
+          "us per frame since the skeleton model, alone and in the group")
+    for name, cost in alone.items():
+        shared = float(work[name][start:].mean())
+        print(f"  {name:<10} alone {cost:7.1f}   in the group {shared:7.1f}   ({shared / cost:.1f} x)")
+    print(f"  {'all':<10} alone {sum(alone.values()):7.1f}   in the group "
+          f"{sum(float(w[start:].mean()) for w in work.values()):7.1f}")
+
+
+def _alone(node: Any, inputs: list[tuple[int, str, Any]], start: int, frames: int) -> float:
+    """A group node's own cost: the mean time per frame, over the frames from ``start``, of handing a new ``node`` the
+    ``inputs`` (frame, port, message) the run gave its namesake (a source: of making each frame), one after the
+    other."""
+    gc.freeze()  # the run's messages, kept for this, out of the collector's sight as the run's own objects were
+    spent = np.zeros(frames)
+    if node.is_source():
+        for index in range(frames):
+            t = time.perf_counter()
+            node.emit(index)
+            spent[index] = time.perf_counter() - t
+    for index, port, message in inputs:
+        t = time.perf_counter()
+        node.process(port, message)
+        spent[index] += time.perf_counter() - t
+    node.finish()
+    return float(spent[start:].mean() * 1e6)
 
 if __name__ == "__main__":
     main()
