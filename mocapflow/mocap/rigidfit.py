@@ -162,11 +162,7 @@ def _closed_form(xx: float, xy: float, xz: float, yx: float, yy: float, yz: floa
     a11, a12, a13 = xx - yy - zz, xy + yx, zx + xz
     a22, a23 = -xx + yy - zz, yz + zy
     a33 = -xx - yy + zz
-    # det N by its 2x2 minors: rows 0-1 (u) against rows 2-3 (w)
-    u0, u1, u2 = a00 * a11 - a01 * a01, a00 * a12 - a01 * a02, a00 * a13 - a01 * a03
-    u3, u4, u5 = a01 * a12 - a11 * a02, a01 * a13 - a11 * a03, a02 * a13 - a12 * a03
-    w0, w1, w2 = a02 * a13 - a03 * a12, a02 * a23 - a03 * a22, a02 * a33 - a03 * a23
-    w3, w4, w5 = a12 * a23 - a13 * a22, a12 * a33 - a13 * a23, a22 * a33 - a23 * a23
+    u0, u1, u2, u3, u4, u5, w0, w1, w2, w3, w4, w5 = _minors(a00, a01, a02, a03, a11, a12, a13, a22, a23, a33)
     det_n = u0 * w5 - u1 * w4 + u2 * w3 + u3 * w2 - u4 * w1 + u5 * w0
     square = -2.0 * (m00 + m11 + m22)
     top = s1 + s2 + s3
@@ -176,10 +172,7 @@ def _closed_form(xx: float, xy: float, xz: float, yx: float, yy: float, yz: floa
             break
         top -= ((top * top + square) * top * top - 8.0 * det * top + det_n) / slope
     a00, a11, a22, a33 = a00 - top, a11 - top, a22 - top, a33 - top
-    u0, u1, u2 = a00 * a11 - a01 * a01, a00 * a12 - a01 * a02, a00 * a13 - a01 * a03
-    u3, u4, u5 = a01 * a12 - a11 * a02, a01 * a13 - a11 * a03, a02 * a13 - a12 * a03
-    w0, w1, w2 = a02 * a13 - a03 * a12, a02 * a23 - a03 * a22, a02 * a33 - a03 * a23
-    w3, w4, w5 = a12 * a23 - a13 * a22, a12 * a33 - a13 * a23, a22 * a33 - a23 * a23
+    u0, u1, u2, u3, u4, u5, w0, w1, w2, w3, w4, w5 = _minors(a00, a01, a02, a03, a11, a12, a13, a22, a23, a33)
     b00, b11 = a11 * w5 - a12 * w4 + a13 * w3, a00 * w5 - a02 * w2 + a03 * w1
     b22, b33 = a03 * u4 - a13 * u2 + a33 * u0, a02 * u3 - a12 * u1 + a22 * u0
     column, size = 0, abs(b00)  # the column of the adjugate whose diagonal entry is largest: the best scaled
@@ -206,6 +199,17 @@ def _closed_form(xx: float, xy: float, xz: float, yx: float, yy: float, yz: floa
     q[0], q[1], q[2], q[3] = v1 / norm, v2 / norm, v3 / norm, v0 / norm
     values[0], values[1], values[2], values[3] = top, s1 - s2 - s3, -s1 + s2 - s3, scale
     return True
+
+
+@njit(cache=True)
+def _minors(a00: float, a01: float, a02: float, a03: float, a11: float, a12: float, a13: float, a22: float, a23: float,
+            a33: float) -> tuple[float, ...]:  # pragma: no cover
+    """The 2x2 minors of a symmetric 4x4 matrix (upper triangle given) on its rows 0-1 and on its rows 2-3, each by
+    column pairs (0,1) (0,2) (0,3) (1,2) (1,3) (2,3): what its determinant and its adjugate are made of."""
+    return (a00 * a11 - a01 * a01, a00 * a12 - a01 * a02, a00 * a13 - a01 * a03, a01 * a12 - a11 * a02,
+            a01 * a13 - a11 * a03, a02 * a13 - a12 * a03,
+            a02 * a13 - a03 * a12, a02 * a23 - a03 * a22, a02 * a33 - a03 * a23, a12 * a23 - a13 * a22,
+            a12 * a33 - a13 * a23, a22 * a33 - a23 * a23)
 
 
 @njit(cache=True)
