@@ -103,11 +103,12 @@ def _quaternion(xx: float, xy: float, xz: float, yx: float, yy: float, yz: float
     (``_closed_form``, a sixth of the time); else by the Jacobi method."""
     if _closed_form(xx, xy, xz, yx, yy, yz, zx, zy, zz, q, values):
         return
+    a00, a01, a02, a03, a11, a12, a13, a22, a23, a33 = _horn_matrix(xx, xy, xz, yx, yy, yz, zx, zy, zz)
     n = np.empty((4, 4))  # filled entry by entry: a nested list would cost an allocation per row
-    n[0, 0], n[0, 1], n[0, 2], n[0, 3] = xx + yy + zz, yz - zy, zx - xz, xy - yx
-    n[1, 0], n[1, 1], n[1, 2], n[1, 3] = yz - zy, xx - yy - zz, xy + yx, zx + xz
-    n[2, 0], n[2, 1], n[2, 2], n[2, 3] = zx - xz, xy + yx, -xx + yy - zz, yz + zy
-    n[3, 0], n[3, 1], n[3, 2], n[3, 3] = xy - yx, zx + xz, yz + zy, -xx - yy + zz
+    n[0, 0], n[0, 1], n[0, 2], n[0, 3] = a00, a01, a02, a03
+    n[1, 0], n[1, 1], n[1, 2], n[1, 3] = a01, a11, a12, a13
+    n[2, 0], n[2, 1], n[2, 2], n[2, 3] = a02, a12, a22, a23
+    n[3, 0], n[3, 1], n[3, 2], n[3, 3] = a03, a13, a23, a33
     vectors = np.empty((4, 4))
     _jacobi(n, vectors)
     first, second = 0, 1
@@ -158,10 +159,7 @@ def _closed_form(xx: float, xy: float, xz: float, yx: float, yy: float, yz: floa
     scale = s1 + s2 + abs(s3)
     if not 2.0 * (s2 + s3) >= CLOSED_FORM_GAP * scale:
         return False
-    a00, a01, a02, a03 = xx + yy + zz, yz - zy, zx - xz, xy - yx
-    a11, a12, a13 = xx - yy - zz, xy + yx, zx + xz
-    a22, a23 = -xx + yy - zz, yz + zy
-    a33 = -xx - yy + zz
+    a00, a01, a02, a03, a11, a12, a13, a22, a23, a33 = _horn_matrix(xx, xy, xz, yx, yy, yz, zx, zy, zz)
     u0, u1, u2, u3, u4, u5, w0, w1, w2, w3, w4, w5 = _minors(a00, a01, a02, a03, a11, a12, a13, a22, a23, a33)
     det_n = u0 * w5 - u1 * w4 + u2 * w3 + u3 * w2 - u4 * w1 + u5 * w0
     square = -2.0 * (m00 + m11 + m22)
@@ -199,6 +197,15 @@ def _closed_form(xx: float, xy: float, xz: float, yx: float, yy: float, yz: floa
     q[0], q[1], q[2], q[3] = v1 / norm, v2 / norm, v3 / norm, v0 / norm
     values[0], values[1], values[2], values[3] = top, s1 - s2 - s3, -s1 + s2 - s3, scale
     return True
+
+
+@njit(cache=True)
+def _horn_matrix(xx: float, xy: float, xz: float, yx: float, yy: float, yz: float, zx: float, zy: float,
+                 zz: float) -> tuple[float, ...]:  # pragma: no cover
+    """Horn's symmetric 4x4 matrix N of the cross-covariance S (entries ``xx`` .. ``zz``), its upper triangle row by
+    row: N00 N01 N02 N03 N11 N12 N13 N22 N23 N33."""
+    return (xx + yy + zz, yz - zy, zx - xz, xy - yx, xx - yy - zz, xy + yx, zx + xz, -xx + yy - zz, yz + zy,
+            -xx - yy + zz)
 
 
 @njit(cache=True)

@@ -45,18 +45,16 @@ def distance(p: np.ndarray, q: np.ndarray) -> float:  # pragma: no cover
 
 @njit(cache=True)
 def gated_cost_compiled(pred: np.ndarray, gate: np.ndarray, points: np.ndarray) -> np.ndarray:  # pragma: no cover
-    """``gated_cost`` on ``(A, H, 3)`` hypotheses and ``(A, H)`` gates, for compiled callers: each hypothesis read
-    once, its points compared in scalar arithmetic, the best of its hypotheses kept in place."""
+    """``gated_cost`` on ``(A, H, 3)`` hypotheses and ``(A, H)`` gates, for compiled callers: each hypothesis against
+    every point, the best of a track's hypotheses kept in place."""
     cost = np.zeros((pred.shape[0], len(points)))
     for a in range(pred.shape[0]):
         for h in range(pred.shape[1]):
-            reach, x, y, z = gate[a, h], pred[a, h, 0], pred[a, h, 1], pred[a, h, 2]
+            reach, x = gate[a, h], pred[a, h, 0]
             for b in range(len(points)):
-                dx = x - points[b, 0]
-                if abs(dx) >= reach:  # as far along x alone: outside the gate
+                if abs(x - points[b, 0]) >= reach:  # as far along x alone: outside the gate
                     continue
-                dy, dz = y - points[b, 1], z - points[b, 2]
-                inside = np.sqrt(dx * dx + dy * dy + dz * dz) / reach - 1.0
+                inside = distance(pred[a, h], points[b]) / reach - 1.0
                 if inside < cost[a, b]:  # within the gate, and nearer than another hypothesis; NaN never is
                     cost[a, b] = inside
     return cost
