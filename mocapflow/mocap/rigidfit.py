@@ -463,7 +463,8 @@ def fit_pose(local: np.ndarray, observed: np.ndarray, pivot_local: np.ndarray | 
     if hold:  # only segments with a frame to hold and one to hold it from
         todo = (np.isfinite(quats).all(-1) & ~determined).any(0) & determined.any(0)
         for s in np.flatnonzero(todo):
-            hold_turns(quats[:, s], determined[:, s], segments[s], frames[:, s], origin_loc[:, s], origin_obs[:, s])
+            hold_turns(quats[:, s], determined[:, s], segments[s], frames[:, s], origin_loc[:, s], origin_obs[:, s],
+                       np.full(4, np.nan), 0)
     matrices, translations = pose_matrices(quats, origin_loc, origin_obs)
     if single:
         quats, determined, matrices, translations = quats[:, 0], determined[:, 0], matrices[:, 0], translations[:, 0]
@@ -556,12 +557,16 @@ def place(matrix: np.ndarray, point: np.ndarray, shift: np.ndarray, out: np.ndar
 
 @njit(cache=True)
 def hold_turns(quats: np.ndarray, determined: np.ndarray, local: np.ndarray, observed: np.ndarray,
-          origin_loc: np.ndarray, origin_obs: np.ndarray) -> None:  # pragma: no cover
+               origin_loc: np.ndarray, origin_obs: np.ndarray, before: np.ndarray, before_at: int
+               ) -> None:  # pragma: no cover
     """In place, for one segment's (F,) frames: undetermined frames take the smallest turn that points their longest
     visible vector (from the origin) at the data, from the rotation interpolated (slerp) between the nearest
-    determined frames before and after (or the nearest one, at an end)."""
+    determined frames before and after (or the nearest one, at an end). ``before`` is the segment's rotation in the
+    last determined frame before these (NaN for none) and ``before_at`` that frame's index (negative), so that frames
+    fitted in successive calls get what one call over them all gives."""
     known = np.flatnonzero(determined)
-    if not len(known):
+    earlier = finite(before)
+    if not len(known) and not earlier:
         return
     prior, turned, matrix = np.empty(4), np.empty(4), np.empty((3, 3))
     pointing = np.empty(3)
@@ -572,6 +577,10 @@ def hold_turns(quats: np.ndarray, determined: np.ndarray, local: np.ndarray, obs
         if 0 < k < len(known):
             a, b = known[k - 1], known[k]
             _slerp(quats[a], quats[b], (f - a) / (b - a), prior)
+        elif k == 0 and earlier and len(known):
+            _slerp(before, quats[known[0]], (f - before_at) / (known[0] - before_at), prior)
+        elif k == 0 and earlier:
+            prior[:] = before
         else:
             prior[:] = quats[known[min(k, len(known) - 1)]]
         longest, u = -1.0, np.zeros(3)

@@ -5,7 +5,7 @@ its joint with its parent, which stays where the parent puts it, so the skeleton
 implementation, a segment's fit also uses the joints its children's own markers place. A segment is posed in a frame
 when it has one point (marker, or joint placed by a child) besides its pivot, or two without one; when the points fix
 only one direction the rotation is the one closest to the previous frame's that matches it
-(``cor.fit_pose(hold=True)``).
+(``rigidfit.fit_pose(hold=True)``).
 
 The result holds everything a motion file needs: world rotations and origins of every segment and the joint centres,
 per frame; ``local_rotations`` gives each segment's rotation relative to its parent (what BVH channels store).
@@ -69,7 +69,12 @@ class PoseSolver:
     and joint offsets, and the distances trilateration needs. A call then runs the per-frame arithmetic, compiled
     (numba): one live frame costs tens of microseconds, where the same steps as numpy operations cost milliseconds in
     per-call overhead. The cache is the solver itself: build a new one when the model or the labels change (the
-    skeleton node keeps one while they do not)."""
+    skeleton node keeps one while they do not).
+
+    A kept solver also remembers, per segment, the rotation of the last frame whose points fixed it, from earlier
+    calls: a frame whose points fix one direction only holds from there, as one call over a whole recording holds
+    from the frames before, so that live (a frame or a few a call) a segment seen through one marker and its joint
+    keeps turning plausibly instead of taking an arbitrary, chaotic turn about them."""
 
     def __init__(self, skeleton: SkeletonModel, labels: Sequence[str]) -> None:
         for j in skeleton.joints:
@@ -119,6 +124,8 @@ class PoseSolver:
                        np.array(parent, dtype=np.intp), np.array(child, dtype=np.intp), parent_offsets,
                        child_offsets, np.array(up, dtype=np.intp), padded_radii,
                        np.array([len(m) for m in local], dtype=np.intp))
+        self._held = np.full((len(self.names), 4), np.nan)  # per segment: its last determined rotation (NaN: none)
+        self._held_at = np.zeros(len(self.names), dtype=np.intp)  # and that frame's index before the next call's first
 
     def __call__(self, positions: np.ndarray, progress: Progress | None = None) -> SkeletonPose:
         """The pose in every frame of (F, N, 3) trajectories in the solver's label order (NaN gaps). ``progress``
@@ -128,16 +135,18 @@ class PoseSolver:
          child_offsets, up, radii, sizes) = self._model
         sources, observed = _sources(positions, columns, marker_local, child, child_offsets)
         total = 2 * len(order) if progress is not None else 0
+        held = (self._held, self._held_at)
         passes = _top_down(sources, order, inner, point_columns, point_local, parent, parent_offsets, child_offsets,
-                           progress, 0, total)
+                           held, progress, 0, total)
         # a parent showing too few points of its own, whose child's markers cannot place their joint either (fewer
         # than three visible), gets that joint where its distances to every visible marker of both segments and to
         # the parent's own joint are right, and is fitted again with it
         if _trilaterate_joints(sources, observed, _centres(*passes[:2], parent, child, parent_offsets, child_offsets),
                                parent, child, up, radii, sizes, positions.shape[1] + 1):
             passes = _top_down(sources, order, inner, point_columns, point_local, parent, parent_offsets,
-                               child_offsets, progress, len(order), total)
-        matrices, translations, rotations = passes
+                               child_offsets, held, progress, len(order), total)
+        matrices, translations, rotations, determined = passes
+        _remember(rotations, determined, *held)
         residual, fit = _residuals(matrices, translations, marker_local, observed)
         centres = _centres(matrices, translations, parent, child, parent_offsets, child_offsets)
         return SkeletonPose(self.names, self.joint_names, self.parents, rotations, translations, centres, residual,
@@ -146,34 +155,37 @@ class PoseSolver:
 
 def _top_down(sources: np.ndarray, order: np.ndarray, inner: np.ndarray, point_columns: np.ndarray,
               point_local: np.ndarray, parent: np.ndarray, parent_offsets: np.ndarray, child_offsets: np.ndarray,
-              progress: Progress | None, done: int, total: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Every segment fitted from the root down (``_fit_segment``): matrices, translations and quaternions. One
-    compiled call, or one per segment when ``progress`` is to hear of each."""
+              held: tuple[np.ndarray, np.ndarray], progress: Progress | None, done: int,
+              total: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Every segment fitted from the root down (``_fit_segments``, holding from ``held``: the solver's remembered
+    rotations): matrices, translations, quaternions and whether the points fixed each. One compiled call, or one
+    per segment when ``progress`` is to hear of each."""
     frames, count = sources.shape[0], len(order)
     matrices, translations, rotations = (np.empty((frames, count, *shape)) for shape in ((3, 3), (3,), (4,)))
     for unposed in (matrices, translations, rotations):
         unposed.fill(np.nan)  # half the cost of np.full, which a live frame pays three times
     determined = np.zeros((frames, count), bool)
     state = (sources, inner, point_columns, point_local, parent, parent_offsets, child_offsets, matrices,
-             translations, rotations, determined)
+             translations, rotations, determined, *held)
     if progress is None:
         _fit_segments(order, *state)
     else:
         for k in range(count):
             _fit_segments(order[k:k + 1], *state)
             progress("solve", done + k + 1, total)
-    return matrices, translations, rotations
+    return matrices, translations, rotations, determined
 
 
 @njit(cache=True)
 def _fit_segments(order: np.ndarray, sources: np.ndarray, inner: np.ndarray, point_columns: np.ndarray,
                   point_local: np.ndarray, parent: np.ndarray, parent_offsets: np.ndarray,
                   child_offsets: np.ndarray, matrices: np.ndarray, translations: np.ndarray, rotations: np.ndarray,
-                  determined: np.ndarray) -> None:  # pragma: no cover
+                  determined: np.ndarray, held: np.ndarray, held_at: np.ndarray) -> None:  # pragma: no cover
     """In place, the segments ``order`` (each after its parent) in every frame. The root, and a segment whose
     parent was not fixed by data in a frame while it has three points of its own, is fitted freely; every other
     segment turns about the joint its parent places (Schoenauer 3.8.2); frames whose points fix one direction only
-    hold the rotation of their neighbours (``rigidfit.fit_pose(hold=True)``)."""
+    hold the rotation of their neighbours (``rigidfit.fit_pose(hold=True)``), those of earlier calls included
+    (``held``, ``held_at``: ``_remember``)."""
     frames, n = sources.shape[0], point_columns.shape[1]
     points = np.empty((frames, n, 3))
     origin_loc, origin_obs = np.empty((frames, 3)), np.empty((frames, 3))
@@ -194,9 +206,24 @@ def _fit_segments(order: np.ndarray, sources: np.ndarray, inner: np.ndarray, poi
             determined[f, s] = fit_frame(point_local[s], points[f], pivot_local, pivot_world, MIN_GAP, seen, x, y,
                                          rotations[f, s], origin_loc[f], origin_obs[f])
         if not determined[:, s].all():
-            hold_turns(rotations[:, s], determined[:, s], point_local[s], points, origin_loc, origin_obs)
+            hold_turns(rotations[:, s], determined[:, s], point_local[s], points, origin_loc, origin_obs, held[s],
+                       held_at[s])
         for f in range(frames):
             pose_matrix(rotations[f, s], origin_loc[f], origin_obs[f], matrices[f, s], translations[f, s])
+
+
+@njit(cache=True)
+def _remember(rotations: np.ndarray, determined: np.ndarray, held: np.ndarray,
+              held_at: np.ndarray) -> None:  # pragma: no cover
+    """In place, after a call over (F, S) frames: each segment's rotation in its last frame whose points fixed it
+    (``held``), and that frame's index counted from the next call's first frame (``held_at``, negative)."""
+    frames = len(rotations)
+    for s in range(rotations.shape[1]):
+        held_at[s] -= frames
+        for f in range(frames - 1, -1, -1):
+            if determined[f, s]:
+                held[s], held_at[s] = rotations[f, s], f - frames
+                break
 
 
 @njit(cache=True)
