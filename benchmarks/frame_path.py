@@ -1,6 +1,7 @@
 """One frame's path through the grouped quickstart at 1000 Hz, step by step: where its latency goes.
 
-Run as ``python benchmarks/frame_path.py [--rate HZ] [--seconds S]`` (about 3 x S s of CPU on a quiet machine). The
+Run as ``python benchmarks/frame_path.py [--rate HZ] [--seconds S] [--paced]`` (about 3 x S s of CPU on a quiet
+machine). The
 nodes of deployments/quickstart.yaml are built from that file (the tracker at ``--rate``) and driven in the order the
 runtime drives them: the ``frame`` group (the tracker among them) hands each frame from node to node as Python
 objects, each frame followed by all it causes (the filler's prediction back to the labeller), and a frame that leaves
@@ -9,7 +10,9 @@ of their own and read the filled markers' sampled copy (``queue: sampled``), so 
 and decoded there; their costs are shown apart (they do not hold the frame back; their models reach the group as
 they would live).
 Frames are produced as fast as they are handled, so each step's time is its cost alone, with no wait in a queue;
-Zenoh's own transport is what ``mocapflow bench`` measures next to it. Printed: per step, the wall-clock time per
+with ``--paced``, each when it is due, as a tracker gives them, the process sleeping in between as the group's does
+live: what that sleep alone costs the work that follows it. Zenoh's own transport is what ``mocapflow bench`` measures
+next to it. Printed: per step, the wall-clock time per
 call (p50 / p99 over the frames after the skeleton model arrived) and per frame (all its calls' time, spread over the
 frames), then the sum of the p50s along the frame's path and the group's whole work per frame: a process that cannot
 do that work within one frame period falls behind. Last, that work by node and by second of capture, before the
@@ -42,6 +45,9 @@ def main() -> None:
     parser.add_argument("--rate", type=float, default=1000.0, help="tracker rate (default 1000 Hz)")
     parser.add_argument("--seconds", type=float, default=14.0,
                         help="frames of capture to run (default 14 s: the skeleton model comes after 5 s)")
+    parser.add_argument("--paced", action="store_true",
+                        help="hand each frame over when it is due, as a tracker does, sleeping in between (default: "
+                             "each as soon as the one before is handled)")
     args = parser.parse_args()
     graph = yaml.safe_load(QUICKSTART.read_text())["nodes"]
     graph["tracker"]["config"]["rate"] = args.rate
@@ -82,7 +88,10 @@ def main() -> None:
         # as a worker does once its nodes are set up (runtime.worker): what exists now is kept out of the collector's
         # full passes, which would otherwise stop a frame for tens of milliseconds now and then
         gc.freeze()
+        start_s = time.perf_counter()
         for index in range(frames):
+            if args.paced and (wait := start_s + index / args.rate - time.perf_counter()) > 0:
+                time.sleep(wait)
             sent.clear()
             step("tracker: simulate", nodes["tracker"].emit, index)
             queue = [(n, p, m) for n, p, m in sent if not (n == "tracker" and p == "truth")]
@@ -112,7 +121,8 @@ def main() -> None:
         graph["recorder"]["config"]["path"] = str(Path(tmp) / "alone.c3d")
         alone = {name: _alone(build(name, lambda port, msg: None), given[name], start, frames)
                  for name in sorted(group, key=list(graph).index)}
-    print(f"quickstart frame path at {args.rate:g} Hz: {frames} frames, skeleton model from frame {skeleton_at}; "
+    print(f"quickstart frame path at {args.rate:g} Hz{', paced' if args.paced else ''}: {frames} frames, skeleton "
+          f"model from frame {skeleton_at}; "
           f"wall-clock us per call since (p50 / p99), and per frame (all its calls' time over the frames)")
     path = total = 0.0
     counted = frames - start
