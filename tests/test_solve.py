@@ -65,6 +65,32 @@ def test_a_kept_solver_holds_a_segment_seen_in_one_direction_from_where_an_earli
     np.testing.assert_allclose(live(1e-6), kept, rtol=0, atol=1e-6)
 
 
+def test_a_segment_no_frame_fixes_turns_with_its_parent_then_points_at_its_marker() -> None:
+    """The right hand shows one marker in every frame: with its wrist that fixes one direction only, and no frame
+    fixes more. Each frame it turns as the forearm does, then by the smallest turn that points it at its marker, so
+    its turn about that marker follows the forearm instead of coming out arbitrary, and chaotic."""
+    rec, skeleton = _case()
+    labels = rec.labels
+    positions = np.array(rec.true_positions)
+    positions[:, [labels.index(m) for m in ("RHN2", "RHN3")]] = np.nan
+    names = [s.name for s in skeleton.segments]
+    hand, forearm = names.index("right_hand"), names.index("right_forearm")
+    wrist = next(j for j in skeleton.joints if j.child == "right_hand")
+    pose = solve(skeleton, positions, labels)
+    hand_rot = Rotation.from_quat(pose.rotations[:, hand])
+    turn = hand_rot * Rotation.from_quat(pose.rotations[:, forearm]).inv()
+    local = np.asarray(skeleton.segments[hand].marker_offsets)[0] - np.asarray(wrist.child_offset)
+    seen = positions[:, labels.index("RHN1")] - pose.joint_centres[:, skeleton.joints.index(wrist)]
+    carried = Rotation.from_quat(pose.rotations[:, forearm]).apply(local)
+    np.testing.assert_allclose(hand_rot.apply(local) / np.linalg.norm(local),
+                               seen / np.linalg.norm(seen, axis=1, keepdims=True), atol=1e-9)
+    between = np.arccos(np.clip((carried * seen).sum(1) / np.linalg.norm(carried, axis=1)
+                                / np.linalg.norm(seen, axis=1), -1, 1))
+    np.testing.assert_allclose(turn.magnitude(), between, atol=1e-7)
+    shifted = solve(skeleton, positions + 1e-6, labels)
+    np.testing.assert_allclose(shifted.rotations[:, hand], pose.rotations[:, hand], rtol=0, atol=1e-6)
+
+
 def test_markers_missing_from_the_labels_count_as_never_seen() -> None:
     rec, skeleton = _case()
     keep = [i for i, label in enumerate(rec.labels) if label not in skeleton.segments[-1].markers]

@@ -464,7 +464,7 @@ def fit_pose(local: np.ndarray, observed: np.ndarray, pivot_local: np.ndarray | 
         todo = (np.isfinite(quats).all(-1) & ~determined).any(0) & determined.any(0)
         for s in np.flatnonzero(todo):
             hold_turns(quats[:, s], determined[:, s], segments[s], frames[:, s], origin_loc[:, s], origin_obs[:, s],
-                       np.full(4, np.nan), 0)
+                       np.full(4, np.nan), 0, np.full((len(frames), 4), np.nan))
     matrices, translations = pose_matrices(quats, origin_loc, origin_obs)
     if single:
         quats, determined, matrices, translations = quats[:, 0], determined[:, 0], matrices[:, 0], translations[:, 0]
@@ -557,17 +557,17 @@ def place(matrix: np.ndarray, point: np.ndarray, shift: np.ndarray, out: np.ndar
 
 @njit(cache=True)
 def hold_turns(quats: np.ndarray, determined: np.ndarray, local: np.ndarray, observed: np.ndarray,
-               origin_loc: np.ndarray, origin_obs: np.ndarray, before: np.ndarray, before_at: int
-               ) -> None:  # pragma: no cover
+               origin_loc: np.ndarray, origin_obs: np.ndarray, before: np.ndarray, before_at: int,
+               fallback: np.ndarray) -> None:  # pragma: no cover
     """In place, for one segment's (F,) frames: undetermined frames take the smallest turn that points their longest
     visible vector (from the origin) at the data, from the rotation interpolated (slerp) between the nearest
     determined frames before and after (or the nearest one, at an end). ``before`` is the segment's rotation in the
     last determined frame before these (NaN for none) and ``before_at`` that frame's index (negative), so that frames
-    fitted in successive calls get what one call over them all gives."""
+    fitted in successive calls get what one call over them all gives. With no determined frame at all, the turn is
+    from ``fallback`` (F, 4) where it is finite (a rotation the caller takes for likely: the parent segment's), and
+    such frames are otherwise left as they are."""
     known = np.flatnonzero(determined)
     earlier = finite(before)
-    if not len(known) and not earlier:
-        return
     prior, turned, matrix = np.empty(4), np.empty(4), np.empty((3, 3))
     pointing = np.empty(3)
     for f in range(len(quats)):
@@ -581,8 +581,12 @@ def hold_turns(quats: np.ndarray, determined: np.ndarray, local: np.ndarray, obs
             _slerp(before, quats[known[0]], (f - before_at) / (known[0] - before_at), prior)
         elif k == 0 and earlier:
             prior[:] = before
-        else:
+        elif len(known):
             prior[:] = quats[known[min(k, len(known) - 1)]]
+        elif finite(fallback[f]):
+            prior[:] = fallback[f]
+        else:
+            continue
         longest, u = -1.0, np.zeros(3)
         w = np.zeros(3)
         for i in range(len(local)):

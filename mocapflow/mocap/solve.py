@@ -5,7 +5,7 @@ its joint with its parent, which stays where the parent puts it, so the skeleton
 implementation, a segment's fit also uses the joints its children's own markers place. A segment is posed in a frame
 when it has one point (marker, or joint placed by a child) besides its pivot, or two without one; when the points fix
 only one direction the rotation is the one closest to the previous frame's that matches it
-(``rigidfit.fit_pose(hold=True)``).
+(``rigidfit.fit_pose(hold=True)``), and for a segment that no frame fixes, the one closest to its parent's.
 
 The result holds everything a motion file needs: world rotations and origins of every segment and the joint centres,
 per frame; ``local_rotations`` gives each segment's rotation relative to its parent (what BVH channels store).
@@ -185,10 +185,11 @@ def _fit_segments(order: np.ndarray, sources: np.ndarray, inner: np.ndarray, poi
     parent was not fixed by data in a frame while it has three points of its own, is fitted freely; every other
     segment turns about the joint its parent places (Schoenauer 3.8.2); frames whose points fix one direction only
     hold the rotation of their neighbours (``rigidfit.fit_pose(hold=True)``), those of earlier calls included
-    (``held``, ``held_at``: ``_remember``)."""
+    (``held``, ``held_at``: ``_remember``); a segment that no frame so far fixed turns as its parent does (the root:
+    as in the skeleton's reference posture), then points at its data."""
     frames, n = sources.shape[0], point_columns.shape[1]
     points = np.empty((frames, n, 3))
-    origin_loc, origin_obs = np.empty((frames, 3)), np.empty((frames, 3))
+    origin_loc, origin_obs, fallback = np.empty((frames, 3)), np.empty((frames, 3)), np.empty((frames, 4))
     pivot_local, pivot_world = np.zeros(3), np.empty(3)
     seen, x, y = np.empty(n), np.empty((n, 3)), np.empty((n, 3))
     for s in order:
@@ -206,8 +207,13 @@ def _fit_segments(order: np.ndarray, sources: np.ndarray, inner: np.ndarray, poi
             determined[f, s] = fit_frame(point_local[s], points[f], pivot_local, pivot_world, MIN_GAP, seen, x, y,
                                          rotations[f, s], origin_loc[f], origin_obs[f])
         if not determined[:, s].all():
+            for f in range(frames):  # with nothing to hold from: as its parent turned (or, the root, not at all)
+                if k >= 0 and finite(rotations[f, parent[k]]):
+                    fallback[f] = rotations[f, parent[k]]
+                else:
+                    fallback[f, :3], fallback[f, 3] = 0.0, 1.0
             hold_turns(rotations[:, s], determined[:, s], point_local[s], points, origin_loc, origin_obs, held[s],
-                       held_at[s])
+                       held_at[s], fallback)
         for f in range(frames):
             pose_matrix(rotations[f, s], origin_loc[f], origin_obs[f], matrices[f, s], translations[f, s])
 
