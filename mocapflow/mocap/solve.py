@@ -185,8 +185,8 @@ def _fit_segments(order: np.ndarray, sources: np.ndarray, inner: np.ndarray, poi
     parent was not fixed by data in a frame while it has three points of its own, is fitted freely; every other
     segment turns about the joint its parent places (Schoenauer 3.8.2); frames whose points fix one direction only
     hold the rotation of their neighbours (``rigidfit.fit_pose(hold=True)``), those of earlier calls included
-    (``held``, ``held_at``: ``_remember``); a segment that no frame so far fixed turns as its parent does (the root:
-    as in the skeleton's reference posture), then points at its data."""
+    (``held``, ``held_at``: ``_remember``); a segment that no frame so far fixed turns as its parent does (the root,
+    or where its parent has no pose: not at all from the skeleton's own axes), then points at its data."""
     frames, n = sources.shape[0], point_columns.shape[1]
     points = np.empty((frames, n, 3))
     origin_loc, origin_obs, fallback = np.empty((frames, 3)), np.empty((frames, 3)), np.empty((frames, 4))
@@ -207,7 +207,7 @@ def _fit_segments(order: np.ndarray, sources: np.ndarray, inner: np.ndarray, poi
             determined[f, s] = fit_frame(point_local[s], points[f], pivot_local, pivot_world, MIN_GAP, seen, x, y,
                                          rotations[f, s], origin_loc[f], origin_obs[f])
         if not determined[:, s].all():
-            for f in range(frames):  # with nothing to hold from: as its parent turned (or, the root, not at all)
+            for f in range(frames):  # nothing to hold from: turned as its parent (the root, or no parent pose: not)
                 if k >= 0 and finite(rotations[f, parent[k]]):
                     fallback[f] = rotations[f, parent[k]]
                 else:
