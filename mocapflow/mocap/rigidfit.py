@@ -460,11 +460,12 @@ def fit_pose(local: np.ndarray, observed: np.ndarray, pivot_local: np.ndarray | 
         pin_world[:] = np.asarray(pivot_world, dtype=np.float64).reshape(len(frames), -1, 3)
     quats, determined, origin_loc, origin_obs = fit_frames(np.ascontiguousarray(segments), frames, pin_local,
                                                             pin_world, min_gap)
-    if hold:  # only segments with a frame to hold and one to hold it from
+    if hold:  # only segments with a frame to hold and one to hold it from, in the world
         todo = (np.isfinite(quats).all(-1) & ~determined).any(0) & determined.any(0)
+        world = np.tile([0.0, 0.0, 0.0, 1.0], (len(frames), 1))
         for s in np.flatnonzero(todo):
             hold_turns(quats[:, s], determined[:, s], segments[s], frames[:, s], origin_loc[:, s], origin_obs[:, s],
-                       np.full(4, np.nan), 0, np.full((len(frames), 4), np.nan))
+                       world, np.full(4, np.nan), 0)
     matrices, translations = pose_matrices(quats, origin_loc, origin_obs)
     if single:
         quats, determined, matrices, translations = quats[:, 0], determined[:, 0], matrices[:, 0], translations[:, 0]
@@ -557,18 +558,20 @@ def place(matrix: np.ndarray, point: np.ndarray, shift: np.ndarray, out: np.ndar
 
 @njit(cache=True)
 def hold_turns(quats: np.ndarray, determined: np.ndarray, local: np.ndarray, observed: np.ndarray,
-               origin_loc: np.ndarray, origin_obs: np.ndarray, before: np.ndarray, before_at: int,
-               fallback: np.ndarray) -> None:  # pragma: no cover
+               origin_loc: np.ndarray, origin_obs: np.ndarray, reference: np.ndarray, before: np.ndarray,
+               before_at: int) -> None:  # pragma: no cover
     """In place, for one segment's (F,) frames: undetermined frames take the smallest turn that points their longest
     visible vector (from the origin) at the data, from the rotation interpolated (slerp) between the nearest
-    determined frames before and after (or the nearest one, at an end). ``before`` is the segment's rotation in the
-    last determined frame before these (NaN for none) and ``before_at`` that frame's index (negative), so that frames
-    fitted in successive calls get what one call over them all gives. With no determined frame at all, the turn is
-    from ``fallback`` (F, 4) where it is finite (a rotation the caller takes for likely: the parent segment's), and
-    such frames are otherwise left as they are."""
+    determined frames before and after (or the nearest one, at an end), each taken relative to ``reference`` (F, 4)
+    in its frame: the identity holds the rotation in the world, a parent segment's rotation holds the turn from the
+    parent, which then carries the segment through the gap. With no determined frame at all, the rotation held is
+    ``reference`` itself. ``before`` is the segment's rotation, relative to its reference, in the last determined
+    frame before these (NaN for none) and ``before_at`` that frame's index (negative), so that frames fitted in
+    successive calls get what one call over them all gives (``relative_turn`` gives it)."""
     known = np.flatnonzero(determined)
     earlier = finite(before)
     prior, turned, matrix = np.empty(4), np.empty(4), np.empty((3, 3))
+    held, rel_a, rel_b = np.empty(4), np.empty(4), np.empty(4)
     pointing = np.empty(3)
     for f in range(len(quats)):
         if determined[f] or not finite(quats[f]):
@@ -576,17 +579,20 @@ def hold_turns(quats: np.ndarray, determined: np.ndarray, local: np.ndarray, obs
         k = int(np.searchsorted(known, f))
         if 0 < k < len(known):
             a, b = known[k - 1], known[k]
-            _slerp(quats[a], quats[b], (f - a) / (b - a), prior)
+            relative_turn(reference[a], quats[a], rel_a)
+            relative_turn(reference[b], quats[b], rel_b)
+            _slerp(rel_a, rel_b, (f - a) / (b - a), held)
         elif k == 0 and earlier and len(known):
-            _slerp(before, quats[known[0]], (f - before_at) / (known[0] - before_at), prior)
+            relative_turn(reference[known[0]], quats[known[0]], rel_b)
+            _slerp(before, rel_b, (f - before_at) / (known[0] - before_at), held)
         elif k == 0 and earlier:
-            prior[:] = before
+            held[:] = before
         elif len(known):
-            prior[:] = quats[known[min(k, len(known) - 1)]]
-        elif finite(fallback[f]):
-            prior[:] = fallback[f]
+            edge = known[min(k, len(known) - 1)]
+            relative_turn(reference[edge], quats[edge], held)
         else:
-            continue
+            held[:3], held[3] = 0.0, 1.0
+        _multiply(reference[f], held, prior)
         longest, u = -1.0, np.zeros(3)
         w = np.zeros(3)
         for i in range(len(local)):
@@ -598,6 +604,13 @@ def hold_turns(quats: np.ndarray, determined: np.ndarray, local: np.ndarray, obs
         place(matrix, u, np.zeros(3), pointing)
         _shortest_turn(pointing, w, turned)
         _multiply(turned, prior, quats[f])
+
+
+@njit(cache=True)
+def relative_turn(reference: np.ndarray, quat: np.ndarray, out: np.ndarray) -> None:  # pragma: no cover
+    """The rotation ``quat`` relative to ``reference`` (both scalar-last quaternions), ``reference^-1 * quat``, into
+    ``out``."""
+    _multiply(np.array([-reference[0], -reference[1], -reference[2], reference[3]]), quat, out)
 
 
 @njit(cache=True)
@@ -622,7 +635,7 @@ def _turn(axis: np.ndarray, angle: float, out: np.ndarray) -> None:  # pragma: n
 def _slerp(a: np.ndarray, b: np.ndarray, t: float, out: np.ndarray) -> None:  # pragma: no cover
     """The rotation a fraction ``t`` of the shortest way from ``a`` to ``b``, into ``out``."""
     relative = np.empty(4)
-    _multiply(np.array([-a[0], -a[1], -a[2], a[3]]), b, relative)
+    relative_turn(a, b, relative)
     if relative[3] < 0:
         relative = -relative
     sine = np.sqrt((relative[:3] ** 2).sum())

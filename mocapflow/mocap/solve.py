@@ -4,8 +4,9 @@ The root is aligned with its markers by Horn's method; every other segment, from
 its joint with its parent, which stays where the parent puts it, so the skeleton never comes apart. Like the thesis's
 implementation, a segment's fit also uses the joints its children's own markers place. A segment is posed in a frame
 when it has one point (marker, or joint placed by a child) besides its pivot, or two without one; when the points fix
-only one direction the rotation is the one closest to the previous frame's that matches it
-(``rigidfit.fit_pose(hold=True)``), and for a segment that no frame fixes, the one closest to its parent's.
+only one direction the rotation is the one closest to the previous frame's turn from its parent that matches it
+(``rigidfit.hold_turns``: the parent carries it), and for a segment that no frame fixes, the one closest to its
+parent's.
 
 The result holds everything a motion file needs: world rotations and origins of every segment and the joint centres,
 per frame; ``local_rotations`` gives each segment's rotation relative to its parent (what BVH channels store).
@@ -31,6 +32,7 @@ from mocapflow.mocap.rigidfit import (
     place,
     pose_matrix,
     quaternion_matrices,
+    relative_turn,
 )
 
 
@@ -71,10 +73,10 @@ class PoseSolver:
     per-call overhead. The cache is the solver itself: build a new one when the model or the labels change (the
     skeleton node keeps one while they do not).
 
-    A kept solver also remembers, per segment, the rotation of the last frame whose points fixed it, from earlier
-    calls: a frame whose points fix one direction only holds from there, as one call over a whole recording holds
-    from the frames before, so that live (a frame or a few a call) a segment seen through one marker and its joint
-    keeps turning plausibly instead of taking an arbitrary, chaotic turn about them."""
+    A kept solver also remembers, per segment, its turn from its parent in the last frame whose points fixed it, from
+    earlier calls: a frame whose points fix one direction only holds from there, as one call over a whole recording
+    holds from the frames before, so that live (a frame or a few a call) a segment seen through one marker and its
+    joint keeps turning plausibly instead of taking an arbitrary, chaotic turn about them."""
 
     def __init__(self, skeleton: SkeletonModel, labels: Sequence[str]) -> None:
         for j in skeleton.joints:
@@ -124,7 +126,8 @@ class PoseSolver:
                        np.array(parent, dtype=np.intp), np.array(child, dtype=np.intp), parent_offsets,
                        child_offsets, np.array(up, dtype=np.intp), padded_radii,
                        np.array([len(m) for m in local], dtype=np.intp))
-        self._held = np.full((len(self.names), 4), np.nan)  # per segment: its last determined rotation (NaN: none)
+        self._parents = np.array(self.parents, dtype=np.intp)
+        self._held = np.full((len(self.names), 4), np.nan)  # per segment: its last determined turn from its parent
         self._held_at = np.zeros(len(self.names), dtype=np.intp)  # and that frame's index before the next call's first
 
     def __call__(self, positions: np.ndarray, progress: Progress | None = None) -> SkeletonPose:
@@ -146,7 +149,7 @@ class PoseSolver:
             passes = _top_down(sources, order, inner, point_columns, point_local, parent, parent_offsets,
                                child_offsets, held, progress, len(order), total)
         matrices, translations, rotations, determined = passes
-        _remember(rotations, determined, *held)
+        _remember(rotations, determined, self._parents, *held)
         residual, fit = _residuals(matrices, translations, marker_local, observed)
         centres = _centres(matrices, translations, parent, child, parent_offsets, child_offsets)
         return SkeletonPose(self.names, self.joint_names, self.parents, rotations, translations, centres, residual,
@@ -184,12 +187,13 @@ def _fit_segments(order: np.ndarray, sources: np.ndarray, inner: np.ndarray, poi
     """In place, the segments ``order`` (each after its parent) in every frame. The root, and a segment whose
     parent was not fixed by data in a frame while it has three points of its own, is fitted freely; every other
     segment turns about the joint its parent places (Schoenauer 3.8.2); frames whose points fix one direction only
-    hold the rotation of their neighbours (``rigidfit.fit_pose(hold=True)``), those of earlier calls included
-    (``held``, ``held_at``: ``_remember``); a segment that no frame so far fixed turns as its parent does (the root,
-    or where its parent has no pose: not at all from the skeleton's own axes), then points at its data."""
+    hold the turn from their parent of their neighbours (``rigidfit.hold_turns``), those of earlier calls included
+    (``held``, ``held_at``: ``_remember``), so that the parent carries them; a segment that no frame so far fixed
+    turns as its parent does (the root, or where its parent has no pose: not at all from the skeleton's own axes),
+    then points at its data."""
     frames, n = sources.shape[0], point_columns.shape[1]
     points = np.empty((frames, n, 3))
-    origin_loc, origin_obs, fallback = np.empty((frames, 3)), np.empty((frames, 3)), np.empty((frames, 4))
+    origin_loc, origin_obs, reference = np.empty((frames, 3)), np.empty((frames, 3)), np.empty((frames, 4))
     pivot_local, pivot_world = np.zeros(3), np.empty(3)
     seen, x, y = np.empty(n), np.empty((n, 3)), np.empty((n, 3))
     for s in order:
@@ -206,29 +210,40 @@ def _fit_segments(order: np.ndarray, sources: np.ndarray, inner: np.ndarray, poi
                 place(matrices[f, parent[k]], parent_offsets[k], translations[f, parent[k]], pivot_world)
             determined[f, s] = fit_frame(point_local[s], points[f], pivot_local, pivot_world, MIN_GAP, seen, x, y,
                                          rotations[f, s], origin_loc[f], origin_obs[f])
-        if not determined[:, s].all():
-            for f in range(frames):  # nothing to hold from: turned as its parent (the root, or no parent pose: not)
-                if k >= 0 and finite(rotations[f, parent[k]]):
-                    fallback[f] = rotations[f, parent[k]]
-                else:
-                    fallback[f, :3], fallback[f, 3] = 0.0, 1.0
-            hold_turns(rotations[:, s], determined[:, s], point_local[s], points, origin_loc, origin_obs, held[s],
-                       held_at[s], fallback)
+        if not determined[:, s].all():  # held relative to its parent, which carries it (the root: in the world)
+            _references(rotations, -1 if k < 0 else parent[k], reference)
+            hold_turns(rotations[:, s], determined[:, s], point_local[s], points, origin_loc, origin_obs, reference,
+                       held[s], held_at[s])
         for f in range(frames):
             pose_matrix(rotations[f, s], origin_loc[f], origin_obs[f], matrices[f, s], translations[f, s])
 
 
 @njit(cache=True)
-def _remember(rotations: np.ndarray, determined: np.ndarray, held: np.ndarray,
+def _references(rotations: np.ndarray, parent: int, out: np.ndarray) -> None:  # pragma: no cover
+    """Into ``out`` (F, 4): per frame, the rotation a segment's turn is held relative to: its ``parent`` segment's
+    (-1: none), or the identity where the parent has no pose."""
+    for f in range(len(rotations)):
+        if parent >= 0 and finite(rotations[f, parent]):
+            out[f] = rotations[f, parent]
+        else:
+            out[f, :3], out[f, 3] = 0.0, 1.0
+
+
+@njit(cache=True)
+def _remember(rotations: np.ndarray, determined: np.ndarray, parents: np.ndarray, held: np.ndarray,
               held_at: np.ndarray) -> None:  # pragma: no cover
-    """In place, after a call over (F, S) frames: each segment's rotation in its last frame whose points fixed it
-    (``held``), and that frame's index counted from the next call's first frame (``held_at``, negative)."""
+    """In place, after a call over (F, S) frames: each segment's turn from its parent (``parents``: -1 for the root,
+    whose turn is from the world) in its last frame whose points fixed it (``held``), and that frame's index counted
+    from the next call's first frame (``held_at``, negative)."""
     frames = len(rotations)
+    reference = np.empty((frames, 4))
     for s in range(rotations.shape[1]):
         held_at[s] -= frames
         for f in range(frames - 1, -1, -1):
             if determined[f, s]:
-                held[s], held_at[s] = rotations[f, s], f - frames
+                _references(rotations[f:f + 1], parents[s], reference[:1])
+                relative_turn(reference[0], rotations[f, s], held[s])
+                held_at[s] = f - frames
                 break
 
 
