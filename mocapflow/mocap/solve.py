@@ -161,7 +161,7 @@ def _top_down(sources: np.ndarray, order: np.ndarray, inner: np.ndarray, point_c
               held: tuple[np.ndarray, np.ndarray], progress: Progress | None, done: int,
               total: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Every segment fitted from the root down (``_fit_segments``, holding from ``held``: the solver's remembered
-    rotations): matrices, translations, quaternions and whether the points fixed each. One compiled call, or one
+    turns): matrices, translations, quaternions and whether the points fixed each. One compiled call, or one
     per segment when ``progress`` is to hear of each."""
     frames, count = sources.shape[0], len(order)
     matrices, translations, rotations = (np.empty((frames, count, *shape)) for shape in ((3, 3), (3,), (4,)))
@@ -187,10 +187,10 @@ def _fit_segments(order: np.ndarray, sources: np.ndarray, inner: np.ndarray, poi
     """In place, the segments ``order`` (each after its parent) in every frame. The root, and a segment whose
     parent was not fixed by data in a frame while it has three points of its own, is fitted freely; every other
     segment turns about the joint its parent places (Schoenauer 3.8.2); frames whose points fix one direction only
-    hold the turn from their parent of their neighbours (``rigidfit.hold_turns``), those of earlier calls included
-    (``held``, ``held_at``: ``_remember``), so that the parent carries them; a segment that no frame so far fixed
-    turns as its parent does (the root, or where its parent has no pose: not at all from the skeleton's own axes),
-    then points at its data."""
+    hold the turn from their parent that the frames around them give (``rigidfit.hold_turns``), those of earlier
+    calls included (``held``, ``held_at``: ``_remember``), so that the parent carries them; a segment that no frame so
+    far fixed turns as its parent does (the root, or where its parent has no pose: not at all from the skeleton's own
+    axes), then points at its data."""
     frames, n = sources.shape[0], point_columns.shape[1]
     points = np.empty((frames, n, 3))
     origin_loc, origin_obs, reference = np.empty((frames, 3)), np.empty((frames, 3)), np.empty((frames, 4))
@@ -236,12 +236,12 @@ def _remember(rotations: np.ndarray, determined: np.ndarray, parents: np.ndarray
     whose turn is from the world) in its last frame whose points fixed it (``held``), and that frame's index counted
     from the next call's first frame (``held_at``, negative)."""
     frames = len(rotations)
-    reference = np.empty((frames, 4))
+    reference = np.empty((1, 4))
     for s in range(rotations.shape[1]):
         held_at[s] -= frames
         for f in range(frames - 1, -1, -1):
             if determined[f, s]:
-                _references(rotations[f:f + 1], parents[s], reference[:1])
+                _references(rotations[f:f + 1], parents[s], reference)
                 relative_turn(reference[0], rotations[f, s], held[s])
                 held_at[s] = f - frames
                 break
