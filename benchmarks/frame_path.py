@@ -1,22 +1,20 @@
 """One frame's path through the grouped quickstart at 1000 Hz, step by step: where its latency goes.
 
 Run as ``python benchmarks/frame_path.py [--rate HZ] [--seconds S] [--paced]`` (about 3 x S s of CPU on a quiet
-machine). The
-nodes of deployments/quickstart.yaml are built from that file (the tracker at ``--rate``) and driven in the order the
-runtime drives them: the ``frame`` group (the tracker among them) hands each frame from node to node as Python
-objects, each frame followed by all it causes (the filler's prediction back to the labeller), and a frame that leaves
-the group's process is encoded there and decoded in the other; the clusterer and the joint estimator run in processes
-of their own and read the filled markers' sampled copy (``queue: sampled``), so only its frames are encoded for them
-and decoded there; their costs are shown apart (they do not hold the frame back; their models reach the group as
-they would live).
-Frames are produced as fast as they are handled, so each step's time is its cost alone, with no wait in a queue;
-with ``--paced``, each when it is due, as a tracker gives them, the process sleeping in between as the group's does
-live: what that sleep alone costs the work that follows it. Zenoh's own transport is what ``mocapflow bench`` measures
-next to it. Printed: per step, the wall-clock time per
-call (p50 / p99 over the frames after the skeleton model arrived) and per frame (all its calls' time, spread over the
-frames), then the sum of the p50s along the frame's path and the group's whole work per frame: a process that cannot
-do that work within one frame period falls behind. Last, that work by node and by second of capture, before the
-skeleton model arrives and after: where in a capture the group comes near its frame period.
+machine). The nodes of deployments/quickstart.yaml are built from that file (the tracker at ``--rate``) and driven
+in the order the runtime drives them: the ``frame`` group (the tracker among them) hands each frame from node to
+node as Python objects, each frame followed by all it causes (the filler's prediction back to the labeller), and a
+frame that leaves the group's process is encoded there and decoded in the other; the clusterer and the joint
+estimator run in processes of their own and read the filled markers' sampled copy (``queue: sampled``), so only its
+frames are encoded for them and decoded there; their costs are shown apart (they do not hold the frame back; their
+models reach the group as they would live). Frames are produced as fast as they are handled, so each step's time is
+its cost alone, with no wait in a queue; with ``--paced``, each when it is due, as a tracker gives them, the process
+sleeping in between as the group's does live: what that sleep alone costs the work that follows it. Zenoh's own
+transport is what ``mocapflow bench`` measures next to it. Printed: per step, the wall-clock time per call (p50 /
+p99 over the frames after the skeleton model arrived) and per frame (all its calls' time, spread over the frames),
+then the sum of the p50s along the frame's path and the group's whole work per frame: a process that cannot do that
+work within one frame period falls behind. Last, that work by node and by second of capture, before the skeleton
+model arrives and after: where in a capture the group comes near its frame period.
 """
 
 from __future__ import annotations

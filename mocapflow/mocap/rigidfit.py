@@ -565,9 +565,9 @@ def hold_turns(quats: np.ndarray, determined: np.ndarray, local: np.ndarray, obs
     determined frames before and after (or the nearest one, at an end), each taken relative to ``reference`` (F, 4)
     in its frame: the identity holds the rotation in the world, a parent segment's rotation holds the turn from the
     parent, which then carries the segment through the gap. With no determined frame at all, the rotation held is
-    ``reference`` itself. ``before`` is the segment's rotation, relative to its reference, in the last determined
-    frame before these (NaN for none) and ``before_at`` that frame's index (negative), so that frames fitted in
-    successive calls get what one call over them all gives (``relative_turn`` gives it)."""
+    ``reference`` itself. ``before`` is the segment's rotation relative to its reference (``relative_turn``) in the
+    last determined frame before these (NaN for none) and ``before_at`` that frame's index (negative), so that
+    frames fitted in successive calls hold as one call over them all would."""
     known = np.flatnonzero(determined)
     earlier = finite(before)
     prior, turned, matrix = np.empty(4), np.empty(4), np.empty((3, 3))

@@ -211,7 +211,8 @@ def _fit_segments(order: np.ndarray, sources: np.ndarray, inner: np.ndarray, poi
             determined[f, s] = fit_frame(point_local[s], points[f], pivot_local, pivot_world, MIN_GAP, seen, x, y,
                                          rotations[f, s], origin_loc[f], origin_obs[f])
         if not determined[:, s].all():  # held relative to its parent, which carries it (the root: in the world)
-            _references(rotations, -1 if k < 0 else parent[k], reference)
+            for f in range(frames):
+                _reference(rotations[f], -1 if k < 0 else parent[k], reference[f])
             hold_turns(rotations[:, s], determined[:, s], point_local[s], points, origin_loc, origin_obs, reference,
                        held[s], held_at[s])
         for f in range(frames):
@@ -219,14 +220,13 @@ def _fit_segments(order: np.ndarray, sources: np.ndarray, inner: np.ndarray, poi
 
 
 @njit(cache=True)
-def _references(rotations: np.ndarray, parent: int, out: np.ndarray) -> None:  # pragma: no cover
-    """Into ``out`` (F, 4): per frame, the rotation a segment's turn is held relative to: its ``parent`` segment's
-    (-1: none), or the identity where the parent has no pose."""
-    for f in range(len(rotations)):
-        if parent >= 0 and finite(rotations[f, parent]):
-            out[f] = rotations[f, parent]
-        else:
-            out[f, :3], out[f, 3] = 0.0, 1.0
+def _reference(rotations: np.ndarray, parent: int, out: np.ndarray) -> None:  # pragma: no cover
+    """Into ``out``: the rotation a segment's turn is held relative to in a frame of (S, 4) ``rotations``: its
+    ``parent`` segment's (-1: none), or the identity where the parent has no pose."""
+    if parent >= 0 and finite(rotations[parent]):
+        out[:] = rotations[parent]
+    else:
+        out[:3], out[3] = 0.0, 1.0
 
 
 @njit(cache=True)
@@ -236,13 +236,13 @@ def _remember(rotations: np.ndarray, determined: np.ndarray, parents: np.ndarray
     whose turn is from the world) in its last frame whose points fixed it (``held``), and that frame's index counted
     from the next call's first frame (``held_at``, negative)."""
     frames = len(rotations)
-    reference = np.empty((1, 4))
+    reference = np.empty(4)
     for s in range(rotations.shape[1]):
         held_at[s] -= frames
         for f in range(frames - 1, -1, -1):
             if determined[f, s]:
-                _references(rotations[f:f + 1], parents[s], reference)
-                relative_turn(reference[0], rotations[f, s], held[s])
+                _reference(rotations[f], parents[s], reference)
+                relative_turn(reference, rotations[f, s], held[s])
                 held_at[s] = f - frames
                 break
 
