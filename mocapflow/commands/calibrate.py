@@ -39,7 +39,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 def summary(skeleton: SkeletonModel) -> str:
     """The segments (with how rigid their markers were), joints (with the motion that located them, how far apart
     their two segments put them and how sure their centres are) and root of a skeleton as aligned text tables, then
-    one line per joint the data did not locate, naming the motion it lacked."""
+    one line per joint the data did not locate, naming the motion it lacked, and what to add for them."""
     lines = [f"{'segment':<16} {'markers':>7} {'rigid mm':>8}  labels"]
     for s in skeleton.segments:
         rigid = f"{s.rigidity_mm:>8.2f}" if s.rigidity_mm is not None else f"{'-':>8}"
@@ -56,7 +56,11 @@ def summary(skeleton: SkeletonModel) -> str:
                      f"{sure}{note}")
     lines.append("")
     lines.append(f"root: {skeleton.root}")
-    lines.extend(not_located(j) for j in skeleton.joints if j.located is False)
+    loose = [not_located(j) for j in skeleton.joints if j.located is False]
+    lines.extend(loose)
+    if loose:
+        lines.append(f"{len(loose)} of {len(skeleton.joints)} joints not located: add a range-of-motion trial (30 deg "
+                     "or more of flexion and abduction at each): mocapflow calibrate ROM.c3d TRIAL.c3d")
     return "\n".join(lines)
 
 
@@ -74,8 +78,7 @@ def not_located(joint: Joint) -> str:
         lacked = (f"it turned about one axis ({sd[0]:.0f} deg SD) but only {sd[1]:.0f} and {sd[2]:.0f} deg about "
                   "the other two")
     rule = " (a hinge: placed on its axis level with its neighbours)" if joint.kind == "hinge" else ""
-    return (f"joint {joint.name} not located{rule}: {uncertain}; {lacked}. Add a range-of-motion trial (30 deg or "
-            "more of flexion and abduction): mocapflow calibrate ROM.c3d TRIAL.c3d")
+    return f"joint {joint.name} not located{rule}: {uncertain}; {lacked}"
 
 
 MAX_MARKERS = 500
