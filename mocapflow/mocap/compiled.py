@@ -21,7 +21,7 @@ import numpy as np
 from mocapflow.mocap.filling import FillerConfig, GapFiller
 from mocapflow.mocap.labelling import Labeller, LabellerConfig
 from mocapflow.mocap.labelling.labeller import own_gates
-from mocapflow.mocap.labelling.model import TrackedModelLabeller
+from mocapflow.mocap.labelling.model import TrackedModelLabeller, could_hold
 from mocapflow.mocap.model import Joint, Segment, SkeletonModel
 from mocapflow.mocap.reacquire import Reacquirer
 from mocapflow.mocap.rigidfit import fit_one, fit_pose, kabsch, quaternion_matrices, rotor
@@ -84,6 +84,7 @@ def compile_model_labelling() -> None:
     labeller = TrackedModelLabeller(SKELETON, 100.0)
     for i, (points, far) in enumerate(_turning()):
         labeller.update(np.vstack([points[::-1], far]), i / 100)
+    could_hold(labeller.model.segments[0], LAYOUT, 3)  # as a segment short of a marker looks for more
 
 
 @cache

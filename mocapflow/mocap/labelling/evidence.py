@@ -29,9 +29,10 @@ from itertools import combinations
 from typing import Protocol
 
 import numpy as np
+from numba import njit
 
-from mocapflow.mocap.labelling.assignment import norm
-from mocapflow.mocap.rigidfit import fit_one, kabsch
+from mocapflow.mocap.labelling.assignment import distance, norm
+from mocapflow.mocap.rigidfit import kabsch, kabsch_into, place
 
 AGREE = 0.9
 """Share of the frames that check a naming in which it must hold."""
@@ -193,12 +194,12 @@ def _verdicts(points: np.ndarray, references: list[Reference]) -> tuple[np.ndarr
     fails."""
     checked = np.zeros(points.shape[:-1], bool)
     failed = np.zeros(points.shape[:-1], bool)
-    for where, distance, tol in references:
+    for where, apart, tol in references:
         shape = (-1,) + (1,) * (points.ndim - 2)
         d = norm(points - where.reshape(shape + (3,)))
         known = np.isfinite(d)
         checked |= known
-        failed |= known & (np.abs(d - distance) > tol.reshape(shape))
+        failed |= known & (np.abs(d - apart) > tol.reshape(shape))
     return checked, failed
 
 
@@ -355,6 +356,19 @@ class RunningEvidence:
         for s, seg in enumerate(segments):
             self._segment_of[seg.markers] = s
         self._joints = [(s, other, there) for s, seg in enumerate(segments) for other, _, there, _ in seg.joints]
+        # the segments and their joints as arrays, for the compiled placement of the joint centres (``_centres``):
+        # per segment its first marker and how many; per marker its layout place and tolerance; per joint, in
+        # ``_joints`` order (each segment's together, ``_joint_first`` (S + 1,)), the neighbour, the centre in the
+        # segment and in the neighbour, and how far apart the two put it (``snug``)
+        self._first = np.array([seg.markers[0] for seg in segments], np.intp)
+        self._count = np.array([len(seg.markers) for seg in segments], np.intp)
+        self._local = np.concatenate([seg.local for seg in segments]).astype(np.float64)
+        self._marker_tol = np.concatenate([seg.tol for seg in segments]).astype(np.float64)
+        self._joint_first = np.cumsum([0] + [len(seg.joints) for seg in segments]).astype(np.intp)
+        self._other = np.array([other for _, other, _ in self._joints], np.intp)
+        self._here = np.array([here for seg in segments for _, here, _, _ in seg.joints], np.float64).reshape(-1, 3)
+        self._there = np.array([there for _, _, there in self._joints], np.float64).reshape(-1, 3)
+        self._snug = np.array([snug[s, other] for s, other, _ in self._joints], np.float64)
         # per marker, its references as rows of a frame's places (its markers named, then its joints' centres, then
         # a row of NaN for padding), the distance to each and the marker's own share of the tolerance
         width = max(len(seg.markers) - 1 + len(seg.joints) for seg in segments)
@@ -409,10 +423,9 @@ class RunningEvidence:
         self._placed = centres, centre_tol
         places = np.concatenate([named, centres, np.full((1, 3), np.nan)])
         tol = self._tol + np.concatenate([np.zeros(len(named)), centre_tol, [0.0]])[self._ref]
-        d = norm(points[:, None, None] - places[self._ref][None])  # (P, N, references)
-        known = np.isfinite(d)
-        failed = (known & (np.abs(d - self._distance) > tol)).any(axis=2)
-        checked = (known & self._centre).any(axis=2) | ((known & ~self._centre).sum(axis=2) >= 2) | failed
+        checked, failed = np.empty((len(points), len(named)), np.bool_), np.empty((len(points), len(named)), np.bool_)
+        _check(np.ascontiguousarray(points, dtype=np.float64), places, self._ref, self._distance, tol, self._centre,
+               checked, failed)
         self.checked[tracks] += checked
         self.failed[tracks] += failed | (checked & self._garbled(named)[self._segment_of])
 
@@ -421,40 +434,16 @@ class RunningEvidence:
         """Where each joint's neighbour puts its centre (J, 3), and how far the centre may stray (J,); NaN where the
         neighbour is not posed, or where that is farther than ``joint_mm``. A segment the frame's poses put by three
         markers or more (``level`` 0) stands; the others are posed as over a whole recording (``_poses``), from their
-        markers ``named`` and the centres of their joints to posed segments."""
-        pose = [p if p is not None and level[s] == 0 else None for s, p in enumerate(poses)]
-        slack = np.zeros(len(self.segments))
-        count = np.bincount(self._segment_of[np.isfinite(named[:, 0])], minlength=len(self.segments))
-        changed = True
-        while changed:
-            changed = False
-            for s, seg in enumerate(self.segments):
-                if pose[s] is not None or not count[s]:
-                    continue
-                joints = []  # (centre in this segment, where the neighbour puts it, how far it may stray)
-                for other, here, there, _ in seg.joints:
-                    found, held = pose[other], self.snug[s, other] + slack[other]
-                    if found is not None and held <= self.joint_mm:
-                        joints.append((here, found[0] @ there + found[1], held))
-                if count[s] + len(joints) < 3:
-                    continue
-                have = np.isfinite(named[seg.markers, 0])
-                lay = np.concatenate([seg.local[have]] + [here[None] for here, _, _ in joints])
-                x = np.concatenate([named[seg.markers[have]]] + [where[None] for _, where, _ in joints])
-                limit = np.concatenate([seg.tol[have], [held for _, _, held in joints]])
-                fitted = fit_one(lay, x, np.ones(len(x)))
-                if fitted is not None and (norm(lay @ fitted[0].T + fitted[1] - x) <= limit).all():
-                    pose[s] = fitted
-                    slack[s] = max((held for _, _, held in joints), default=0.0)
-                    changed = True
-        centres = np.full((len(self._joints), 3), np.nan)
-        tol = np.zeros(len(self._joints))
-        for j, (s, other, there) in enumerate(self._joints):
-            held = self.snug[s, other] + slack[other]
-            there_pose = pose[other]
-            if there_pose is not None and held <= self.joint_mm:
-                centres[j] = there_pose[0] @ there + there_pose[1]
-                tol[j] = held
+        markers ``named`` and the centres of their joints to posed segments (``_place_centres``, compiled)."""
+        rot, shift = np.zeros((len(self.segments), 3, 3)), np.zeros((len(self.segments), 3))
+        posed = np.zeros(len(self.segments), np.bool_)
+        for s, pose in enumerate(poses):
+            if pose is not None and level[s] == 0:
+                rot[s], shift[s], posed[s] = pose[0], pose[1], True
+        centres, tol = np.full((len(self._joints), 3), np.nan), np.zeros(len(self._joints))
+        _place_centres(np.ascontiguousarray(named, dtype=np.float64), rot, shift, posed, self._first, self._count,
+                       self._local, self._marker_tol, self._joint_first, self._other, self._here, self._there,
+                       self._snug, float(self.joint_mm), centres, tol)
         return centres, tol
 
     def refuted(self, tracks: np.ndarray) -> np.ndarray:
@@ -540,3 +529,81 @@ class RunningEvidence:
         unique = agree & (agree.sum(axis=1, keepdims=True) == 1) & (agree.sum(axis=0, keepdims=True) == 1)
         ok = unique & ~self.overlap[tracks] & free[None]
         return np.where(ok.any(axis=1), ok.argmax(axis=1), -1)
+
+
+@njit(cache=True)
+def _place_centres(named: np.ndarray, rot: np.ndarray, shift: np.ndarray, posed: np.ndarray, first: np.ndarray,
+                   count: np.ndarray, local: np.ndarray, marker_tol: np.ndarray, joint_first: np.ndarray,
+                   other: np.ndarray, here: np.ndarray, there: np.ndarray, snug: np.ndarray, joint_mm: float,
+                   centres: np.ndarray, tol: np.ndarray) -> None:  # pragma: no cover
+    """``RunningEvidence._centres`` into ``centres`` and ``tol``: the segments posed (``posed``, ``rot``, ``shift``,
+    changed in place) stand; round after round, each other segment with a marker ``named`` is fitted to its named
+    markers and the centres of its joints to posed neighbours held within ``joint_mm`` (three or more in all), and
+    posed where each of those lies within its tolerance of the fit; then each joint's centre is placed by its posed
+    neighbour."""
+    segments = len(first)
+    slack = np.zeros(segments)
+    have = np.zeros(segments, np.int64)
+    width = 0
+    for s in range(segments):
+        for m in range(first[s], first[s] + count[s]):
+            if np.isfinite(named[m, 0]):
+                have[s] += 1
+        width = max(width, count[s] + joint_first[s + 1] - joint_first[s])
+    lay, x, limit = np.empty((width, 3)), np.empty((width, 3)), np.empty(width)
+    r, t, at = np.empty((3, 3)), np.empty(3), np.empty(3)
+    changed = True
+    while changed:
+        changed = False
+        for s in range(segments):
+            if posed[s] or have[s] == 0:
+                continue
+            k = 0
+            for m in range(first[s], first[s] + count[s]):
+                if np.isfinite(named[m, 0]):
+                    lay[k], x[k], limit[k] = local[m], named[m], marker_tol[m]
+                    k += 1
+            most = 0.0
+            for j in range(joint_first[s], joint_first[s + 1]):
+                o = other[j]
+                held = snug[j] + slack[o]
+                if posed[o] and held <= joint_mm:
+                    lay[k], limit[k] = here[j], held
+                    place(rot[o], there[j], shift[o], x[k])
+                    most = max(most, held)
+                    k += 1
+            if k < 3 or not kabsch_into(lay[:k], x[:k], np.full(k, 1.0 / k), r, t):
+                continue
+            fits = True
+            for n in range(k):
+                place(r, lay[n], t, at)
+                fits = fits and distance(at, x[n]) <= limit[n]
+            if fits:
+                rot[s], shift[s], posed[s], slack[s] = r, t, True, most
+                changed = True
+    for s in range(segments):
+        for j in range(joint_first[s], joint_first[s + 1]):
+            o = other[j]
+            held = snug[j] + slack[o]
+            if posed[o] and held <= joint_mm:
+                place(rot[o], there[j], shift[o], centres[j])
+                tol[j] = held
+
+
+@njit(cache=True)
+def _check(points: np.ndarray, places: np.ndarray, ref: np.ndarray, apart: np.ndarray, tol: np.ndarray,
+           centre: np.ndarray, checked: np.ndarray, failed: np.ndarray) -> None:  # pragma: no cover
+    """For ``RunningEvidence.add``, per point (P) and marker (N), into ``checked`` and ``failed`` (P, N): whether the
+    point's distances to the marker's references (``places[ref]``, NaN where unknown) fail one (off ``apart`` by more
+    than ``tol``), and whether they check it (a joint centre, two mates, or a failure)."""
+    for p in range(len(points)):
+        for n in range(ref.shape[0]):
+            fails, by_centre, mates = False, False, 0
+            for r in range(ref.shape[1]):
+                d = distance(points[p], places[ref[n, r]])
+                if np.isfinite(d):
+                    fails = fails or abs(d - apart[n, r]) > tol[n, r]
+                    by_centre = by_centre or centre[n, r]
+                    mates += not centre[n, r]
+            failed[p, n] = fails
+            checked[p, n] = by_centre or mates >= 2 or fails

@@ -53,7 +53,6 @@ from itertools import combinations, permutations
 import numpy as np
 from numba import njit
 from pydantic import BaseModel, ConfigDict, Field
-from scipy.spatial.distance import cdist
 from scipy.spatial.transform import Rotation
 
 from mocapflow.mocap.labelling.assignment import assign, distance, gated_cost, match, norm
@@ -63,7 +62,7 @@ from mocapflow.mocap.labelling.labeller import Labeller, own_gates
 from mocapflow.mocap.labelling.offline import label_sequence, run_starts, source_rows
 from mocapflow.mocap.model import SkeletonModel
 from mocapflow.mocap.report import Progress, steps
-from mocapflow.mocap.rigidfit import fit_one, kabsch, kabsch_into, place
+from mocapflow.mocap.rigidfit import kabsch_into, place
 
 PRIOR_WEIGHT = 1e-3
 """Weight of a segment's previous pose in its fit, against 1 for each marker or joint centre seen now."""
@@ -163,19 +162,28 @@ class ModelLabeller:
                 if joint.posture is not None:
                     self._calibrated[c, p] = Rotation.from_rotvec(np.radians(joint.posture)).as_matrix()
                     self._calibrated[p, c] = self._calibrated[c, p].T
-        width = max(len(one.markers) for one in self.segments)
-        self._slots = np.full((len(self.segments), width), -1, np.intp)  # markers of each segment, -1 padding
-        self._layouts = np.zeros((len(self.segments), width, 3))
         n = len(self.labels)
         self._tol = np.full(n, self.config.fit_mm)  # per marker: see _Segment.tol
         self._segment_of = np.empty(n, np.intp)  # per marker: its segment
         for s, one in enumerate(self.segments):
             self._segment_of[one.markers] = s
-            self._slots[s, : len(one.markers)] = one.markers
-            self._layouts[s, : len(one.markers)] = one.local
             self._tol[one.markers] = one.tol
         # a marker's weight in a fit: 1 for one no looser than fit_mm, less for one known to stray
         self._weight = (self.config.fit_mm / self._tol) ** 2
+        # the segments as arrays, for their compiled fit (``_pose_by_markers``): per segment its first marker and
+        # how many (its markers follow one another); per marker its place in the layout; per joint of each segment,
+        # in ``joints`` order and each segment's together (``_joint_first`` (S + 1,)), the neighbour, the centre in
+        # the segment and in the neighbour, its tolerance and its weight in a fit
+        self._first = np.array([one.markers[0] for one in self.segments], np.intp)
+        self._count = np.array([len(one.markers) for one in self.segments], np.intp)
+        self._local = np.concatenate([one.local for one in self.segments])
+        joints = [joint for one in self.segments for joint in one.joints]
+        self._joint_first = np.cumsum([0] + [len(one.joints) for one in self.segments]).astype(np.intp)
+        self._joint_other = np.array([other for other, *_ in joints], np.intp)
+        self._joint_here = np.array([here for _, here, _, _ in joints], float).reshape(-1, 3)
+        self._joint_there = np.array([there for _, _, there, _ in joints], float).reshape(-1, 3)
+        self._joint_tol = np.array([tol for *_, tol in joints], float)
+        self._joint_w = np.array([self._joint_weight(tol) for *_, tol in joints], float)
         self._look_alikes = _look_alikes(self.segments)
         self.pos = np.full((n, 3), np.nan)
         self.vel = np.zeros((n, 3))
@@ -187,8 +195,10 @@ class ModelLabeller:
         self._level = np.full(len(self.segments), 3)
         self._last_seen = np.full((len(self.segments), 3), np.nan)  # where each segment was last posed
         self._last_time = np.full(len(self.segments), -np.inf)
-        # each segment's rotation relative to each neighbour, when both were last surely posed: its posture there
-        self._posture: dict[tuple[int, int], np.ndarray] = {}
+        # each segment's rotation relative to each neighbour (S, S, 3, 3), when both were last surely posed: its
+        # posture there, where known (S, S)
+        self._posture = np.zeros((len(self.segments), len(self.segments), 3, 3))
+        self._posture_known = np.zeros((len(self.segments), len(self.segments)), np.bool_)
         # per segment placed on three points alone with no posed neighbour: since when so placed in every frame, and
         # where in the last
         self._doubted_since = np.full(len(self.segments), np.nan)
@@ -241,48 +251,30 @@ class ModelLabeller:
         self._doubted_since[~doubted] = np.nan
         self._observe(cur, time)
         self.pose = poses
-        for s, pose in enumerate(poses):
-            if pose is not None and self._sure(s, poses):
-                self._last_seen[s], self._last_time[s] = pose[1], time
-                for other, *_ in self.segments[s].joints:
-                    there = poses[other]
-                    if there is not None and self._sure(other, poses):
-                        self._posture[s, other] = there[0].T @ pose[0]
+        rot, shift, standing = _arrays(poses)
+        sure = standing & (self._level < 2)
+        self._last_seen[sure], self._last_time[sure] = shift[sure], time
+        _remember_postures(rot, sure, self._joint_first, self._joint_other, self._posture, self._posture_known)
         point_marker = np.full(len(pts), -1, np.intp)
         point_marker[rows] = taken
         return cur, point_marker
 
     def _pose_segments(self, poses: list, cur: np.ndarray, taken: np.ndarray, refused: np.ndarray) -> bool:
         """Fit every segment not posed yet whose markers, joint centres and previous pose fix a pose, surest first:
-        three markers or more, then three points with joint centres, then two with the previous pose. A marker far
-        from its fitted place gives its point back (``_give_back``). True when a segment was posed."""
-        any_posed = self._pose_rigid(poses, cur)
-        for level in (0, 1, 2):
-            progress = True
-            while progress:
-                progress = False
-                # markers matched per segment: only a segment's own fit changes its count
-                count = self._matched(cur)
-                for s, seg in enumerate(self.segments):
-                    if poses[s] is not None or count[s] < (3 if level == 0 else 1):
-                        continue
-                    fitted = self._fit(s, seg, poses, cur, level)
-                    if fitted is None:
-                        continue
-                    rot, shift, joint_excess = fitted
-                    seen = np.isfinite(cur[seg.markers, 0])
-                    error = np.where(seen, np.linalg.norm(seg.local @ rot.T + shift - cur[seg.markers], axis=1), 0.0)
-                    if joint_excess > 1.0:  # markers swapped, or taken by ghosts: the search decides
-                        self._give_back(seg.markers, cur, taken, refused)
-                        continue
-                    if (error > seg.tol).any():  # the worst one goes; the others decide again
-                        self._give_back(seg.markers[[np.argmax(error / seg.tol)]], cur, taken, refused)
-                        progress = True
-                        continue
-                    poses[s] = (rot, shift)
-                    self._level[s] = level
-                    any_posed = progress = True
-        return any_posed
+        three markers or more, then three points with joint centres, then two with the previous pose
+        (``_pose_by_markers``, compiled). A marker far from its fitted place gives its point back (as ``_give_back``).
+        True when a segment was posed."""
+        rot, shift, posed = _arrays(poses)
+        before_rot, before_shift, before = _arrays(self.pose)
+        if not _pose_by_markers(cur, taken, refused, self.streak, rot, shift, posed, self._level, before_rot,
+                                before_shift, before, self._posture, self._posture_known, self._first, self._count,
+                                self._local, self._tol, self._weight, self._joint_first, self._joint_other,
+                                self._joint_here, self._joint_there, self._joint_tol, self._joint_w):
+            return False
+        for s in np.flatnonzero(posed).tolist():
+            if poses[s] is None:
+                poses[s] = (rot[s], shift[s])
+        return True
 
     def _matched(self, cur: np.ndarray) -> np.ndarray:
         """Per segment, how many of its markers are matched (``cur`` finite)."""
@@ -296,82 +288,9 @@ class ModelLabeller:
         cur[markers] = np.nan
         self.streak[markers] = 0
 
-    def _pose_rigid(self, poses: list, cur: np.ndarray) -> bool:
-        """Pose at once (one batched fit) the segments not posed yet that three or more matched markers fit, each
-        within its tolerance: most segments in most frames. True when one was posed."""
-        x = np.where((self._slots >= 0)[..., None], cur[np.maximum(self._slots, 0)], np.nan)
-        seen = np.isfinite(x[..., 0])
-        todo = np.flatnonzero(np.array([p is None for p in poses]) & (seen.sum(axis=1) >= 3))
-        if not len(todo):
-            return False
-        slots = np.maximum(self._slots[todo], 0)
-        w = np.where(seen[todo], self._weight[slots], 0.0)
-        local = np.where(seen[todo, :, None], self._layouts[todo], 0.0)
-        rot, shift, ok = kabsch(local, np.where(seen[todo, :, None], x[todo], 0.0), w)
-        moved = np.einsum("bij,bnj->bni", rot, self._layouts[todo]) + shift[:, None]
-        error = np.where(seen[todo], norm(moved - np.where(seen[todo, :, None], x[todo], 0.0)), 0.0)
-        good = ok & (error <= self._tol[slots]).all(axis=1)
-        for b in np.flatnonzero(good):
-            poses[todo[b]] = (rot[b], shift[b])
-            self._level[todo[b]] = 0
-        return bool(good.any())
-
-    def _fit(self, s: int, seg: _Segment, poses: list, cur: np.ndarray,
-             level: int) -> tuple[np.ndarray, np.ndarray, float] | None:
-        """Segment ``s``'s pose from its matched markers alone (``level`` 0: three or more), with the centres of its
-        joints to surely posed segments (1: three points or more; 2: two, with its previous pose), or None; and how
-        far the fit puts the farthest joint centre from where its neighbour does, in units of that joint's
-        tolerance."""
-        seen = np.isfinite(cur[seg.markers, 0])
-        n_seen = int(seen.sum())
-        if n_seen == 0 or (n_seen < 3 and level == 0):
-            return None
-        local = [seg.local[seen]]
-        world = [cur[seg.markers[seen]]]
-        weight = [self._weight[seg.markers[seen]]]
-        tols = []
-        if n_seen < 3:
-            for other, here, there, tol in seg.joints:
-                if self._sure(other, poses):
-                    rot, shift = poses[other]
-                    local.append(here[None])
-                    world.append((rot @ there + shift)[None])
-                    weight.append(np.array([self._joint_weight(tol)]))
-                    tols.append(tol)
-            count = n_seen + len(tols)
-            before = self.pose[s]
-            if count < 2 or (count < 3 and (level < 2 or before is None)):
-                return None
-            if before is not None:  # carried by its neighbour where it has a posture to it
-                before = self._carried(s, seg, poses) or before
-                local.append(seg.local)
-                world.append(seg.local @ before[0].T + before[1])
-                weight.append(np.full(len(seg.local), PRIOR_WEIGHT))
-        else:
-            before = None
-        fitted = fit_one(np.concatenate(local), np.concatenate(world), np.concatenate(weight))
-        if fitted is None:
-            return None
-        rot, shift = fitted
-        if not tols:
-            return rot, shift, 0.0
-        joints = len(tols)
-        off = np.concatenate(local[1:1 + joints]) @ rot.T + shift - np.concatenate(world[1:1 + joints])
-        return rot, shift, float((np.linalg.norm(off, axis=1) / tols).max())
-
     def _joint_weight(self, tol: float) -> float:
         """A joint centre's weight in a fit: ``JOINT_WEIGHT``, less for a joint known to gape (as for a marker)."""
         return JOINT_WEIGHT * (self.config.joint_mm / tol) ** 2
-
-    def _carried(self, s: int, seg: _Segment, poses: list) -> tuple[np.ndarray, np.ndarray] | None:
-        """Segment ``s``'s pose if it kept its last posture to a surely posed neighbour, hinged at their joint: the
-        neighbour carries it as the limb moves. None when no such neighbour has a posture known."""
-        for other, here, there, _ in seg.joints:
-            if self._sure(other, poses) and (s, other) in self._posture:
-                rot_o, shift_o = poses[other]
-                rot = rot_o @ self._posture[s, other]
-                return rot, rot_o @ there + shift_o - rot @ here
-        return None
 
     def _take_predicted(self, poses: list, cur: np.ndarray, taken: np.ndarray, z: np.ndarray, time: float,
                         refused: np.ndarray) -> None:
@@ -390,28 +309,12 @@ class ModelLabeller:
         free = np.flatnonzero(taken < 0)
         if not len(missing) or not len(free):
             return
-        pred, gate = self._predicted(missing, poses)
-        allowed = np.ones((len(missing), len(free)), bool)
-        owner = self._segment_of[missing]
-        for s in np.unique(owner).tolist():
-            if poses[s] is not None and self._level[s] > 0:
-                seg = self.segments[s]
-                slot = np.flatnonzero(owner == s)
-                rows = missing[slot] - seg.markers[0]
-                gate[slot] = cfg.weak_gate_mm
-                if not (cdist(pred[slot], z[free]) < cfg.weak_gate_mm).any():
-                    continue  # no point to take: what could be is not worked out
-                seen = np.flatnonzero(np.isfinite(cur[seg.markers, 0]))
-                sure = [(h, poses[o][0] @ t + poses[o][1], tol) for o, h, t, tol in seg.joints
-                        if self._sure(o, poses)]
-                here = [seg.local[seen]] + [h[None] for h, _, _ in sure]
-                there = [cur[seg.markers[seen]]] + [t[None] for _, t, _ in sure]
-                tol = np.maximum(seg.tol[rows, None], np.concatenate([seg.tol[seen], [t for _, _, t in sure]]))
-                want = cdist(seg.local[rows], np.concatenate(here))  # (slots, references)
-                have = cdist(z[free], np.concatenate(there))  # (free, references)
-                fits = (np.abs(have[None] - want[:, None]) < tol[:, None]).all(axis=2)
-                # a point that could be two of its markers, or a marker that could take two points, is left alone
-                allowed[slot] = fits & (fits.sum(axis=0, keepdims=True) == 1) & (fits.sum(axis=1, keepdims=True) == 1)
+        rot, shift, posed = _arrays(poses)
+        pred, gate = self._predicted(missing, rot, shift, posed)
+        allowed = np.ones((len(missing), len(free)), np.bool_)
+        _weakly_posed(missing, z[free], cur, rot, shift, posed, self._level, self._segment_of, self._first,
+                      self._count, self._local, self._tol, self._joint_first, self._joint_other, self._joint_here,
+                      self._joint_there, self._joint_tol, cfg.weak_gate_mm, pred, gate, allowed)
         dt = time - self.last[missing]
         coast = np.isnan(pred[:, 0]) & (dt <= cfg.max_coast_s)
         pred[coast] = self.pos[missing[coast]] + self.vel[missing[coast]] * dt[coast, None]
@@ -424,18 +327,13 @@ class ModelLabeller:
         cur[missing[known[mi]]] = z[free[fi]]
         taken[free[fi]] = missing[known[mi]]
 
-    def _predicted(self, markers: np.ndarray, poses: list) -> tuple[np.ndarray, np.ndarray]:
-        """Where each of ``markers`` lies by its segment's pose ``(M, 3)``, NaN where its segment has none, and its
-        gate (M,): ``gate_mm``, widened by as much as the marker's tolerance exceeds ``fit_mm`` where posed."""
-        pred = np.full((len(markers), 3), np.nan)
-        gate = np.full(len(markers), self.config.gate_mm)
-        owner = self._segment_of[markers]
-        for s in np.unique(owner).tolist():
-            if poses[s] is not None:
-                rot, shift = poses[s]
-                slot = np.flatnonzero(owner == s)
-                pred[slot] = self.segments[s].local[markers[slot] - self.segments[s].markers[0]] @ rot.T + shift
-                gate[slot] += self._tol[markers[slot]] - self.config.fit_mm
+    def _predicted(self, markers: np.ndarray, rot: np.ndarray, shift: np.ndarray,
+                   posed: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Where each of ``markers`` lies by its segment's pose (``_arrays``) ``(M, 3)``, NaN where its segment has
+        none, and its gate (M,): ``gate_mm``, widened by as much as the marker's tolerance exceeds ``fit_mm`` where
+        posed."""
+        pred, gate = np.full((len(markers), 3), np.nan), np.full(len(markers), self.config.gate_mm)
+        _predict(markers, rot, shift, posed, self._segment_of, self._local, self._tol, self.config.fit_mm, pred, gate)
         return pred, gate
 
     def _reclaim(self, poses: list, cur: np.ndarray, taken: np.ndarray, z: np.ndarray, refused: np.ndarray) -> None:
@@ -448,7 +346,7 @@ class ModelLabeller:
         missing = np.flatnonzero(np.isnan(cur[:, 0]) & (level == 0))
         if not len(held) or not len(missing):
             return
-        pred, gate = self._predicted(missing, poses)
+        pred, gate = self._predicted(missing, *_arrays(poses))
         cost = np.where(refused[np.ix_(missing, held)], 0.0, gated_cost(pred, gate, z[held]))
         mi, hi = match(cost)
         if not len(mi):
@@ -482,7 +380,7 @@ class ModelLabeller:
                     if self._sure(other, poses)]
             anchors = [(here, poses[other][0] @ there + poses[other][1], tol, self._joint_weight(tol))
                        for other, here, there, tol in sure]
-            posture = [poses[other][0] @ self._posture[s, other] for other, *_ in sure if (s, other) in self._posture]
+            posture = [poses[other][0] @ self._posture[s, other] for other, *_ in sure if self._posture_known[s, other]]
             alone = self._alone(s, poses)
             if searched.get(s, (-1, False)) >= (len(anchors), alone):
                 continue
@@ -513,13 +411,13 @@ class ModelLabeller:
         again. True when one was placed."""
         moved = False
         count = self._matched(cur)
-        for s in np.flatnonzero((self._level == 0) & (count < (self._slots >= 0).sum(axis=1))).tolist():
+        for s in np.flatnonzero((self._level == 0) & (count < self._count)).tolist():
             left = np.flatnonzero(taken < 0)
             if not len(left):
                 break  # its own points alone land no more than it has
             seg, have = self.segments[s], int(count[s])
             free = np.concatenate([left, np.flatnonzero(np.isin(taken, seg.markers))])
-            free = free[_could_hold(seg, z[free], have + 1)]
+            free = free[could_hold(seg, z[free], have + 1)]
             if len(free) <= have:
                 continue
             anchors = [(here, poses[other][0] @ there + poses[other][1], tol, self._joint_weight(tol))
@@ -978,19 +876,42 @@ def _placed(layout: np.ndarray, cloud: np.ndarray, tol: np.ndarray, weight: np.n
     return hits[:found], misfits[:found], rots[:found], shifts[:found]
 
 
-def _could_hold(seg: _Segment, cloud: np.ndarray, least: int) -> np.ndarray:
+def could_hold(seg: _Segment, cloud: np.ndarray, least: int) -> np.ndarray:
     """Which points of ``cloud`` could be among ``least`` of them that a placement of the segment's layout lands on:
     each such point lies at one of the layout's distances (within the two markers' tolerances together) from
     ``least - 1`` others of them. A quick bound before the search."""
     rows, cols = np.triu_indices(len(seg.local), 1)
-    d = cdist(cloud, cloud)
-    linked = (np.abs(d[..., None] - seg.sides[rows, cols]) < seg.slack[rows, cols]).any(axis=2)
-    keep = np.ones(len(cloud), bool)
-    while True:
-        drop = keep & ((linked & keep[None]).sum(axis=1) < least - 1)
-        if not drop.any():
-            return keep
-        keep &= ~drop
+    keep = np.ones(len(cloud), np.bool_)
+    _keep_linked(np.ascontiguousarray(cloud, dtype=np.float64), seg.sides[rows, cols], seg.slack[rows, cols], least,
+                 keep)
+    return keep
+
+
+@njit(cache=True)
+def _keep_linked(cloud: np.ndarray, sides: np.ndarray, slack: np.ndarray, least: int,
+                 keep: np.ndarray) -> None:  # pragma: no cover
+    """``could_hold`` into ``keep`` (all True given): the points linked (at one of ``sides`` within its ``slack``)
+    to ``least - 1`` others kept, dropped round after round until none is dropped."""
+    n = len(cloud)
+    linked = np.zeros((n, n), np.bool_)
+    for a in range(n):
+        for b in range(n):
+            apart = distance(cloud[a], cloud[b])
+            for k in range(len(sides)):
+                linked[a, b] = linked[a, b] or abs(apart - sides[k]) < slack[k]
+    dropped = True
+    while dropped:
+        dropped = False
+        drop = np.zeros(n, np.bool_)
+        for a in range(n):
+            if keep[a]:
+                links = 0
+                for b in range(n):
+                    links += linked[a, b] and keep[b]
+                drop[a] = links < least - 1
+                dropped = dropped or drop[a]
+        for a in range(n):
+            keep[a] = keep[a] and not drop[a]
 
 
 def _look_alikes(segments: list[_Segment]) -> list[list[int]]:
@@ -1160,3 +1081,227 @@ def _merged(one: np.ndarray, other: np.ndarray) -> np.ndarray:
     """The marker each row is named (-1 for none) from two passes' names of the rows: the first pass's, else the
     second's where the first named that row nothing and gave that name to no row."""
     return np.where((one < 0) & (other >= 0) & ~np.isin(other, one[one >= 0]), other, one)
+
+
+def _arrays(poses: Sequence[tuple[np.ndarray, np.ndarray] | None]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The segments' poses as arrays: rotations (S, 3, 3), translations (S, 3) and whether posed (S,)."""
+    rot, shift = np.zeros((len(poses), 3, 3)), np.zeros((len(poses), 3))
+    posed = np.zeros(len(poses), np.bool_)
+    for s, pose in enumerate(poses):
+        if pose is not None:
+            rot[s], shift[s], posed[s] = pose[0], pose[1], True
+    return rot, shift, posed
+
+
+@njit(cache=True)
+def _give_back_markers(first: int, last: int, cur: np.ndarray, taken: np.ndarray, refused: np.ndarray,
+                       streak: np.ndarray) -> None:  # pragma: no cover
+    """``ModelLabeller._give_back`` of the markers ``first`` to ``last - 1``."""
+    for p in range(len(taken)):
+        if first <= taken[p] < last:
+            refused[taken[p], p] = True
+            taken[p] = -1
+    cur[first:last] = np.nan
+    streak[first:last] = 0
+
+
+@njit(cache=True)
+def _fit_segment(s: int, level: int, cur: np.ndarray, rot: np.ndarray, shift: np.ndarray, posed: np.ndarray,
+                 levels: np.ndarray, before_rot: np.ndarray, before_shift: np.ndarray, before: np.ndarray,
+                 posture: np.ndarray, posture_known: np.ndarray, first: np.ndarray, count: np.ndarray,
+                 local: np.ndarray, weight: np.ndarray, joint_first: np.ndarray, joint_other: np.ndarray,
+                 joint_here: np.ndarray, joint_there: np.ndarray, joint_tol: np.ndarray, joint_w: np.ndarray,
+                 lay: np.ndarray, x: np.ndarray, w: np.ndarray, tols: np.ndarray, r: np.ndarray,
+                 t: np.ndarray) -> float:  # pragma: no cover
+    """Segment ``s``'s pose into ``r`` and ``t`` from its matched markers alone (``level`` 0: three or more), with the
+    centres of its joints to surely posed segments (1: three points or more; 2: two, with its previous pose, carried
+    by a surely posed neighbour where it has a posture to it); and how far the fit puts the farthest joint centre from
+    where its neighbour does, in units of that joint's tolerance (0 with no joint centre). NaN for no pose."""
+    seen = 0
+    for m in range(first[s], first[s] + count[s]):
+        if np.isfinite(cur[m, 0]):
+            lay[seen], x[seen], w[seen] = local[m], cur[m], weight[m]
+            seen += 1
+    if seen == 0 or (seen < 3 and level == 0):
+        return np.nan
+    k, joints = seen, 0
+    if seen < 3:
+        for j in range(joint_first[s], joint_first[s + 1]):
+            o = joint_other[j]
+            if posed[o] and levels[o] < 2:
+                lay[k], w[k], tols[joints] = joint_here[j], joint_w[j], joint_tol[j]
+                place(rot[o], joint_there[j], shift[o], x[k])
+                k += 1
+                joints += 1
+        if k < 2 or (k < 3 and (level < 2 or not before[s])):
+            return np.nan
+        if before[s]:
+            prior_rot, prior_shift = before_rot[s], before_shift[s]
+            for j in range(joint_first[s], joint_first[s + 1]):
+                o = joint_other[j]
+                if posed[o] and levels[o] < 2 and posture_known[s, o]:
+                    prior_rot = rot[o] @ posture[s, o]
+                    centre, turned = np.empty(3), np.empty(3)
+                    place(rot[o], joint_there[j], shift[o], centre)
+                    place(prior_rot, joint_here[j], np.zeros(3), turned)
+                    prior_shift = centre - turned
+                    break
+            for m in range(first[s], first[s] + count[s]):
+                lay[k], w[k] = local[m], PRIOR_WEIGHT
+                place(prior_rot, local[m], prior_shift, x[k])
+                k += 1
+    if not kabsch_into(lay[:k], x[:k], w[:k] / w[:k].sum(), r, t):
+        return np.nan
+    excess = 0.0
+    at = np.empty(3)
+    for n in range(joints):
+        place(r, lay[seen + n], t, at)
+        excess = max(excess, distance(at, x[seen + n]) / tols[n])
+    return excess
+
+
+@njit(cache=True)
+def _pose_by_markers(cur: np.ndarray, taken: np.ndarray, refused: np.ndarray, streak: np.ndarray, rot: np.ndarray,
+                     shift: np.ndarray, posed: np.ndarray, levels: np.ndarray, before_rot: np.ndarray,
+                     before_shift: np.ndarray, before: np.ndarray, posture: np.ndarray, posture_known: np.ndarray,
+                     first: np.ndarray, count: np.ndarray, local: np.ndarray, tol: np.ndarray, weight: np.ndarray,
+                     joint_first: np.ndarray, joint_other: np.ndarray, joint_here: np.ndarray,
+                     joint_there: np.ndarray, joint_tol: np.ndarray, joint_w: np.ndarray) -> bool:  # pragma: no cover
+    """``ModelLabeller._pose_segments`` after its batched fit: each segment not posed (``posed``, ``rot``, ``shift``,
+    ``levels``, changed in place) fitted by ``_fit_segment``, level after level, surest first. A fit that puts a joint
+    centre beyond its tolerance gives all the segment's points back, one that puts a marker beyond its tolerance the
+    worst one's, and the segment is fitted again (``cur``, ``taken``, ``refused``, ``streak`` changed in place). True
+    when a segment was posed."""
+    segments = len(first)
+    width = 0
+    for s in range(segments):
+        width = max(width, 2 * count[s] + joint_first[s + 1] - joint_first[s])
+    lay, x, w, tols = np.empty((width, 3)), np.empty((width, 3)), np.empty(width), np.empty(width)
+    r, t, at = np.empty((3, 3)), np.empty(3), np.empty(3)
+    matched = np.zeros(segments, np.int64)
+    any_posed = False
+    for level in range(3):
+        progress = True
+        while progress:
+            progress = False
+            for s in range(segments):  # only a segment's own fit changes its count
+                matched[s] = 0
+                for m in range(first[s], first[s] + count[s]):
+                    if np.isfinite(cur[m, 0]):
+                        matched[s] += 1
+            for s in range(segments):
+                if posed[s] or matched[s] < (3 if level == 0 else 1):
+                    continue
+                excess = _fit_segment(s, level, cur, rot, shift, posed, levels, before_rot, before_shift, before,
+                                      posture, posture_known, first, count, local, weight, joint_first, joint_other,
+                                      joint_here, joint_there, joint_tol, joint_w, lay, x, w, tols, r, t)
+                if np.isnan(excess):
+                    continue
+                if excess > 1.0:  # markers swapped, or taken by ghosts: the search decides
+                    _give_back_markers(first[s], first[s] + count[s], cur, taken, refused, streak)
+                    continue
+                worst, far, beyond = -1.0, -1, False
+                for m in range(first[s], first[s] + count[s]):
+                    ratio = 0.0
+                    if np.isfinite(cur[m, 0]):
+                        place(r, local[m], t, at)
+                        error = distance(at, cur[m])
+                        beyond = beyond or error > tol[m]
+                        ratio = error / tol[m]
+                    if ratio > worst:
+                        worst, far = ratio, m
+                if beyond:  # the worst one goes; the others decide again
+                    _give_back_markers(far, far + 1, cur, taken, refused, streak)
+                    progress = True
+                    continue
+                rot[s], shift[s], posed[s], levels[s] = r, t, True, level
+                any_posed = progress = True
+    return any_posed
+
+
+@njit(cache=True)
+def _predict(markers: np.ndarray, rot: np.ndarray, shift: np.ndarray, posed: np.ndarray, segment_of: np.ndarray,
+             local: np.ndarray, tol: np.ndarray, fit_mm: float, pred: np.ndarray,
+             gate: np.ndarray) -> None:  # pragma: no cover
+    """``ModelLabeller._predicted`` into ``pred`` and ``gate`` (NaN and ``gate_mm`` given)."""
+    for i in range(len(markers)):
+        m = markers[i]
+        s = segment_of[m]
+        if posed[s]:
+            place(rot[s], local[m], shift[s], pred[i])
+            gate[i] += tol[m] - fit_mm
+
+
+@njit(cache=True)
+def _weakly_posed(missing: np.ndarray, points: np.ndarray, cur: np.ndarray, rot: np.ndarray, shift: np.ndarray,
+                  posed: np.ndarray, levels: np.ndarray, segment_of: np.ndarray, first: np.ndarray, count: np.ndarray,
+                  local: np.ndarray, tol: np.ndarray, joint_first: np.ndarray, joint_other: np.ndarray,
+                  joint_here: np.ndarray, joint_there: np.ndarray, joint_tol: np.ndarray, weak_gate_mm: float,
+                  pred: np.ndarray, gate: np.ndarray, allowed: np.ndarray) -> None:  # pragma: no cover
+    """For ``ModelLabeller._take_predicted``: the ``missing`` markers of segments posed through joints or with a turn
+    left to their previous pose (``levels`` 1 or 2) get ``weak_gate_mm`` (``gate``); where such a marker's prediction
+    (``pred``) has one of the free ``points`` within that gate, it may take (``allowed`` (missing, points)) only a
+    point keeping the layout's distances to its segment's markers seen now and to the centres of its joints to surely
+    posed neighbours, each within the larger of the two's tolerances, and only where neither the point nor the
+    marker has another such candidate."""
+    width = 0
+    for s in range(len(first)):
+        width = max(width, count[s] + joint_first[s + 1] - joint_first[s])
+    here, there, limit = np.empty((width, 3)), np.empty((width, 3)), np.empty(width)
+    slots = np.empty(len(missing), np.intp)
+    fits = np.zeros((len(missing), len(points)), np.bool_)
+    for s in range(len(first)):
+        if not posed[s] or levels[s] == 0:
+            continue
+        n, near = 0, False
+        for i in range(len(missing)):
+            if segment_of[missing[i]] == s:
+                slots[n] = i
+                n += 1
+                gate[i] = weak_gate_mm
+                for p in range(len(points)):
+                    near = near or distance(pred[i], points[p]) < weak_gate_mm
+        if not near:
+            continue  # no point to take: what could be is not worked out
+        k = 0
+        for m in range(first[s], first[s] + count[s]):
+            if np.isfinite(cur[m, 0]):
+                here[k], there[k], limit[k] = local[m], cur[m], tol[m]
+                k += 1
+        for j in range(joint_first[s], joint_first[s + 1]):
+            o = joint_other[j]
+            if posed[o] and levels[o] < 2:
+                here[k], limit[k] = joint_here[j], joint_tol[j]
+                place(rot[o], joint_there[j], shift[o], there[k])
+                k += 1
+        for a in range(n):
+            m = missing[slots[a]]
+            for p in range(len(points)):
+                fit = True
+                for r in range(k):
+                    fit = fit and abs(distance(points[p], there[r]) - distance(local[m], here[r])) < max(tol[m],
+                                                                                                       limit[r])
+                fits[a, p] = fit
+        for a in range(n):
+            for p in range(len(points)):
+                alone = fits[a, p]
+                for b in range(n):
+                    alone = alone and (b == a or not fits[b, p])
+                for q in range(len(points)):
+                    alone = alone and (q == p or not fits[a, q])
+                allowed[slots[a], p] = alone
+
+
+@njit(cache=True)
+def _remember_postures(rot: np.ndarray, sure: np.ndarray, joint_first: np.ndarray, joint_other: np.ndarray,
+                       posture: np.ndarray, known: np.ndarray) -> None:  # pragma: no cover
+    """Each segment's rotation relative to each neighbour (``posture``, ``known``) where both are ``sure``ly posed."""
+    for s in range(len(sure)):
+        for j in range(joint_first[s], joint_first[s + 1]):
+            o = joint_other[j]
+            if sure[s] and sure[o]:
+                for a in range(3):
+                    for b in range(3):
+                        posture[s, o, a, b] = rot[o, 0, a] * rot[s, 0, b] + rot[o, 1, a] * rot[s, 1, b] \
+                            + rot[o, 2, a] * rot[s, 2, b]
+                known[s, o] = True
