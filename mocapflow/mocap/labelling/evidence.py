@@ -412,14 +412,14 @@ class RunningEvidence:
             gone = set(tracks.tolist())
             self._trios = {key: count for key, count in self._trios.items() if not gone & set(key[2])}
 
-    def add(self, points: np.ndarray, tracks: np.ndarray, named: np.ndarray, poses: Sequence[tuple | None],
-            level: np.ndarray) -> None:
+    def add(self, points: np.ndarray, tracks: np.ndarray, named: np.ndarray, rot: np.ndarray, shift: np.ndarray,
+            posed: np.ndarray, level: np.ndarray) -> None:
         """Gather one frame: ``points`` (P, 3) on ``tracks`` (P,), named by nothing but this evidence; ``named``
-        (N, 3) the markers named otherwise in the frame (NaN where none is); ``poses`` each segment's (rot, shift)
-        or None, and ``level`` how it was posed (0: by three markers or more)."""
+        (N, 3) the markers named otherwise in the frame (NaN where none is); each segment's pose, ``rot`` (S, 3, 3)
+        and ``shift`` (S, 3) where ``posed`` (S,), and ``level`` how it was posed (0: by three markers or more)."""
         held = np.isfinite(named[:, 0])
         self.overlap[np.ix_(tracks, held)] = True
-        centres, centre_tol = self._centres(named, poses, level)
+        centres, centre_tol = self._centres(named, rot, shift, posed & (level == 0))
         self._placed = centres, centre_tol
         places = np.concatenate([named, centres, np.full((1, 3), np.nan)])
         tol = self._tol + np.concatenate([np.zeros(len(named)), centre_tol, [0.0]])[self._ref]
@@ -429,21 +429,16 @@ class RunningEvidence:
         self.checked[tracks] += checked
         self.failed[tracks] += failed | (checked & self._garbled(named)[self._segment_of])
 
-    def _centres(self, named: np.ndarray, poses: Sequence[tuple | None],
-                 level: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def _centres(self, named: np.ndarray, rot: np.ndarray, shift: np.ndarray,
+                 posed: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Where each joint's neighbour puts its centre (J, 3), and how far the centre may stray (J,); NaN where the
-        neighbour is not posed, or where that is farther than ``joint_mm``. A segment the frame's poses put by three
-        markers or more (``level`` 0) stands; the others are posed as over a whole recording (``_poses``), from their
+        neighbour is not posed, or where that is farther than ``joint_mm``. A segment ``posed`` (by three markers or
+        more: ``rot``, ``shift``) stands; the others are posed as over a whole recording (``_poses``), from their
         markers ``named`` and the centres of their joints to posed segments (``_place_centres``, compiled)."""
-        rot, shift = np.zeros((len(self.segments), 3, 3)), np.zeros((len(self.segments), 3))
-        posed = np.zeros(len(self.segments), np.bool_)
-        for s, pose in enumerate(poses):
-            if pose is not None and level[s] == 0:
-                rot[s], shift[s], posed[s] = pose[0], pose[1], True
         centres, tol = np.full((len(self._joints), 3), np.nan), np.zeros(len(self._joints))
-        _place_centres(np.ascontiguousarray(named, dtype=np.float64), rot, shift, posed, self._first, self._count,
-                       self._local, self._marker_tol, self._joint_first, self._other, self._here, self._there,
-                       self._snug, float(self.joint_mm), centres, tol)
+        _place_centres(np.ascontiguousarray(named, dtype=np.float64), rot.copy(), shift.copy(), posed.copy(),
+                       self._first, self._count, self._local, self._marker_tol, self._joint_first, self._other,
+                       self._here, self._there, self._snug, float(self.joint_mm), centres, tol)
         return centres, tol
 
     def refuted(self, tracks: np.ndarray) -> np.ndarray:

@@ -116,6 +116,8 @@ class _Segment:
     def __post_init__(self) -> None:
         self.sides = norm(self.local[:, None] - self.local[None])  # (n, n) the layout's distances
         self.slack = self.tol[:, None] + self.tol[None]  # (n, n) how far two points keeping them may stray
+        rows, cols = np.triu_indices(len(self.local), 1)
+        self.pair_sides, self.pair_slack = self.sides[rows, cols], self.slack[rows, cols]  # the same, once per pair
 
 
 class ModelLabeller:
@@ -190,6 +192,7 @@ class ModelLabeller:
         self.last = np.full(n, -np.inf)
         self.streak = np.zeros(n, np.int64)
         self.pose: list[tuple[np.ndarray, np.ndarray] | None] = [None] * len(self.segments)
+        self.posed = _arrays(self.pose)  # the same as arrays: rotations, translations and whether posed
         # how surely each segment was posed this frame: 0 by three markers or more, 1 through joints, 2 with a turn
         # left to its previous pose (3: not posed)
         self._level = np.full(len(self.segments), 3)
@@ -250,8 +253,8 @@ class ModelLabeller:
                 poses[s], self._level[s] = None, 3
         self._doubted_since[~doubted] = np.nan
         self._observe(cur, time)
-        self.pose = poses
-        rot, shift, standing = _arrays(poses)
+        self.pose, self.posed = poses, _arrays(poses)
+        rot, shift, standing = self.posed
         sure = standing & (self._level < 2)
         self._last_seen[sure], self._last_time[sure] = shift[sure], time
         _remember_postures(rot, sure, self._joint_first, self._joint_other, self._posture, self._posture_known)
@@ -265,7 +268,7 @@ class ModelLabeller:
         (``_pose_by_markers``, compiled). A marker far from its fitted place gives its point back (as ``_give_back``).
         True when a segment was posed."""
         rot, shift, posed = _arrays(poses)
-        before_rot, before_shift, before = _arrays(self.pose)
+        before_rot, before_shift, before = self.posed
         if not _pose_by_markers(cur, taken, refused, self.streak, rot, shift, posed, self._level, before_rot,
                                 before_shift, before, self._posture, self._posture_known, self._first, self._count,
                                 self._local, self._tol, self._weight, self._joint_first, self._joint_other,
@@ -276,13 +279,19 @@ class ModelLabeller:
                 poses[s] = (rot[s], shift[s])
         return True
 
+    def _among(self, taken: np.ndarray, markers: np.ndarray) -> np.ndarray:
+        """Whether each of ``taken`` (markers, -1 for none) is one of ``markers``: ``np.isin``, without its sort."""
+        mask = np.zeros(len(self.labels) + 1, bool)  # the last stands for -1
+        mask[markers] = True
+        return mask[taken]
+
     def _matched(self, cur: np.ndarray) -> np.ndarray:
         """Per segment, how many of its markers are matched (``cur`` finite)."""
         return np.bincount(self._segment_of[np.isfinite(cur[:, 0])], minlength=len(self.segments))
 
     def _give_back(self, markers: np.ndarray, cur: np.ndarray, taken: np.ndarray, refused: np.ndarray) -> None:
         """Unmatch ``markers``: their points are free again, but not to them (``refused``) until the next frame."""
-        back = np.flatnonzero(np.isin(taken, markers))
+        back = np.flatnonzero(self._among(taken, markers))
         refused[taken[back], back] = True
         taken[back] = -1
         cur[markers] = np.nan
@@ -304,12 +313,12 @@ class ModelLabeller:
         such candidate. No marker takes a point its segment's fit gave back from it this frame (``refused``).
         """
         cfg = self.config
-        self._reclaim(poses, cur, taken, z, refused)
+        rot, shift, posed = _arrays(poses)
+        self._reclaim(rot, shift, posed, cur, taken, z, refused)
         missing = np.flatnonzero(np.isnan(cur[:, 0]))
         free = np.flatnonzero(taken < 0)
         if not len(missing) or not len(free):
             return
-        rot, shift, posed = _arrays(poses)
         pred, gate = self._predicted(missing, rot, shift, posed)
         allowed = np.ones((len(missing), len(free)), np.bool_)
         _weakly_posed(missing, z[free], cur, rot, shift, posed, self._level, self._segment_of, self._first,
@@ -336,17 +345,18 @@ class ModelLabeller:
         _predict(markers, rot, shift, posed, self._segment_of, self._local, self._tol, self.config.fit_mm, pred, gate)
         return pred, gate
 
-    def _reclaim(self, poses: list, cur: np.ndarray, taken: np.ndarray, z: np.ndarray, refused: np.ndarray) -> None:
-        """Give the unmatched markers of segments posed by three markers or more the points where their poses put them
-        (within ``gate_mm``, as step 3) that markers of segments with no pose hold: such a marker only followed its
-        point from frame to frame, and once it had taken another marker's, nothing else would take it back. The marker
-        that held the point gives it back (``_give_back``)."""
+    def _reclaim(self, rot: np.ndarray, shift: np.ndarray, posed: np.ndarray, cur: np.ndarray, taken: np.ndarray,
+                 z: np.ndarray, refused: np.ndarray) -> None:
+        """Give the unmatched markers of segments posed by three markers or more (the poses as ``_arrays``) the points
+        where their poses put them (within ``gate_mm``, as step 3) that markers of segments with no pose hold: such a
+        marker only followed its point from frame to frame, and once it had taken another marker's, nothing else would
+        take it back. The marker that held the point gives it back (``_give_back``)."""
         level = self._level[self._segment_of]  # per marker: how its segment was posed (3: not)
         held = np.flatnonzero((taken >= 0) & (level[np.maximum(taken, 0)] == 3))
         missing = np.flatnonzero(np.isnan(cur[:, 0]) & (level == 0))
         if not len(held) or not len(missing):
             return
-        pred, gate = self._predicted(missing, *_arrays(poses))
+        pred, gate = self._predicted(missing, rot, shift, posed)
         cost = np.where(refused[np.ix_(missing, held)], 0.0, gated_cost(pred, gate, z[held]))
         mi, hi = match(cost)
         if not len(mi):
@@ -378,14 +388,14 @@ class ModelLabeller:
                 continue
             sure = [(other, here, there, tol) for other, here, there, tol in seg.joints
                     if self._sure(other, poses)]
+            alone = self._alone(s, poses)
+            if searched.get(s, (-1, False)) >= (len(sure), alone):
+                continue
+            searched[s] = (len(sure), alone)
             anchors = [(here, poses[other][0] @ there + poses[other][1], tol, self._joint_weight(tol))
                        for other, here, there, tol in sure]
             posture = [poses[other][0] @ self._posture[s, other] for other, *_ in sure if self._posture_known[s, other]]
-            alone = self._alone(s, poses)
-            if searched.get(s, (-1, False)) >= (len(anchors), alone):
-                continue
-            searched[s] = (len(anchors), alone)
-            free = np.flatnonzero((taken < 0) | np.isin(taken, seg.markers))  # its markers matched so far may move
+            free = np.flatnonzero((taken < 0) | self._among(taken, seg.markers))  # its markers matched so far may move
             if not len(free):
                 continue
             dt = self._time - self._last_time[s]
@@ -416,7 +426,7 @@ class ModelLabeller:
             if not len(left):
                 break  # its own points alone land no more than it has
             seg, have = self.segments[s], int(count[s])
-            free = np.concatenate([left, np.flatnonzero(np.isin(taken, seg.markers))])
+            free = np.concatenate([left, np.flatnonzero(self._among(taken, seg.markers))])
             free = free[could_hold(seg, z[free], have + 1)]
             if len(free) <= have:
                 continue
@@ -436,7 +446,7 @@ class ModelLabeller:
         layout row, instead of any matched before."""
         seg = self.segments[s]
         cur[seg.markers] = np.nan
-        taken[np.isin(taken, seg.markers)] = -1
+        taken[self._among(taken, seg.markers)] = -1
         for slot, point in points.items():
             cur[seg.markers[slot]] = z[point]
             taken[point] = seg.markers[slot]
@@ -473,9 +483,9 @@ class ModelLabeller:
                   if poses[o] is None and len(self.segments[o].markers) >= 2]
         if not hinged:
             return None
-        free = np.flatnonzero((taken < 0) | np.isin(taken, seg.markers))
+        free = np.flatnonzero((taken < 0) | self._among(taken, seg.markers))
         # per neighbour, the points it may take: free, or matched so far to it or to ``s``
-        open_to = {o: (taken < 0) | np.isin(taken, np.concatenate([seg.markers, self.segments[o].markers]))
+        open_to = {o: (taken < 0) | self._among(taken, np.concatenate([seg.markers, self.segments[o].markers]))
                    for o, *_ in hinged}
         found: dict[frozenset, dict[int, tuple[dict[int, int], np.ndarray, np.ndarray]]] = {}
         for hits, _, rot, shift in _placements(seg.local, z[free], seg.tol, self._weight[seg.markers], [], 3):
@@ -635,7 +645,7 @@ class TrackedModelLabeller:
             if not held[name]:
                 marker[row] = name
                 held[name] = True
-        self._evidence.add(pts[rows], tracks, self._named(pts, marker), self.model.pose, self.model._level)
+        self._evidence.add(pts[rows], tracks, self._named(pts, marker), *self.model.posed, self.model._level)
         refuted = (kept >= 0) & self._evidence.refuted(tracks)[np.arange(len(tracks)), np.maximum(kept, 0)]
         self._by_evidence[tracks[refuted]] = -1
         dropped = refuted & (marker[rows] == kept)  # the name the run kept this frame, now refuted
@@ -880,10 +890,8 @@ def could_hold(seg: _Segment, cloud: np.ndarray, least: int) -> np.ndarray:
     """Which points of ``cloud`` could be among ``least`` of them that a placement of the segment's layout lands on:
     each such point lies at one of the layout's distances (within the two markers' tolerances together) from
     ``least - 1`` others of them. A quick bound before the search."""
-    rows, cols = np.triu_indices(len(seg.local), 1)
     keep = np.ones(len(cloud), np.bool_)
-    _keep_linked(np.ascontiguousarray(cloud, dtype=np.float64), seg.sides[rows, cols], seg.slack[rows, cols], least,
-                 keep)
+    _keep_linked(np.ascontiguousarray(cloud, dtype=np.float64), seg.pair_sides, seg.pair_slack, least, keep)
     return keep
 
 
@@ -895,10 +903,12 @@ def _keep_linked(cloud: np.ndarray, sides: np.ndarray, slack: np.ndarray, least:
     n = len(cloud)
     linked = np.zeros((n, n), np.bool_)
     for a in range(n):
-        for b in range(n):
+        for b in range(a, n):  # a point with itself too, as a layout's distances may be within their slack of 0
             apart = distance(cloud[a], cloud[b])
             for k in range(len(sides)):
-                linked[a, b] = linked[a, b] or abs(apart - sides[k]) < slack[k]
+                if abs(apart - sides[k]) < slack[k]:
+                    linked[a, b] = linked[b, a] = True
+                    break
     dropped = True
     while dropped:
         dropped = False
