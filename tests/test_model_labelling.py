@@ -15,6 +15,7 @@ from mocapflow.mocap.evaluation import STRESS, score_naming, unlabel
 from mocapflow.mocap.labelling.model import (
     ModelLabeller,
     TrackedModelLabeller,
+    _landed,
     _placements,
     _track_names,
     label_with_skeleton,
@@ -478,21 +479,20 @@ def test_a_layout_is_placed_on_its_own_points_among_ghosts_with_or_without_its_j
     cloud = np.vstack([layout @ rotation.T + shift, rng.uniform(-600.0, 600.0, (12, 3)) + shift])[order]
     at = [int(np.flatnonzero(order == r)[0]) for r in range(4)]  # each marker's point
     tol, weight = np.full(4, 5.0), np.ones(4)
-    found = _placements(layout, cloud, tol, weight, [], 4)
-    assert len(found) == 1
-    hits, misfit, rot, moved = found[0]
-    assert hits == dict(enumerate(at)) and misfit < 1e-6
-    np.testing.assert_allclose(rot, rotation, atol=1e-9)
-    np.testing.assert_allclose(moved, shift, atol=1e-6)
+    hits, misfit, rot, moved = _placements(layout, cloud, tol, weight, [], 4)
+    assert len(hits) == 1
+    assert _landed(hits[0]) == dict(enumerate(at)) and misfit[0] < 1e-6
+    np.testing.assert_allclose(rot[0], rotation, atol=1e-9)
+    np.testing.assert_allclose(moved[0], shift, atol=1e-6)
     # two markers hidden: the two seen and the joint centre their neighbour puts fix the pose
     centre = np.array([0.0, 0.0, -50.0])
     seen = np.delete(cloud, at[2:], axis=0)
     anchor = [(centre, rotation @ centre + shift, 10.0, 0.1)]
-    found = _placements(layout, seen, tol, weight, anchor, 2)
-    assert [f[0] for f in found] == [{0: int(np.flatnonzero(seen[:, 0] == cloud[at[0], 0])[0]),
-                                      1: int(np.flatnonzero(seen[:, 0] == cloud[at[1], 0])[0])}]
-    np.testing.assert_allclose(found[0][2], rotation, atol=1e-9)
-    assert _placements(layout, seen, tol, weight, [], 3) == []  # two points alone place nothing
+    hits, _, rot, _ = _placements(layout, seen, tol, weight, anchor, 2)
+    assert [_landed(h) for h in hits] == [{0: int(np.flatnonzero(seen[:, 0] == cloud[at[0], 0])[0]),
+                                           1: int(np.flatnonzero(seen[:, 0] == cloud[at[1], 0])[0])}]
+    np.testing.assert_allclose(rot[0], rotation, atol=1e-9)
+    assert len(_placements(layout, seen, tol, weight, [], 3)[0]) == 0  # two points alone place nothing
 
 
 def test_a_segment_is_placed_on_three_points_once_its_look_alike_is_posed() -> None:

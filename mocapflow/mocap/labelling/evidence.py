@@ -547,12 +547,14 @@ def _place_centres(named: np.ndarray, rot: np.ndarray, shift: np.ndarray, posed:
         width = max(width, count[s] + joint_first[s + 1] - joint_first[s])
     lay, x, limit = np.empty((width, 3)), np.empty((width, 3)), np.empty(width)
     r, t, at = np.empty((3, 3)), np.empty(3), np.empty(3)
+    stale = np.ones(segments, np.bool_)  # a segment is fitted again only once a neighbour has been posed
     changed = True
     while changed:
         changed = False
         for s in range(segments):
-            if posed[s] or have[s] == 0:
+            if posed[s] or have[s] == 0 or not stale[s]:
                 continue
+            stale[s] = False
             k = 0
             for m in range(first[s], first[s] + count[s]):
                 if np.isfinite(named[m, 0]):
@@ -576,6 +578,8 @@ def _place_centres(named: np.ndarray, rot: np.ndarray, shift: np.ndarray, posed:
             if fits:
                 rot[s], shift[s], posed[s], slack[s] = r, t, True, most
                 changed = True
+                for j in range(joint_first[s], joint_first[s + 1]):
+                    stale[other[j]] = True
     for s in range(segments):
         for j in range(joint_first[s], joint_first[s + 1]):
             o = other[j]

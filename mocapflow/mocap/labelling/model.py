@@ -488,8 +488,9 @@ class ModelLabeller:
         open_to = {o: (taken < 0) | self._among(taken, np.concatenate([seg.markers, self.segments[o].markers]))
                    for o, *_ in hinged}
         found: dict[frozenset, dict[int, tuple[dict[int, int], np.ndarray, np.ndarray]]] = {}
-        for hits, _, rot, shift in _placements(seg.local, z[free], seg.tol, self._weight[seg.markers], [], 3):
-            points = {slot: int(free[p]) for slot, p in hits.items()}
+        for hits, _, rot, shift in zip(*_placements(seg.local, z[free], seg.tol, self._weight[seg.markers], [], 3),
+                                       strict=True):
+            points = {slot: int(free[p]) for slot, p in _landed(hits).items()}
             for o, here, there, tol in hinged:
                 other = self.segments[o]
                 rest = np.flatnonzero(open_to[o] & ~np.isin(np.arange(len(z)), list(points.values())))
@@ -726,46 +727,50 @@ def _place_layout(layout: np.ndarray, cloud: np.ndarray, tol: np.ndarray, weight
     """
     if least is None:
         least = (4 if around is None and not alone else 3) if not anchors else 2 if len(anchors) == 1 else 1
-    found = _placements(layout, cloud, tol, weight, anchors, least, around)
-    if not found:
+    hits, misfit, rot, shift = _placements(layout, cloud, tol, weight, anchors, least, around)
+    if not len(hits):
         return None
-    ranked = sorted(found, key=lambda f: (-len(f[0]), f[1]))
-    top = ranked[0]
-    rivals = [f for f in ranked if len(f[0]) == len(top[0]) and f[1] < 3.0 * top[1] + 1.0]
+    landed = (hits >= 0).sum(axis=1)
+    ranked = np.lexsort((misfit, -landed))  # most points first, then least misfit; a stable sort
+    top = int(ranked[0])
+    rivals = [int(i) for i in ranked if landed[i] == landed[top] and misfit[i] < 3.0 * misfit[top] + 1.0]
     if len(rivals) > 1:
-        if not posture and len({frozenset(f[0].values()) for f in rivals}) == 1:
+        if not posture and len({frozenset(hits[i][hits[i] >= 0].tolist()) for i in rivals}) == 1:
             posture = prior
         if not posture:
             return None
-        turn = sorted((np.mean([_angle(f[2], expected) for expected in posture]), i) for i, f in enumerate(rivals))
+        turn = sorted((np.mean([_angle(rot[i], expected) for expected in posture]), k) for k, i in enumerate(rivals))
         if turn[1][0] - turn[0][0] < POSTURE_DEG:
             return None
         top = rivals[turn[0][1]]
-    return top[0], top[2], top[3]
+    return _landed(hits[top]), rot[top], shift[top]
 
 
 def _placements(layout: np.ndarray, cloud: np.ndarray, tol: np.ndarray, weight: np.ndarray,
                 anchors: list[tuple[np.ndarray, np.ndarray, float, float]], least: int,
                 around: tuple[np.ndarray, float] | None = None,
-                ) -> list[tuple[dict[int, int], float, np.ndarray, np.ndarray]]:
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Every placement of a layout on ``cloud`` (arguments as for ``_place_layout``) that lands ``least`` layout
-    points or more on distinct cloud points, each within its tolerance, with every anchor within its own: the points
-    it lands on by layout row, its RMS misfit (markers and anchors, mm), rotation and translation. The search is
-    compiled (``_placed``): at a cold start, or with a third of the markers hidden, it runs many times a frame."""
+    points or more on distinct cloud points, each within its tolerance, with every anchor within its own: per
+    placement, the cloud point each layout row lands on (-1 for none; ``_landed``), its RMS misfit (markers and
+    anchors, mm), rotation and translation. The search is compiled (``_placed``): at a cold start, or with a third of
+    the markers hidden, it runs many times a frame."""
     if len(layout) < least:
-        return []
+        return np.zeros((0, len(layout)), np.intp), np.zeros(0), np.zeros((0, 3, 3)), np.zeros((0, 3))
     local_a = np.array([a[0] for a in anchors], dtype=np.float64).reshape(-1, 3)
     world_a = np.array([a[1] for a in anchors], dtype=np.float64).reshape(-1, 3)
     joint_tol = np.array([a[2] for a in anchors], dtype=np.float64)
     joint_weight = np.array([a[3] for a in anchors], dtype=np.float64)
     centre, reach = (np.full(3, np.nan), -1.0) if around is None else (np.asarray(around[0], np.float64),
                                                                          float(around[1]))
-    hits, misfit, rot, shift = _placed(np.ascontiguousarray(layout, np.float64),
-                                       np.ascontiguousarray(cloud, np.float64), np.asarray(tol, np.float64),
-                                       np.asarray(weight, np.float64), local_a, world_a, joint_tol, joint_weight,
-                                       least, centre, reach)
-    return [({int(r): int(h[r]) for r in np.flatnonzero(h >= 0)}, float(misfit[i]), rot[i], shift[i])
-            for i, h in enumerate(hits)]
+    return _placed(np.ascontiguousarray(layout, np.float64), np.ascontiguousarray(cloud, np.float64),
+                   np.asarray(tol, np.float64), np.asarray(weight, np.float64), local_a, world_a, joint_tol,
+                   joint_weight, least, centre, reach)
+
+
+def _landed(hits: np.ndarray) -> dict[int, int]:
+    """A placement's cloud point per layout row it lands (``_placements``' hits, -1 for none)."""
+    return {int(r): int(hits[r]) for r in np.flatnonzero(hits >= 0)}
 
 
 @njit(cache=True)
