@@ -621,10 +621,11 @@ class TrackedModelLabeller:
         own_votes, usual_votes = run.max(axis=1, initial=0), votes.max(axis=1, initial=0)
         for choice, count, sure in ((own, own_votes, 2 * own_votes > self._run_length[track]),
                                     (usual, usual_votes, (usual_votes > 1) & (2 * usual_votes > votes.sum(axis=1)))):
-            for i in np.argsort(-count, kind="stable"):
-                if sure[i] and marker[rows[i]] < 0 and not held[choice[i]]:
-                    marker[rows[i]] = choice[i]
-                    held[choice[i]] = True
+            order = np.argsort(-count, kind="stable")
+            for row, name in zip(rows[order[sure[order]]].tolist(), choice[order[sure[order]]].tolist(), strict=True):
+                if marker[row] < 0 and not held[name]:
+                    marker[row] = name
+                    held[name] = True
         for row in np.flatnonzero((marker < 0) & (given >= 0)):
             if not held[given[row]]:
                 marker[row] = given[row]
