@@ -471,30 +471,23 @@ class RunningEvidence:
                 continue
             # per joint its centre would check: where the neighbour's named markers and posed centre are, the centre's
             # distances to them and their tolerances
-            refs = []
+            refs: list[tuple[np.ndarray, np.ndarray, float, float]] = []
             for k, (other, here, there, _) in enumerate(seg.joints):
                 o = self.segments[other]
                 where = np.concatenate([named[o.markers], centres[first + k][None]])
                 known = np.isfinite(where[:, 0])
                 if self.snug[s, other] <= self.joint_mm and known.any():
-                    refs.append((here, where[known], np.append(norm(o.local - there), 0.0)[known],
-                                 np.append(o.tol + self.snug[s, other], centre_tol[first + k])[known]))
+                    refs += zip(np.repeat(here[None], known.sum(), axis=0), where[known],
+                                np.append(norm(o.local - there), 0.0)[known],
+                                np.append(o.tol + self.snug[s, other], centre_tol[first + k])[known], strict=True)
             if not refs:
                 continue
-            keeps = np.abs(d - seg.sides[..., None, None]) <= seg.slack[..., None, None]
+            centre_here, centre_where, want, tol = (np.array([ref[i] for ref in refs], np.float64) for i in range(4))
             for rows in combinations(range(len(seg.markers)), 3):
-                a, b, c = rows
-                trios = np.array([(i, j, k) for i, j in np.argwhere(keeps[a, b]) for k in np.flatnonzero(
-                    keeps[b, c, j] & keeps[a, c, i]) if len({i, j, k}) == 3], np.intp).reshape(-1, 3)
-                if not len(trios):
-                    continue
-                lay = np.broadcast_to(seg.local[list(rows)], (len(trios), 3, 3))
-                r, t, ok = kabsch(lay, points[trios], np.ones((len(trios), 3)))
-                failed = np.zeros(len(trios), bool)
-                for here, where, want, tol in refs:
-                    centre = np.einsum("tij,j->ti", r, here) + t
-                    failed |= (np.abs(norm(centre[:, None] - where[None]) - want) > tol).any(axis=1)
-                for trio, bad in zip(trios[ok], failed[ok], strict=True):
+                trios, failed = _trios_placed(np.ascontiguousarray(points, dtype=np.float64), d,
+                                              seg.local[list(rows)], seg.sides[np.ix_(rows, rows)],
+                                              seg.slack[np.ix_(rows, rows)], centre_here, centre_where, want, tol)
+                for trio, bad in zip(trios, failed, strict=True):
                     key = (s, rows, (int(tracks[trio[0]]), int(tracks[trio[1]]), int(tracks[trio[2]])))
                     self._trios.setdefault(key, np.zeros(2, np.int64))[:] += (1, int(bad))
         agree = [key for key, (count, bad) in self._trios.items()
@@ -606,3 +599,41 @@ def _check(points: np.ndarray, places: np.ndarray, ref: np.ndarray, apart: np.nd
                     mates += not centre[n, r]
             failed[p, n] = fails
             checked[p, n] = by_centre or mates >= 2 or fails
+
+
+@njit(cache=True)
+def _trios_placed(points: np.ndarray, d: np.ndarray, lay: np.ndarray, sides: np.ndarray, slack: np.ndarray,
+                  centre_here: np.ndarray, centre_where: np.ndarray, want: np.ndarray,
+                  tol: np.ndarray) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover
+    """For ``RunningEvidence.layouts``: every three distinct ``points`` (``d`` their distances) at the distances of
+    three layout rows (``lay`` (3, 3), their ``sides`` and ``slack`` (3, 3)), in the order of the rows' pairs, whose
+    placement of the rows fixes a rotation: the trios (T, 3), and whether the placement puts a joint centre
+    (``centre_here``, one row per reference) off its distance ``want`` from a reference ``centre_where`` by more
+    than ``tol``."""
+    n = len(points)
+    trios = np.empty((n * n * n, 3), np.intp)
+    failed = np.empty(n * n * n, np.bool_)
+    x = np.empty((3, 3))
+    weight = np.full(3, 1.0 / 3.0)
+    r, t, at = np.empty((3, 3)), np.empty(3), np.empty(3)
+    found = 0
+    for i in range(n):
+        for j in range(n):
+            if not abs(d[i, j] - sides[0, 1]) <= slack[0, 1]:
+                continue
+            for k in range(n):
+                if not (abs(d[j, k] - sides[1, 2]) <= slack[1, 2] and abs(d[i, k] - sides[0, 2]) <= slack[0, 2]):
+                    continue
+                if i == j or j == k or i == k:
+                    continue
+                x[0], x[1], x[2] = points[i], points[j], points[k]
+                if not kabsch_into(lay, x, weight, r, t):
+                    continue
+                bad = False
+                for q in range(len(want)):
+                    place(r, centre_here[q], t, at)
+                    bad = bad or abs(distance(at, centre_where[q]) - want[q]) > tol[q]
+                trios[found, 0], trios[found, 1], trios[found, 2] = i, j, k
+                failed[found] = bad
+                found += 1
+    return trios[:found], failed[:found]
