@@ -5,12 +5,12 @@ local frame and the joints that link the segments. A new trial of the same subje
 whatever the point order and however long a marker was hidden:
 
 1. markers seen in the previous frame follow their points (constant-velocity prediction, gated optimal assignment);
-2. each segment's pose is fitted, surest first: to three or more of its matched markers (one batched fit for all
-   such segments), else to its markers and the centres of its joints to surely posed segments (a segment reduced to
-   two markers, or one, is posed through its joints), else to two points and, with a tiny weight, its pose of the
-   previous frame, carried by a neighbour's motion where it has a posture to it (which only settles the turn about
-   their line). A marker far from where the fit puts it gives its point back (a swap, a ghost), and so do all of a
-   segment's markers when the fit puts a joint centre far from where its neighbour does;
+2. each segment's pose is fitted, surest first (one compiled pass over the segments): to three or more of its matched
+   markers, else to its markers and the centres of its joints to surely posed segments (a segment reduced to two
+   markers, or one, is posed through its joints), else to two points and, with a tiny weight, its pose of the previous
+   frame, carried by a neighbour's motion where it has a posture to it (which only settles the turn about their line). A
+   marker far from where the fit puts it gives its point back (a swap, a ghost), and so do all of a segment's markers
+   when the fit puts a joint centre far from where its neighbour does;
 3. the markers of posed segments not matched yet are predicted from the pose, and the points left over are assigned to
    these predictions by cost (distance, inside ``gate_mm``): a returning marker takes its own slot in the layout,
    whatever marker happens to lie near it. A segment posed through joints or its previous pose gives a point (inside
@@ -279,11 +279,15 @@ class ModelLabeller:
                 poses[s] = (rot[s], shift[s])
         return True
 
+    def _marked(self, markers: np.ndarray) -> np.ndarray:
+        """Per marker, whether it is one of ``markers``, and one more entry, False, that -1 (none) indexes."""
+        mask = np.zeros(len(self.labels) + 1, np.bool_)
+        mask[markers] = True
+        return mask
+
     def _among(self, taken: np.ndarray, markers: np.ndarray) -> np.ndarray:
         """Whether each of ``taken`` (markers, -1 for none) is one of ``markers``: ``np.isin``, without its sort."""
-        mask = np.zeros(len(self.labels) + 1, bool)  # the last stands for -1
-        mask[markers] = True
-        return mask[taken]
+        return self._marked(markers)[taken]
 
     def _matched(self, cur: np.ndarray) -> np.ndarray:
         """Per segment, how many of its markers are matched (``cur`` finite)."""
@@ -291,11 +295,7 @@ class ModelLabeller:
 
     def _give_back(self, markers: np.ndarray, cur: np.ndarray, taken: np.ndarray, refused: np.ndarray) -> None:
         """Unmatch ``markers``: their points are free again, but not to them (``refused``) until the next frame."""
-        back = np.flatnonzero(self._among(taken, markers))
-        refused[taken[back], back] = True
-        taken[back] = -1
-        cur[markers] = np.nan
-        self.streak[markers] = 0
+        _give_back_marked(self._marked(markers), cur, taken, refused, self.streak)
 
     def _joint_weight(self, tol: float) -> float:
         """A joint centre's weight in a fit: ``JOINT_WEIGHT``, less for a joint known to gape (as for a marker)."""
@@ -1110,15 +1110,17 @@ def _arrays(poses: Sequence[tuple[np.ndarray, np.ndarray] | None]) -> tuple[np.n
 
 
 @njit(cache=True)
-def _give_back_markers(first: int, last: int, cur: np.ndarray, taken: np.ndarray, refused: np.ndarray,
-                       streak: np.ndarray) -> None:  # pragma: no cover
-    """``ModelLabeller._give_back`` of the markers ``first`` to ``last - 1``."""
+def _give_back_marked(marked: np.ndarray, cur: np.ndarray, taken: np.ndarray, refused: np.ndarray,
+                      streak: np.ndarray) -> None:  # pragma: no cover
+    """``ModelLabeller._give_back`` of the markers ``marked`` (``ModelLabeller._marked``)."""
     for p in range(len(taken)):
-        if first <= taken[p] < last:
+        if marked[taken[p]]:  # -1 indexes the last entry, False
             refused[taken[p], p] = True
             taken[p] = -1
-    cur[first:last] = np.nan
-    streak[first:last] = 0
+    for m in range(len(cur)):
+        if marked[m]:
+            cur[m] = np.nan
+            streak[m] = 0
 
 
 @njit(cache=True)
@@ -1183,7 +1185,7 @@ def _pose_by_markers(cur: np.ndarray, taken: np.ndarray, refused: np.ndarray, st
                      first: np.ndarray, count: np.ndarray, local: np.ndarray, tol: np.ndarray, weight: np.ndarray,
                      joint_first: np.ndarray, joint_other: np.ndarray, joint_here: np.ndarray,
                      joint_there: np.ndarray, joint_tol: np.ndarray, joint_w: np.ndarray) -> bool:  # pragma: no cover
-    """``ModelLabeller._pose_segments`` after its batched fit: each segment not posed (``posed``, ``rot``, ``shift``,
+    """``ModelLabeller._pose_segments``, compiled: each segment not posed (``posed``, ``rot``, ``shift``,
     ``levels``, changed in place) fitted by ``_fit_segment``, level after level, surest first. A fit that puts a joint
     centre beyond its tolerance gives all the segment's points back, one that puts a marker beyond its tolerance the
     worst one's, and the segment is fitted again (``cur``, ``taken``, ``refused``, ``streak`` changed in place). True
@@ -1195,6 +1197,7 @@ def _pose_by_markers(cur: np.ndarray, taken: np.ndarray, refused: np.ndarray, st
     lay, x, w, tols = np.empty((width, 3)), np.empty((width, 3)), np.empty(width), np.empty(width)
     r, t, at = np.empty((3, 3)), np.empty(3), np.empty(3)
     matched = np.zeros(segments, np.int64)
+    marked = np.zeros(len(cur) + 1, np.bool_)  # the markers to give back, as ``ModelLabeller._marked``
     any_posed = False
     for level in range(3):
         progress = True
@@ -1214,7 +1217,9 @@ def _pose_by_markers(cur: np.ndarray, taken: np.ndarray, refused: np.ndarray, st
                 if np.isnan(excess):
                     continue
                 if excess > 1.0:  # markers swapped, or taken by ghosts: the search decides
-                    _give_back_markers(first[s], first[s] + count[s], cur, taken, refused, streak)
+                    marked[first[s]:first[s] + count[s]] = True
+                    _give_back_marked(marked, cur, taken, refused, streak)
+                    marked[:] = False
                     continue
                 worst, far, beyond = -1.0, -1, False
                 for m in range(first[s], first[s] + count[s]):
@@ -1227,7 +1232,9 @@ def _pose_by_markers(cur: np.ndarray, taken: np.ndarray, refused: np.ndarray, st
                     if ratio > worst:
                         worst, far = ratio, m
                 if beyond:  # the worst one goes; the others decide again
-                    _give_back_markers(far, far + 1, cur, taken, refused, streak)
+                    marked[far] = True
+                    _give_back_marked(marked, cur, taken, refused, streak)
+                    marked[far] = False
                     progress = True
                     continue
                 rot[s], shift[s], posed[s], levels[s] = r, t, True, level
