@@ -77,6 +77,37 @@ class Segment(Protocol):
     slack: np.ndarray
 
 
+@dataclass
+class Tables:
+    """Segments (``Segment``) as arrays, for compiled code: per segment its first marker and how many (a segment's
+    markers follow one another); per marker its place in the layout (N, 3) and its tolerance (N,); per joint of each
+    segment, each segment's together from ``joint_first[s]`` (S + 1,) in its ``joints`` order: the neighbour, the
+    centre in the segment and in the neighbour (J, 3), and the joint's tolerance."""
+
+    first: np.ndarray
+    count: np.ndarray
+    local: np.ndarray
+    tol: np.ndarray
+    joint_first: np.ndarray
+    other: np.ndarray
+    here: np.ndarray
+    there: np.ndarray
+    joint_tol: np.ndarray
+
+    @classmethod
+    def of(cls, segments: Sequence[Segment]) -> Tables:
+        joints = [joint for seg in segments for joint in seg.joints]
+        return cls(np.array([seg.markers[0] for seg in segments], np.intp),
+                   np.array([len(seg.markers) for seg in segments], np.intp),
+                   np.concatenate([seg.local for seg in segments]).astype(np.float64),
+                   np.concatenate([seg.tol for seg in segments]).astype(np.float64),
+                   np.cumsum([0] + [len(seg.joints) for seg in segments]).astype(np.intp),
+                   np.array([other for other, *_ in joints], np.intp),
+                   np.array([here for _, here, _, _ in joints], np.float64).reshape(-1, 3),
+                   np.array([there for _, _, there, _ in joints], np.float64).reshape(-1, 3),
+                   np.array([tol for *_, tol in joints], np.float64))
+
+
 def name_by_evidence(positions: np.ndarray, owner: np.ndarray, segments: Sequence[Segment],
                      snug: dict[tuple[int, int], float], rate: float, joint_mm: float) -> np.ndarray:
     """``owner`` (F, T), the marker each trajectory point of ``positions`` (F, T, 3) is named (-1 for none), with the
@@ -356,19 +387,10 @@ class RunningEvidence:
         for s, seg in enumerate(segments):
             self._segment_of[seg.markers] = s
         self._joints = [(s, other, there) for s, seg in enumerate(segments) for other, _, there, _ in seg.joints]
-        # the segments and their joints as arrays, for the compiled placement of the joint centres (``_centres``):
-        # per segment its first marker and how many; per marker its layout place and tolerance; per joint, in
-        # ``_joints`` order (each segment's together, ``_joint_first`` (S + 1,)), the neighbour, the centre in the
-        # segment and in the neighbour, and how far apart the two put it (``snug``)
-        self._first = np.array([seg.markers[0] for seg in segments], np.intp)
-        self._count = np.array([len(seg.markers) for seg in segments], np.intp)
-        self._local = np.concatenate([seg.local for seg in segments]).astype(np.float64)
-        self._marker_tol = np.concatenate([seg.tol for seg in segments]).astype(np.float64)
-        self._joint_first = np.cumsum([0] + [len(seg.joints) for seg in segments]).astype(np.intp)
-        self._other = np.array([other for _, other, _ in self._joints], np.intp)
-        self._here = np.array([here for seg in segments for _, here, _, _ in seg.joints], np.float64).reshape(-1, 3)
-        self._there = np.array([there for _, _, there in self._joints], np.float64).reshape(-1, 3)
-        self._snug = np.array([snug[s, other] for s, other, _ in self._joints], np.float64)
+        # for the compiled placement of the joint centres (``_centres``): the segments as arrays, and per joint, in
+        # ``_joints`` order, how far apart the two segments put its centre (``snug``)
+        self._tables = Tables.of(segments)
+        self._joint_snug = np.array([snug[s, other] for s, other, _ in self._joints], np.float64)
         # per marker, its references as rows of a frame's places (its markers named, then its joints' centres, then
         # a row of NaN for padding), the distance to each and the marker's own share of the tolerance
         width = max(len(seg.markers) - 1 + len(seg.joints) for seg in segments)
@@ -436,9 +458,10 @@ class RunningEvidence:
         more: ``rot``, ``shift``) stands; the others are posed as over a whole recording (``_poses``), from their
         markers ``named`` and the centres of their joints to posed segments (``_place_centres``, compiled)."""
         centres, tol = np.full((len(self._joints), 3), np.nan), np.zeros(len(self._joints))
+        tables = self._tables
         _place_centres(np.ascontiguousarray(named, dtype=np.float64), rot.copy(), shift.copy(), posed.copy(),
-                       self._first, self._count, self._local, self._marker_tol, self._joint_first, self._other,
-                       self._here, self._there, self._snug, float(self.joint_mm), centres, tol)
+                       tables.first, tables.count, tables.local, tables.tol, tables.joint_first, tables.other,
+                       tables.here, tables.there, self._joint_snug, float(self.joint_mm), centres, tol)
         return centres, tol
 
     def refuted(self, tracks: np.ndarray) -> np.ndarray:

@@ -57,7 +57,7 @@ from scipy.spatial.transform import Rotation
 
 from mocapflow.mocap.labelling.assignment import assign, distance, gated_cost, match, norm
 from mocapflow.mocap.labelling.config import FRAME_ACCEL_MM_S2, LabellerConfig, frame_gate
-from mocapflow.mocap.labelling.evidence import RunningEvidence, name_by_evidence
+from mocapflow.mocap.labelling.evidence import RunningEvidence, Tables, name_by_evidence
 from mocapflow.mocap.labelling.labeller import Labeller, own_gates
 from mocapflow.mocap.labelling.offline import label_sequence, run_starts, source_rows
 from mocapflow.mocap.model import SkeletonModel
@@ -165,27 +165,16 @@ class ModelLabeller:
                     self._calibrated[c, p] = Rotation.from_rotvec(np.radians(joint.posture)).as_matrix()
                     self._calibrated[p, c] = self._calibrated[c, p].T
         n = len(self.labels)
-        self._tol = np.full(n, self.config.fit_mm)  # per marker: see _Segment.tol
+        # the segments as arrays, for their compiled steps; per marker, its tolerance (see _Segment.tol)
+        self._tables = Tables.of(self.segments)
+        self._tol = self._tables.tol
         self._segment_of = np.empty(n, np.intp)  # per marker: its segment
         for s, one in enumerate(self.segments):
             self._segment_of[one.markers] = s
-            self._tol[one.markers] = one.tol
         # a marker's weight in a fit: 1 for one no looser than fit_mm, less for one known to stray
         self._weight = (self.config.fit_mm / self._tol) ** 2
-        # the segments as arrays, for their compiled fit (``_pose_by_markers``): per segment its first marker and
-        # how many (its markers follow one another); per marker its place in the layout; per joint of each segment,
-        # in ``joints`` order and each segment's together (``_joint_first`` (S + 1,)), the neighbour, the centre in
-        # the segment and in the neighbour, its tolerance and its weight in a fit
-        self._first = np.array([one.markers[0] for one in self.segments], np.intp)
-        self._count = np.array([len(one.markers) for one in self.segments], np.intp)
-        self._local = np.concatenate([one.local for one in self.segments])
-        joints = [joint for one in self.segments for joint in one.joints]
-        self._joint_first = np.cumsum([0] + [len(one.joints) for one in self.segments]).astype(np.intp)
-        self._joint_other = np.array([other for other, *_ in joints], np.intp)
-        self._joint_here = np.array([here for _, here, _, _ in joints], float).reshape(-1, 3)
-        self._joint_there = np.array([there for _, _, there, _ in joints], float).reshape(-1, 3)
-        self._joint_tol = np.array([tol for *_, tol in joints], float)
-        self._joint_w = np.array([self._joint_weight(tol) for *_, tol in joints], float)
+        # per joint of each segment (as ``Tables``), its weight in a fit
+        self._joint_w = np.array([self._joint_weight(tol) for tol in self._tables.joint_tol], np.float64)
         self._look_alikes = _look_alikes(self.segments)
         self.pos = np.full((n, 3), np.nan)
         self.vel = np.zeros((n, 3))
@@ -257,7 +246,7 @@ class ModelLabeller:
         rot, shift, standing = self.posed
         sure = standing & (self._level < 2)
         self._last_seen[sure], self._last_time[sure] = shift[sure], time
-        _remember_postures(rot, sure, self._joint_first, self._joint_other, self._posture, self._posture_known)
+        _remember_postures(rot, sure, self._tables.joint_first, self._tables.other, self._posture, self._posture_known)
         point_marker = np.full(len(pts), -1, np.intp)
         point_marker[rows] = taken
         return cur, point_marker
@@ -269,10 +258,11 @@ class ModelLabeller:
         True when a segment was posed."""
         rot, shift, posed = _arrays(poses)
         before_rot, before_shift, before = self.posed
+        tables = self._tables
         if not _pose_by_markers(cur, taken, refused, self.streak, rot, shift, posed, self._level, before_rot,
-                                before_shift, before, self._posture, self._posture_known, self._first, self._count,
-                                self._local, self._tol, self._weight, self._joint_first, self._joint_other,
-                                self._joint_here, self._joint_there, self._joint_tol, self._joint_w):
+                                before_shift, before, self._posture, self._posture_known, tables.first, tables.count,
+                                tables.local, tables.tol, self._weight, tables.joint_first, tables.other, tables.here,
+                                tables.there, tables.joint_tol, self._joint_w):
             return False
         for s in np.flatnonzero(posed).tolist():
             if poses[s] is None:
@@ -321,9 +311,10 @@ class ModelLabeller:
             return
         pred, gate = self._predicted(missing, rot, shift, posed)
         allowed = np.ones((len(missing), len(free)), np.bool_)
-        _weakly_posed(missing, z[free], cur, rot, shift, posed, self._level, self._segment_of, self._first,
-                      self._count, self._local, self._tol, self._joint_first, self._joint_other, self._joint_here,
-                      self._joint_there, self._joint_tol, cfg.weak_gate_mm, pred, gate, allowed)
+        tables = self._tables
+        _weakly_posed(missing, z[free], cur, rot, shift, posed, self._level, self._segment_of, tables.first,
+                      tables.count, tables.local, tables.tol, tables.joint_first, tables.other, tables.here,
+                      tables.there, tables.joint_tol, cfg.weak_gate_mm, pred, gate, allowed)
         dt = time - self.last[missing]
         coast = np.isnan(pred[:, 0]) & (dt <= cfg.max_coast_s)
         pred[coast] = self.pos[missing[coast]] + self.vel[missing[coast]] * dt[coast, None]
@@ -342,7 +333,8 @@ class ModelLabeller:
         none, and its gate (M,): ``gate_mm``, widened by as much as the marker's tolerance exceeds ``fit_mm`` where
         posed."""
         pred, gate = np.full((len(markers), 3), np.nan), np.full(len(markers), self.config.gate_mm)
-        _predict(markers, rot, shift, posed, self._segment_of, self._local, self._tol, self.config.fit_mm, pred, gate)
+        _predict(markers, rot, shift, posed, self._segment_of, self._tables.local, self._tol, self.config.fit_mm, pred,
+                 gate)
         return pred, gate
 
     def _reclaim(self, rot: np.ndarray, shift: np.ndarray, posed: np.ndarray, cur: np.ndarray, taken: np.ndarray,
@@ -421,7 +413,7 @@ class ModelLabeller:
         again. True when one was placed."""
         moved = False
         count = self._matched(cur)
-        for s in np.flatnonzero((self._level == 0) & (count < self._count)).tolist():
+        for s in np.flatnonzero((self._level == 0) & (count < self._tables.count)).tolist():
             left = np.flatnonzero(taken < 0)
             if not len(left):
                 break  # its own points alone land no more than it has
