@@ -634,8 +634,12 @@ def _trios_placed(points: np.ndarray, d: np.ndarray, lay: np.ndarray, sides: np.
     (``centre_here``, one row per reference) off its distance ``want`` from a reference ``centre_where`` by more
     than ``tol``."""
     n = len(points)
-    trios = np.empty((n * n * n, 3), np.intp)
-    failed = np.empty(n * n * n, np.bool_)
+    pairs = 0  # at most n trios on each pair of points at the first two rows' distance
+    for i in range(n):
+        for j in range(n):
+            pairs += abs(d[i, j] - sides[0, 1]) <= slack[0, 1]
+    trios = np.empty((pairs * n, 3), np.intp)
+    failed = np.empty(pairs * n, np.bool_)
     x = np.empty((3, 3))
     weight = np.full(3, 1.0 / 3.0)
     r, t, at = np.empty((3, 3)), np.empty(3), np.empty(3)
