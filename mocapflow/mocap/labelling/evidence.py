@@ -634,19 +634,16 @@ def _trios_placed(points: np.ndarray, d: np.ndarray, lay: np.ndarray, sides: np.
     (``centre_here``, one row per reference) off its distance ``want`` from a reference ``centre_where`` by more
     than ``tol``."""
     n = len(points)
-    pairs = 0  # at most n trios on each pair of points at the first two rows' distance
-    for i in range(n):
-        for j in range(n):
-            pairs += abs(d[i, j] - sides[0, 1]) <= slack[0, 1]
-    trios = np.empty((pairs * n, 3), np.intp)
-    failed = np.empty(pairs * n, np.bool_)
+    first = np.abs(d - sides[0, 1]) <= slack[0, 1]  # pairs at the first two rows' distance: n trios each at most
+    trios = np.empty((first.sum() * n, 3), np.intp)
+    failed = np.empty(first.sum() * n, np.bool_)
     x = np.empty((3, 3))
     weight = np.full(3, 1.0 / 3.0)
     r, t, at = np.empty((3, 3)), np.empty(3), np.empty(3)
     found = 0
     for i in range(n):
         for j in range(n):
-            if not abs(d[i, j] - sides[0, 1]) <= slack[0, 1]:
+            if not first[i, j]:
                 continue
             for k in range(n):
                 if not (abs(d[j, k] - sides[1, 2]) <= slack[1, 2] and abs(d[i, k] - sides[0, 2]) <= slack[0, 2]):

@@ -899,12 +899,12 @@ def _keep_linked(cloud: np.ndarray, sides: np.ndarray, slack: np.ndarray, least:
     """``could_hold`` into ``keep`` (all True given): the points linked (at one of ``sides`` within its ``slack``)
     to ``least - 1`` others kept, dropped round after round until none is dropped."""
     n = len(cloud)
+    apart = _distances(cloud, cloud)
     linked = np.zeros((n, n), np.bool_)
     for a in range(n):
         for b in range(a, n):  # a point with itself too, as a layout's distances may be within their slack of 0
-            apart = distance(cloud[a], cloud[b])
             for k in range(len(sides)):
-                if abs(apart - sides[k]) < slack[k]:
+                if abs(apart[a, b] - sides[k]) < slack[k]:
                     linked[a, b] = linked[b, a] = True
                     break
     dropped = True
