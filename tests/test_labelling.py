@@ -253,6 +253,31 @@ def test_a_piece_too_short_for_a_partner_to_vouch_for_is_not_a_marker() -> None:
         assert _explained(tracks, seen, 4, 3.0, least) is kept, length
 
 
+def test_a_marker_seen_twice_beside_its_one_mate_is_kept_when_each_run_is_vouched_for() -> None:
+    """Offline, a track merged from two brief runs, with one partner only (its segment shows two markers: the others
+    hidden), is a marker when that partner vouches for each run on its own, as for an unbroken track: seen with it
+    for ``offline_confirm_frames`` frames while it moves. A run too short for that, or one with no partner seen, or one
+    that stands still beside a still partner, leaves the whole track unexplained (fragments of ghosts merge too). On
+    the sprint under the stress damage (seed 3), a marker of the right forearm seen so in 90 frames had been dropped."""
+    frames = 120
+    step = np.arange(frames)[:, None] * np.array([20.0, 0.0, 0.0])  # a rigid body moving 20 mm a frame
+    layout = np.array([[0.0, 0.0, 0.0], [80.0, 0.0, 0.0], [0.0, 90.0, 0.0], [0.0, 0.0, 100.0]])
+    body = layout[None] + step[:, None]
+    least = LabellerConfig().offline_confirm_frames
+    body[:, 1:] = np.nan  # only marker 0 seen: the one partner
+    still = body.copy()
+    still[80:] = still[80]  # the body standing still from frame 80 on
+    for second, partner, kept in (((80, 80 + least), body, True), ((80, 80 + least - 1), body, False),
+                                  ((80, 80 + least), still, False), ((80, 90), None, False)):
+        tracks = np.concatenate([body if partner is None else partner, np.full((frames, 1, 3), np.nan)], axis=1)
+        if partner is None:
+            tracks[second[0]:second[1], 0] = np.nan  # the partner hidden in the second run
+        for begin, end in ((30, 30 + least), second):
+            tracks[begin:end, 4] = (partner if partner is not None else body)[begin:end, 0] + [0.0, 40.0, 40.0]
+        seen = np.isfinite(tracks[..., 0])
+        assert _explained(tracks, seen, 4, 3.0, least) is kept, (second, kept)
+
+
 def test_hidden_marker_without_neighbours_is_a_new_track() -> None:
     """Control for the test above: with no rigid neighbour and no segment the lost marker cannot be found."""
     truth = _clusters(5.0)

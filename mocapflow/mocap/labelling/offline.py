@@ -538,15 +538,34 @@ def _explained(tracks: np.ndarray, seen: np.ndarray, k: int, rigid_sd: float, le
     positions spread by more than ``rigid_sd`` mm, RMS, over the frames they share): a real marker on a rigid body,
     however briefly seen, not a ghost. A track seen in one unbroken run is one object throughout, so one partner seen
     with it for ``least`` frames vouches for it; a track merged from fragments across gaps needs two, seen in every
-    one of its frames, since fragments of ghosts merge too. Distances that hold while nothing moves prove nothing: a
-    reflection that stands still keeps its distances to other still reflections, and over a few frames to any slow
-    marker. A track seen in fewer than ``least`` frames in all (a piece that splitting cut off, two ghosts in
-    consecutive frames taken for one point) has no partner seen with it for that long, and no partner vouches for it."""
+    one of its frames, since fragments of ghosts merge too, or one for each of its runs, every run vouched for on its
+    own as an unbroken track is (a marker whose segment shows only two markers, seen twice). Distances that hold while
+    nothing moves prove nothing: a reflection that stands still keeps its distances to other still reflections, and
+    over a few frames to any slow marker. A track seen in fewer than ``least`` frames in all (a piece that splitting cut
+    off, two ghosts in consecutive frames taken for one point) has no partner seen with it for that long, and no
+    partner vouches for it."""
     frames = np.flatnonzero(seen[:, k])
     if len(frames) < least:
         return False
-    whole = frames[-1] - frames[0] + 1 == len(frames)
-    _, sd = _distance_spread(tracks, seen, k, least if whole else len(frames))
+    runs = np.split(frames, np.flatnonzero(np.diff(frames) > 1) + 1)
+    if len(runs) == 1:
+        return _partners(tracks, seen, k, rigid_sd, least) >= 1
+    if _partners(tracks, seen, k, rigid_sd, len(frames)) >= 2:
+        return True
+    alone = seen.copy()
+    for run in runs:
+        alone[:, k] = False
+        alone[run, k] = True
+        if len(run) < least or _partners(tracks, alone, k, rigid_sd, least) < 1:
+            return False
+    return True
+
+
+def _partners(tracks: np.ndarray, seen: np.ndarray, k: int, rigid_sd: float, least: int) -> int:
+    """How many tracks keep their distances to track ``k`` within ``rigid_sd`` (mm, SD) over at least ``least`` of
+    its frames (all of them, if it has fewer), while ``k`` moves by more than that over the frames they share."""
+    frames = np.flatnonzero(seen[:, k])
+    _, sd = _distance_spread(tracks, seen, k, least)
     sd[k] = np.nan
     shared = seen[frames].astype(float)  # (n, T): the frames k shares with each track
     count = shared.sum(axis=0)
@@ -554,7 +573,7 @@ def _explained(tracks: np.ndarray, seen: np.ndarray, k: int, rigid_sd: float, le
     with np.errstate(invalid="ignore", divide="ignore"):
         centre = shared.T @ own / count[:, None]  # (T, 3): k's mean position over the frames shared with each
         motion = np.sqrt(np.maximum(shared.T @ (own**2).sum(axis=1) / count - (centre**2).sum(axis=1), 0.0))
-    return int(((sd <= rigid_sd) & (motion > rigid_sd)).sum()) >= (1 if whole else 2)
+    return int(((sd <= rigid_sd) & (motion > rigid_sd)).sum())
 
 
 def _rigid_sd(tracks: np.ndarray, seen: np.ndarray, markers: np.ndarray, cfg: LabellerConfig) -> float:
