@@ -959,8 +959,9 @@ def label_with_skeleton(frames: Sequence[np.ndarray] | np.ndarray, rate: float, 
 
     The recording is labelled twice, forward and backward in time. A marker that comes back while its segment has no
     pose (a foot whose mates and shank are hidden) is left unnamed by the forward pass until the segment is found,
-    and named by the backward pass, which met the segment posed first. The forward pass's names stand; the backward
-    pass names a point the forward pass left unnamed with a name the forward pass gave no point of that frame.
+    and named by the backward pass, which met the segment posed first. A point takes the name of the pass that posed
+    its segment more surely, the forward pass's where both did alike, a name going to one point of a frame
+    (:func:`_merged`).
 
     Then the names go to whole trajectories: the recording is labelled without the skeleton too
     (:func:`label_sequence`), whose trajectories keep one marker each, however often their segment had no pose, and
@@ -974,8 +975,8 @@ def label_with_skeleton(frames: Sequence[np.ndarray] | np.ndarray, rate: float, 
     n = len(frames)
     markers = len(forward.labels)
     clouds = [np.asarray(frames[f], dtype=float).reshape(-1, 3) for f in range(n)]
-    ahead = [forward.update(points, i / rate)[1] for i, points in enumerate(steps(clouds, n, "label forward", report))]
-    behind = [backward.update(clouds[i], (n - 1 - i) / rate)[1]
+    ahead = [_pass(forward, points, i / rate) for i, points in enumerate(steps(clouds, n, "label forward", report))]
+    behind = [_pass(backward, clouds[i], (n - 1 - i) / rate)
               for i in steps(range(n - 1, -1, -1), n, "label backward", report)][::-1]
     named = [_merged(one, other) for one, other in zip(ahead, behind, strict=True)]  # per frame: each row's marker
     tracks, _ = label_sequence(steps(clouds, n, "label trajectories", report), rate, progress=report)
@@ -1085,10 +1086,27 @@ def _track_names(track_row: np.ndarray, named: list[np.ndarray], markers: int) -
     return np.where(seen, name_of[np.maximum(run_of, 0)], -1)
 
 
-def _merged(one: np.ndarray, other: np.ndarray) -> np.ndarray:
-    """The marker each row is named (-1 for none) from two passes' names of the rows: the first pass's, else the
-    second's where the first named that row nothing and gave that name to no row."""
-    return np.where((one < 0) & (other >= 0) & ~np.isin(other, one[one >= 0]), other, one)
+def _pass(labeller: ModelLabeller, points: np.ndarray, time: float) -> tuple[np.ndarray, np.ndarray]:
+    """One frame of a pass over a recording: the marker each row of ``points`` is named (-1 for none) and how surely
+    its segment was posed (the labeller's level of that segment; 3 for a row named nothing)."""
+    _, given = labeller.update(points, time)
+    return given, np.where(given >= 0, labeller._level[labeller._segment_of[np.maximum(given, 0)]], 3)
+
+
+def _merged(one: tuple[np.ndarray, np.ndarray], other: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
+    """The marker each row is named (-1 for none) from two passes' names of the rows and how surely each name's
+    segment was posed (``ModelLabeller`` levels: 0 by three of its markers or more, up to 3 followed only): each row
+    takes the name of the pass that posed it more surely, the first pass's where both did alike, and a name goes to
+    one row only, the surest claim first; a row whose claim another took keeps the other pass's name if it is free."""
+    names, levels = np.concatenate([one[0], other[0]]), np.concatenate([one[1], other[1]])
+    rows = np.concatenate([np.arange(len(one[0]))] * 2)
+    out = np.full(len(one[0]), -1, np.intp)
+    held = np.zeros(max(int(names.max(initial=-1)) + 1, 0), bool)
+    for k in np.lexsort((np.repeat([0, 1], len(one[0])), levels)).tolist():  # surest first, the first pass on ties
+        if names[k] >= 0 and out[rows[k]] < 0 and not held[names[k]]:
+            out[rows[k]] = names[k]
+            held[names[k]] = True
+    return out
 
 
 def _arrays(poses: Sequence[tuple[np.ndarray, np.ndarray] | None]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
