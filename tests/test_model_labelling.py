@@ -439,10 +439,11 @@ def test_the_trajectories_evidence_adds_no_wrong_name(data_dir: Path, monkeypatc
     """A real capture's second half under stress damage, named from a skeleton calibrated on its first half, where the
     passes named some of a segment's markers wrong (two names swapped, or garbled). A trajectory part beside such
     points keeps its distances to them under a mate's name as well as under its own, and took it: cmu_85_02's RWRA
-    took RFIN's name for 405 points, hamner's RTH1 RTH2's for 25 (at seed 4, where the passes, each point named by
-    the pass that posed it more surely, no longer garble the thigh). A distance to a mate now checks a name only where
-    the frames refute the swap, and a frame whose names break the layout checks nothing. The evidence still names
-    parts here, each with its own marker's name."""
+    took RFIN's name for 405 points, hamner's RTH1 RTH2's for 25 (at seed 4: since each point is named by the pass
+    that posed it more surely, the passes no longer garble that thigh, and cmu_85_02 at seed 6 stands in for it, the
+    evidence naming 236 points there). A distance to a mate now checks a name only where the frames refute the swap,
+    and a frame whose names break the layout checks nothing. The evidence still names parts here, each with its own
+    marker's name."""
     from mocapflow.mocap.labelling import model
     from mocapflow.mocap.labelling.offline import source_rows
 
