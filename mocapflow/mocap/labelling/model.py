@@ -544,19 +544,21 @@ class TrackedModelLabeller:
     """Streaming labeller that names points with a skeleton's marker names and keeps a name with its point's track;
     feed frames in time order to :meth:`update`, as to :class:`ModelLabeller`.
 
-    :class:`ModelLabeller` names a point only in the frames where its segment can be posed, and a segment it poses
-    wrong keeps its wrong names while its markers are followed. The model-free labeller (``Labeller``) follows the
-    same points as tracks, one marker each across most gaps, with no name. Each track counts the names its points
-    were given, over its whole life and over its current run (the frames it has been seen in a row: one marker surely).
-    A point then takes, the surest first and never a name another point of the frame took: its run's name (given to more
-    than half of the run's points), else its track's (given to more than half of the named ones), else the name
+    :class:`ModelLabeller` names a point only in the frames where its segment can be posed, and a segment it poses wrong
+    keeps its wrong names while its markers are followed. The model-free labeller (``Labeller``) follows the same points
+    as tracks, one marker each across most gaps, with no name. Each track counts the names its points were given, over
+    its whole life and over its current run (the frames it has been seen in a row: one marker surely). A point then
+    takes, the surest first and never a name another point of the frame took: its run's name (given to more than half of
+    the run's points), else its track's (given to more than half of the named ones), else the name
     :class:`ModelLabeller` gave it, else the name its run's frames agree on (``RunningEvidence``: where no frame poses
     its segment). The same rules as over a whole recording (:func:`label_with_skeleton`), known only up to the current
-    frame, but for one: a track's name stands only once the poses gave it in two frames or more. Live, on the stress
+    frame, but for two. A track's name stands only once the poses gave it in two frames or more: live, on the stress
     cases, a name they gave in one frame alone was a chance placement's; over a whole recording, the backward pass votes
-    too. A run whose name the poses give for a while to another run, which they name so throughout, and its own point
-    another name, starts afresh (``_break_contested``), and so does a run whose name only a segment not posed by its
-    markers backs, its point named otherwise by one so posed."""
+    too. And a name given only because its marker followed the point, its segment not posed, is not counted: it echoes a
+    name given before and is no new evidence (over a whole recording, leaving it out swung cases both ways). A run whose
+    name the poses give for a while to another run, which they name so throughout, and its own point another name,
+    starts afresh (``_break_contested``), and so does a run whose name only a segment not posed by its markers backs,
+    its point named otherwise by one so posed."""
 
     def __init__(self, skeleton: SkeletonModel, rate: float, config: ModelLabellerConfig | None = None) -> None:
         self.model = ModelLabeller(skeleton, rate, config)
@@ -601,7 +603,8 @@ class TrackedModelLabeller:
         self._evidence.restart(fresh)
         self._seen[:] = False
         self._seen[track] = True
-        named = given[rows] >= 0
+        # the names the poses gave, not those of markers only followed (level 3: their segment not posed)
+        named = (given[rows] >= 0) & (self.model._level[self.model._segment_of[np.maximum(given[rows], 0)]] < 3)
         self._votes[track[named], given[rows[named]]] += 1  # a track holds one point a frame
         self._run[track[named], given[rows[named]]] += 1
         self._run_length[track] += 1
