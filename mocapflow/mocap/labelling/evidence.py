@@ -40,24 +40,6 @@ CHECKED_S = 0.1
 """Least time (s) over which a naming must be checked, and hold."""
 
 
-@dataclass
-class Pose:
-    """A segment's pose in each frame: ``world = rot @ local + shift`` where ``posed``; ``slack`` (mm) is how far a
-    point it places may stray beyond its own tolerance (0 where posed by its markers alone)."""
-
-    rot: np.ndarray  # (F, 3, 3)
-    shift: np.ndarray  # (F, 3)
-    posed: np.ndarray  # (F,)
-    slack: np.ndarray  # (F,)
-
-    def centre(self, local: np.ndarray, snug: float, most: float) -> tuple[np.ndarray, np.ndarray]:
-        """Where the pose puts a joint centre ``local`` in each frame (F, 3), and how far from there the other segment
-        may put it (F,): ``snug`` and the slack; NaN where not posed, or where that is farther than ``most``."""
-        tol = snug + self.slack
-        where = self.posed & (tol <= most)
-        return np.where(where[:, None], np.einsum("fij,j->fi", self.rot, local) + self.shift, np.nan), tol
-
-
 Reference = tuple[np.ndarray, float, np.ndarray]
 """What checks a point in each frame: where it is (F, 3; NaN where unknown), the point's distance to it and the
 tolerance on that distance (F,)."""
@@ -118,12 +100,19 @@ def name_by_evidence(positions: np.ndarray, owner: np.ndarray, segments: Sequenc
     least = max(3, int(round(CHECKED_S * rate)))
     markers = sum(len(seg.markers) for seg in segments)
     seen = np.isfinite(positions[..., 0])
+    tables = Tables.of(segments)
+    joints = [(s, other) for s, seg in enumerate(segments) for other, _, _, _ in seg.joints]  # in ``tables`` order
+    joint_snug = _joint_snug(segments, snug)
     while True:
         named = _named_positions(positions, owner, markers)
-        poses = _poses(named, segments, snug, joint_mm)
-        # per joint (segment, neighbour): where the neighbour puts its centre, and how far it may stray
-        centres = {(s, other): poses[other].centre(there, snug[s, other], joint_mm)
-                   for s, seg in enumerate(segments) for other, _, there, _ in seg.joints}
+        # per joint (segment, neighbour): where the neighbour puts its centre in each frame, and how far it may stray
+        where, tol = np.full((len(named), len(joints), 3), np.nan), np.zeros((len(named), len(joints)))
+        for f in range(len(named)):
+            _place_centres(named[f], np.zeros((len(segments), 3, 3)), np.zeros((len(segments), 3)),
+                           np.zeros(len(segments), np.bool_), tables.first, tables.count, tables.local, tables.tol,
+                           tables.joint_first, tables.other, tables.here, tables.there, joint_snug, float(joint_mm),
+                           where[f], tol[f])
+        centres = {joint: (where[:, j], tol[:, j]) for j, joint in enumerate(joints)}
         open_part = seen & (owner < 0)
         given = _by_references(positions, open_part, named, centres, segments, least)
         if not given:
@@ -135,53 +124,18 @@ def name_by_evidence(positions: np.ndarray, owner: np.ndarray, segments: Sequenc
             owner[free, track] = marker
 
 
+def _joint_snug(segments: Sequence[Segment], snug: dict[tuple[int, int], float]) -> np.ndarray:
+    """Per joint, in ``Tables`` order (each segment's joints in turn), how far apart its two segments may put its
+    centre (``snug``)."""
+    return np.array([snug[s, other] for s, seg in enumerate(segments) for other, _, _, _ in seg.joints], np.float64)
+
+
 def _named_positions(positions: np.ndarray, owner: np.ndarray, markers: int) -> np.ndarray:
     """Each marker's position in each frame (F, N, 3) from the trajectories named it; NaN where none is."""
     named = np.full((len(owner), markers, 3), np.nan)
     f, k = np.nonzero(owner >= 0)
     named[f, owner[f, k]] = positions[f, k]
     return named
-
-
-def _poses(named: np.ndarray, segments: Sequence[Segment], snug: dict[tuple[int, int], float],
-           most_slack: float) -> list[Pose]:
-    """Each segment's pose per frame from its named markers and the centres of its joints to segments posed in that
-    frame, three references or more with one marker at least, each within its tolerance of the fit; a segment posed
-    through a neighbour may pose another in turn. A joint centre placed by a segment posed through joints is only as
-    sure as they are: its ``slack`` adds up their tolerances, and a centre that may stray more than ``most_slack`` is
-    no reference."""
-    frames = len(named)
-    out = [Pose(np.zeros((frames, 3, 3)), np.zeros((frames, 3)), np.zeros(frames, bool), np.zeros(frames))
-           for _ in segments]
-    changed = True
-    while changed:
-        changed = False
-        for s, seg in enumerate(segments):
-            pose = out[s]
-            local = [seg.local]
-            world = [named[:, seg.markers]]
-            tol = [np.broadcast_to(seg.tol, (frames, len(seg.markers)))]
-            for other, here, there, _ in seg.joints:
-                centre, held = out[other].centre(there, snug[s, other], most_slack)
-                local.append(here[None])
-                world.append(centre[:, None])
-                tol.append(held[:, None])
-            x = np.concatenate(world, axis=1)
-            have = np.isfinite(x[..., 0])
-            todo = ~pose.posed & (have.sum(axis=1) >= 3) & have[:, : len(seg.markers)].any(axis=1)
-            if not todo.any():
-                continue
-            lay = np.broadcast_to(np.concatenate(local), x.shape)[todo]
-            r, t, ok = kabsch(lay, np.where(have[todo, :, None], x[todo], 0.0), have[todo].astype(float))
-            error = norm(np.einsum("fij,fnj->fni", r, lay) + t[:, None] - x[todo])
-            limit = np.concatenate(tol, axis=1)[todo]
-            ok &= (np.where(have[todo], error, 0.0) <= limit).all(axis=1)
-            joints = np.where(have[todo, len(seg.markers):], limit[:, len(seg.markers):], 0.0)
-            where = np.flatnonzero(todo)[ok]
-            pose.rot[where], pose.shift[where], pose.posed[where] = r[ok], t[ok], True
-            pose.slack[where] = joints[ok].max(axis=1, initial=0.0)
-            changed |= bool(ok.any())
-    return out
 
 
 def _references(s: int, row: int, named: np.ndarray, centres: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]],
@@ -390,7 +344,7 @@ class RunningEvidence:
         # for the compiled placement of the joint centres (``_centres``): the segments as arrays, and per joint, in
         # ``_joints`` order, how far apart the two segments put its centre (``snug``)
         self._tables = Tables.of(segments)
-        self._joint_snug = np.array([snug[s, other] for s, other, _ in self._joints], np.float64)
+        self._joint_snug = _joint_snug(segments, snug)
         # per marker, its references as rows of a frame's places (its markers named, then its joints' centres, then
         # a row of NaN for padding), the distance to each and the marker's own share of the tolerance
         width = max(len(seg.markers) - 1 + len(seg.joints) for seg in segments)
@@ -455,8 +409,8 @@ class RunningEvidence:
                  posed: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Where each joint's neighbour puts its centre (J, 3), and how far the centre may stray (J,); NaN where the
         neighbour is not posed, or where that is farther than ``joint_mm``. A segment ``posed`` (by three markers or
-        more: ``rot``, ``shift``) stands; the others are posed as over a whole recording (``_poses``), from their
-        markers ``named`` and the centres of their joints to posed segments (``_place_centres``, compiled)."""
+        more: ``rot``, ``shift``) stands; the others are posed as over a whole recording (``_place_centres``), from
+        their markers ``named`` and the centres of their joints to posed segments."""
         centres, tol = np.full((len(self._joints), 3), np.nan), np.zeros(len(self._joints))
         tables = self._tables
         _place_centres(np.ascontiguousarray(named, dtype=np.float64), rot.copy(), shift.copy(), posed.copy(),
@@ -547,11 +501,13 @@ def _place_centres(named: np.ndarray, rot: np.ndarray, shift: np.ndarray, posed:
                    count: np.ndarray, local: np.ndarray, marker_tol: np.ndarray, joint_first: np.ndarray,
                    other: np.ndarray, here: np.ndarray, there: np.ndarray, snug: np.ndarray, joint_mm: float,
                    centres: np.ndarray, tol: np.ndarray) -> None:  # pragma: no cover
-    """``RunningEvidence._centres`` into ``centres`` and ``tol``: the segments posed (``posed``, ``rot``, ``shift``,
-    changed in place) stand; round after round, each other segment with a marker ``named`` is fitted to its named
-    markers and the centres of its joints to posed neighbours held within ``joint_mm`` (three or more in all), and
-    posed where each of those lies within its tolerance of the fit; then each joint's centre is placed by its posed
-    neighbour."""
+    """One frame's joint centres into ``centres`` (J, 3) and how far each may stray into ``tol`` (J,), for
+    ``name_by_evidence`` (no segment posed beforehand) and ``RunningEvidence._centres``: the segments posed (``posed``,
+    ``rot``, ``shift``, changed in place) stand; round after round, each other segment with a marker ``named`` is
+    fitted to its named markers and the centres of its joints to posed neighbours held within ``joint_mm`` (three or
+    more in all), and posed where each of those lies within its tolerance of the fit, its slack the largest of those
+    joints' (a centre it places is only as sure as they are); then each joint's centre is placed by its posed
+    neighbour, within ``snug`` plus that neighbour's slack."""
     segments = len(first)
     slack = np.zeros(segments)
     have = np.zeros(segments, np.int64)
