@@ -527,6 +527,12 @@ class ModelLabeller:
         doubted[s] = True
         return self._time - self._doubted_since[s] >= cfg.held_s
 
+    def sureness(self, marker: np.ndarray) -> np.ndarray:
+        """How surely the last frame posed the segment of each of ``marker`` (a row's marker, -1 for none): 0 by three
+        of its markers or more, 1 by its markers and joint centres, 2 by two points and its last pose, 3 not at all
+        (a marker only followed from frame to frame, or none)."""
+        return np.where(marker >= 0, self._level[self._segment_of[np.maximum(marker, 0)]], 3)
+
     def _observe(self, cur: np.ndarray, time: float) -> None:
         seen = np.isfinite(cur[:, 0])
         m = np.flatnonzero(seen)
@@ -603,8 +609,8 @@ class TrackedModelLabeller:
         self._evidence.restart(fresh)
         self._seen[:] = False
         self._seen[track] = True
-        # the names the poses gave, not those of markers only followed (level 3: their segment not posed)
-        named = (given[rows] >= 0) & (self.model._level[self.model._segment_of[np.maximum(given[rows], 0)]] < 3)
+        # the names the poses gave, not those of markers only followed (their segment not posed)
+        named = self.model.sureness(given[rows]) < 3
         self._votes[track[named], given[rows[named]]] += 1  # a track holds one point a frame
         self._run[track[named], given[rows[named]]] += 1
         self._run_length[track] += 1
@@ -1093,7 +1099,7 @@ def _pass(labeller: ModelLabeller, points: np.ndarray, time: float) -> tuple[np.
     """One frame of a pass over a recording: the marker each row of ``points`` is named (-1 for none) and how surely
     its segment was posed (the labeller's level of that segment; 3 for a row named nothing)."""
     _, given = labeller.update(points, time)
-    return given, np.where(given >= 0, labeller._level[labeller._segment_of[np.maximum(given, 0)]], 3)
+    return given, labeller.sureness(given)
 
 
 def _merged(one: tuple[np.ndarray, np.ndarray], other: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
