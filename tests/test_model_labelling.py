@@ -360,7 +360,7 @@ def test_a_foot_whose_look_alike_has_no_pose_is_placed_with_a_shank_of_two_marke
         mine = np.isin(ids, foot) & np.isfinite(p[:, 0])
         if mine.sum() == 3:
             whole += 1
-            posed += live.model.pose[segment] is not None
+            posed += int(live.model.pose.posed[segment])
         named += sum(g >= 0 and live.labels[g] == data.labels[m] for m, g in zip(ids[mine], given[mine], strict=True))
         seen += int(mine.sum())
     print(f"\nleft foot posed in {posed} of {whole} frames with its three markers seen; {named} of {seen} points named "
@@ -390,7 +390,7 @@ def test_a_foot_placed_alone_whose_shank_is_hidden_stands_once_so_placed_for_a_w
         mine = np.isin(ids, foot) & np.isfinite(p[:, 0])
         if mine.sum() == 3 and not np.isin(ids, shank).any():
             frames += 1
-            posed += live.model.pose[segment] is not None
+            posed += int(live.model.pose.posed[segment])
             named = [live.labels[g] if g >= 0 else None for g in given[mine]]
             right += sum(name == data.labels[m] for m, name in zip(ids[mine], named, strict=True))
             wrong += sum(name not in (None, data.labels[m]) for m, name in zip(ids[mine], named, strict=True))

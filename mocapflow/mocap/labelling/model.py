@@ -120,6 +120,27 @@ class _Segment:
         self.pair_sides, self.pair_slack = self.sides[rows, cols], self.slack[rows, cols]  # the same, once per pair
 
 
+class Poses:
+    """The segments' poses in one frame, as arrays for the compiled steps: rotations ``rot`` (S, 3, 3), translations
+    ``shift`` (S, 3) and whether posed, ``posed`` (S,); zero where not posed."""
+
+    def __init__(self, segments: int) -> None:
+        self.rot, self.shift = np.zeros((segments, 3, 3)), np.zeros((segments, 3))
+        self.posed = np.zeros(segments, np.bool_)
+
+    def set(self, s: int, rot: np.ndarray, shift: np.ndarray) -> None:
+        """Pose segment ``s``."""
+        self.rot[s], self.shift[s], self.posed[s] = rot, shift, True
+
+    def clear(self, s: int) -> None:
+        """Segment ``s`` has no pose."""
+        self.rot[s], self.shift[s], self.posed[s] = 0.0, 0.0, False
+
+    def arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``rot``, ``shift`` and ``posed``: the arrays themselves, which the compiled steps pose segments in."""
+        return self.rot, self.shift, self.posed
+
+
 class ModelLabeller:
     """Streaming labeller that names points with a skeleton's marker names; feed frames in time order to
     :meth:`update`. ``labels`` are the skeleton's markers that have a layout, in the skeleton's order."""
@@ -180,8 +201,8 @@ class ModelLabeller:
         self.vel = np.zeros((n, 3))
         self.last = np.full(n, -np.inf)
         self.streak = np.zeros(n, np.int64)
-        self.pose: list[tuple[np.ndarray, np.ndarray] | None] = [None] * len(self.segments)
-        self.posed = _arrays(self.pose)  # the same as arrays: rotations, translations and whether posed
+        self.pose = Poses(len(self.segments))
+        self.posed = self.pose.arrays()  # the same as arrays: rotations, translations and whether posed
         # how surely each segment was posed this frame: 0 by three markers or more, 1 through joints, 2 with a turn
         # left to its previous pose (3: not posed)
         self._level = np.full(len(self.segments), 3)
@@ -224,7 +245,7 @@ class ModelLabeller:
         follow = own_gates(cfg.follow_mm, self._widest, self.vel[live], dt)
         ti, pi = assign(self.pos[live] + self.vel[live] * dt[:, None], follow, z)
         cur[live[ti]], taken[pi] = z[pi], live[ti]
-        poses: list[tuple[np.ndarray, np.ndarray] | None] = [None] * len(self.segments)
+        poses = Poses(len(self.segments))
         searched: dict[int, tuple[int, bool]] = {}  # per segment: anchors and look-alikes at its last search
         seeds: list[int] = []  # segments found this frame on three points alone, for want of a look-alike
         self._level[:] = 3
@@ -239,10 +260,11 @@ class ModelLabeller:
         for s in seeds:
             if not self._confirmed(s, poses) and not self._held(s, poses, dt_frame, doubted):
                 self._give_back(self.segments[s].markers, cur, taken, refused)
-                poses[s], self._level[s] = None, 3
+                poses.clear(s)
+                self._level[s] = 3
         self._doubted_since[~doubted] = np.nan
         self._observe(cur, time)
-        self.pose, self.posed = poses, _arrays(poses)
+        self.pose, self.posed = poses, poses.arrays()
         rot, shift, standing = self.posed
         sure = standing & (self._level < 2)
         self._last_seen[sure], self._last_time[sure] = shift[sure], time
@@ -251,12 +273,12 @@ class ModelLabeller:
         point_marker[rows] = taken
         return cur, point_marker
 
-    def _pose_segments(self, poses: list, cur: np.ndarray, taken: np.ndarray, refused: np.ndarray) -> bool:
+    def _pose_segments(self, poses: Poses, cur: np.ndarray, taken: np.ndarray, refused: np.ndarray) -> bool:
         """Fit every segment not posed yet whose markers, joint centres and previous pose fix a pose, surest first:
         three markers or more, then three points with joint centres, then two with the previous pose
         (``_pose_by_markers``, compiled). A marker far from its fitted place gives its point back (as ``_give_back``).
         True when a segment was posed."""
-        rot, shift, posed = _arrays(poses)
+        rot, shift, posed = poses.arrays()  # posed in place
         before_rot, before_shift, before = self.posed
         tables = self._tables
         if not _pose_by_markers(cur, taken, refused, self.streak, rot, shift, posed, self._level, before_rot,
@@ -264,9 +286,6 @@ class ModelLabeller:
                                 tables.local, tables.tol, self._weight, tables.joint_first, tables.other, tables.here,
                                 tables.there, tables.joint_tol, self._joint_w):
             return False
-        for s in np.flatnonzero(posed).tolist():
-            if poses[s] is None:
-                poses[s] = (rot[s], shift[s])
         return True
 
     def _marked(self, markers: np.ndarray) -> np.ndarray:
@@ -291,7 +310,7 @@ class ModelLabeller:
         """A joint centre's weight in a fit: ``JOINT_WEIGHT``, less for a joint known to gape (as for a marker)."""
         return JOINT_WEIGHT * (self.config.joint_mm / tol) ** 2
 
-    def _take_predicted(self, poses: list, cur: np.ndarray, taken: np.ndarray, z: np.ndarray, time: float,
+    def _take_predicted(self, poses: Poses, cur: np.ndarray, taken: np.ndarray, z: np.ndarray, time: float,
                         refused: np.ndarray) -> None:
         """Give the points left over to the unmatched markers predicted by their segment's pose, or, for a segment
         with no pose, by a short constant-velocity coast.
@@ -303,7 +322,7 @@ class ModelLabeller:
         such candidate. No marker takes a point its segment's fit gave back from it this frame (``refused``).
         """
         cfg = self.config
-        rot, shift, posed = _arrays(poses)
+        rot, shift, posed = poses.arrays()
         self._reclaim(rot, shift, posed, cur, taken, z, refused)
         missing = np.flatnonzero(np.isnan(cur[:, 0]))
         free = np.flatnonzero(taken < 0)
@@ -329,7 +348,7 @@ class ModelLabeller:
 
     def _predicted(self, markers: np.ndarray, rot: np.ndarray, shift: np.ndarray,
                    posed: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Where each of ``markers`` lies by its segment's pose (``_arrays``) ``(M, 3)``, NaN where its segment has
+        """Where each of ``markers`` lies by its segment's pose (``Poses.arrays``) ``(M, 3)``, NaN where its segment has
         none, and its gate (M,): ``gate_mm``, widened by as much as the marker's tolerance exceeds ``fit_mm`` where
         posed."""
         pred, gate = np.full((len(markers), 3), np.nan), np.full(len(markers), self.config.gate_mm)
@@ -339,14 +358,16 @@ class ModelLabeller:
 
     def _reclaim(self, rot: np.ndarray, shift: np.ndarray, posed: np.ndarray, cur: np.ndarray, taken: np.ndarray,
                  z: np.ndarray, refused: np.ndarray) -> None:
-        """Give the unmatched markers of segments posed by three markers or more (the poses as ``_arrays``) the points
-        where their poses put them (within ``gate_mm``, as step 3) that markers of segments with no pose hold: such a
-        marker only followed its point from frame to frame, and once it had taken another marker's, nothing else would
-        take it back. The marker that held the point gives it back (``_give_back``)."""
+        """Give the unmatched markers of segments posed by three markers or more (the poses as ``Poses.arrays``) the
+        points where their poses put them (within ``gate_mm``, as step 3) that markers of segments with no pose hold:
+        such a marker only followed its point from frame to frame, and once it had taken another marker's, nothing else
+        would take it back. The marker that held the point gives it back (``_give_back``)."""
         level = self._level[self._segment_of]  # per marker: how its segment was posed (3: not)
-        held = np.flatnonzero((taken >= 0) & (level[np.maximum(taken, 0)] == 3))
         missing = np.flatnonzero(np.isnan(cur[:, 0]) & (level == 0))
-        if not len(held) or not len(missing):
+        if not len(missing):
+            return
+        held = np.flatnonzero((taken >= 0) & (level[np.maximum(taken, 0)] == 3))
+        if not len(held):
             return
         pred, gate = self._predicted(missing, rot, shift, posed)
         cost = np.where(refused[np.ix_(missing, held)], 0.0, gated_cost(pred, gate, z[held]))
@@ -357,7 +378,7 @@ class ModelLabeller:
         cur[missing[mi]] = z[held[hi]]
         taken[held[hi]] = missing[mi]
 
-    def _search(self, poses: list, cur: np.ndarray, taken: np.ndarray, z: np.ndarray, searched: dict,
+    def _search(self, poses: Poses, cur: np.ndarray, taken: np.ndarray, z: np.ndarray, searched: dict,
                 seeds: list) -> bool:
         """Look for each segment with no pose among the points left over and those of its own markers matched so far
         by its layout (``_place_layout``), its joint centres to surely posed segments kept within their tolerance;
@@ -376,7 +397,7 @@ class ModelLabeller:
         cfg = self.config
         placed = False
         for s, seg in enumerate(self.segments):
-            if poses[s] is not None:
+            if poses.posed[s]:
                 continue
             sure = [(other, here, there, tol) for other, here, there, tol in seg.joints
                     if self._sure(other, poses)]
@@ -384,15 +405,16 @@ class ModelLabeller:
             if searched.get(s, (-1, False)) >= (len(sure), alone):
                 continue
             searched[s] = (len(sure), alone)
-            anchors = [(here, poses[other][0] @ there + poses[other][1], tol, self._joint_weight(tol))
+            anchors = [(here, poses.rot[other] @ there + poses.shift[other], tol, self._joint_weight(tol))
                        for other, here, there, tol in sure]
-            posture = [poses[other][0] @ self._posture[s, other] for other, *_ in sure if self._posture_known[s, other]]
+            posture = [poses.rot[other] @ self._posture[s, other] for other, *_ in sure
+                       if self._posture_known[s, other]]
             free = np.flatnonzero((taken < 0) | self._among(taken, seg.markers))  # its markers matched so far may move
             if not len(free):
                 continue
             dt = self._time - self._last_time[s]
             around = (self._last_seen[s], 100.0 + cfg.max_speed_mm_s * dt) if dt <= cfg.recent_s else None
-            prior = [poses[other][0] @ self._calibrated[s, other] for other, *_ in sure
+            prior = [poses.rot[other] @ self._calibrated[s, other] for other, *_ in sure
                      if (s, other) in self._calibrated] if len(seg.markers) == 2 and not posture else []
             best = _place_layout(seg.local, z[free], seg.tol, self._weight[seg.markers], anchors, around, posture,
                                  alone, prior=prior)
@@ -405,7 +427,7 @@ class ModelLabeller:
             placed = True
         return placed
 
-    def _challenge(self, poses: list, cur: np.ndarray, taken: np.ndarray, z: np.ndarray) -> bool:
+    def _challenge(self, poses: Poses, cur: np.ndarray, taken: np.ndarray, z: np.ndarray) -> bool:
         """Place anew each segment posed by three of its markers or more where its layout lands on more points, among
         the points left over and its own, its joint centres to segments so posed kept within their tolerances, when
         that placement is clearly best (``_place_layout``). A segment placed on chance points (at a cold start, three
@@ -422,7 +444,7 @@ class ModelLabeller:
             free = free[could_hold(seg, z[free], have + 1)]
             if len(free) <= have:
                 continue
-            anchors = [(here, poses[other][0] @ there + poses[other][1], tol, self._joint_weight(tol))
+            anchors = [(here, poses.rot[other] @ there + poses.shift[other], tol, self._joint_weight(tol))
                        for other, here, there, tol in seg.joints if self._level[other] == 0]
             best = _place_layout(seg.local, z[free], seg.tol, self._weight[seg.markers], anchors, least=have + 1)
             if best is None:
@@ -432,7 +454,7 @@ class ModelLabeller:
             moved = True
         return moved
 
-    def _place(self, s: int, points: dict[int, int], rot: np.ndarray, shift: np.ndarray, level: int, poses: list,
+    def _place(self, s: int, points: dict[int, int], rot: np.ndarray, shift: np.ndarray, level: int, poses: Poses,
                cur: np.ndarray, taken: np.ndarray, z: np.ndarray) -> None:
         """Pose segment ``s`` at ``level``, its markers matched to the points of ``z`` that ``points`` gives by
         layout row, instead of any matched before."""
@@ -442,15 +464,15 @@ class ModelLabeller:
         for slot, point in points.items():
             cur[seg.markers[slot]] = z[point]
             taken[point] = seg.markers[slot]
-        poses[s] = (rot, shift)
+        poses.set(s, rot, shift)
         self._level[s] = level
 
-    def _search_pairs(self, poses: list, cur: np.ndarray, taken: np.ndarray, z: np.ndarray) -> bool:
+    def _search_pairs(self, poses: Poses, cur: np.ndarray, taken: np.ndarray, z: np.ndarray) -> bool:
         """When nothing else poses a segment: place the first segment of three markers that has no pose, no surely
         posed neighbour, no pose lately and a look-alike with no pose (both feet unposed: a deadlock the ``alone``
         rule cannot break), together with a neighbour (``_pair``). True when one was placed."""
         for s, seg in enumerate(self.segments):
-            if (poses[s] is not None or len(seg.markers) != 3 or self._time - self._last_time[s] <= self.config.recent_s
+            if (poses.posed[s] or len(seg.markers) != 3 or self._time - self._last_time[s] <= self.config.recent_s
                     or any(self._sure(o, poses) for o, *_ in seg.joints) or self._alone(s, poses)):
                 continue
             paired = self._pair(s, seg, poses, taken, z)
@@ -460,7 +482,7 @@ class ModelLabeller:
                 return True
         return False
 
-    def _pair(self, s: int, seg: _Segment, poses: list, taken: np.ndarray,
+    def _pair(self, s: int, seg: _Segment, poses: Poses, taken: np.ndarray,
               z: np.ndarray) -> dict[int, tuple[dict[int, int], np.ndarray, np.ndarray]] | None:
         """Segment ``s`` placed on three points with a neighbour that has no pose either, placed on three or more of its
         own points (both, for a neighbour of two markers: a shank, its shin and ankle markers) and their joint centre
@@ -472,7 +494,7 @@ class ModelLabeller:
         layout placed on its mirror image's points puts the centre on the wrong side of their plane, where the
         neighbour's points do not lie."""
         hinged = [(o, here, there, self._snug[s, o]) for o, here, there, _ in seg.joints
-                  if poses[o] is None and len(self.segments[o].markers) >= 2]
+                  if not poses.posed[o] and len(self.segments[o].markers) >= 2]
         if not hinged:
             return None
         free = np.flatnonzero((taken < 0) | self._among(taken, seg.markers))
@@ -494,32 +516,32 @@ class ModelLabeller:
                                            o: ({slot: int(rest[p]) for slot, p in best[0].items()}, best[1], best[2])})
         return next(iter(found.values())) if len(found) == 1 else None
 
-    def _sure(self, s: int, poses: list) -> bool:
+    def _sure(self, s: int, poses: Poses) -> bool:
         """Whether segment ``s`` is surely posed this frame: by three markers or more, or through joints."""
-        return poses[s] is not None and self._level[s] < 2
+        return bool(poses.posed[s]) and self._level[s] < 2
 
-    def _alone(self, s: int, poses: list) -> bool:
+    def _alone(self, s: int, poses: Poses) -> bool:
         """Whether three points, its whole layout, are segment ``s``'s alone: it has three markers and every segment
         with a triangle like its own is surely posed, its points accounted for."""
         return len(self.segments[s].markers) == 3 and all(self._sure(t, poses) for t in self._look_alikes[s])
 
-    def _confirmed(self, s: int, poses: list) -> bool:
+    def _confirmed(self, s: int, poses: Poses) -> bool:
         """Whether a surely posed neighbour of segment ``s`` puts their joint centre where ``s``'s pose does, within
         the joint's tolerance."""
-        rot, shift = poses[s]
+        rot, shift = poses.rot[s], poses.shift[s]
         return any(self._sure(other, poses)
-                   and np.linalg.norm(rot @ here + shift - poses[other][0] @ there - poses[other][1]) <= tol
+                   and np.linalg.norm(rot @ here + shift - poses.rot[other] @ there - poses.shift[other]) <= tol
                    for other, here, there, tol in self.segments[s].joints)
 
-    def _held(self, s: int, poses: list, dt: float, doubted: np.ndarray) -> bool:
+    def _held(self, s: int, poses: Poses, dt: float, doubted: np.ndarray) -> bool:
         """Whether segment ``s``, placed on three points alone (a seed) with no neighbour posed to confirm it, has
         been so placed in every frame for ``held_s``, each time within ``max_speed_mm_s`` of the frame before (plus
         ``fit_mm``): a chance triangle across two segments of another limb keeps the layout's distances only while
         that joint keeps still, where the segment's own markers keep them as it moves. Marks ``s`` in ``doubted``."""
-        if any(poses[other] is not None for other, *_ in self.segments[s].joints):
+        if any(poses.posed[other] for other, *_ in self.segments[s].joints):
             return False  # a neighbour posed elsewhere refutes it
         cfg = self.config
-        shift = poses[s][1]
+        shift = poses.shift[s]
         near = np.linalg.norm(shift - self._doubted_at[s]) <= cfg.max_speed_mm_s * dt + cfg.fit_mm
         if np.isnan(self._doubted_since[s]) or not near:  # not so placed in the frame before, or elsewhere
             self._doubted_since[s] = self._time
@@ -534,16 +556,9 @@ class ModelLabeller:
         return np.where(marker >= 0, self._level[self._segment_of[np.maximum(marker, 0)]], 3)
 
     def _observe(self, cur: np.ndarray, time: float) -> None:
-        seen = np.isfinite(cur[:, 0])
-        m = np.flatnonzero(seen)
-        dt = time - self.last[m]
-        measured = (cur[m] - self.pos[m]) / dt[:, None]
-        smooth = self.vel[m] + self.config.velocity_smoothing * (measured - self.vel[m])
-        self.vel[m] = np.where((self.streak[m] >= 2)[:, None], smooth,
-                               np.where((self.streak[m] == 1)[:, None], measured, 0.0))
-        self.pos[m] = cur[m]
-        self.last[m] = time
-        self.streak = np.where(seen, self.streak + 1, 0)
+        """Take the markers matched this frame (``cur`` finite) as seen at ``time``: their positions, smoothed
+        velocities and streaks (``_observed``)."""
+        _observed(cur, time, self.pos, self.vel, self.last, self.streak, self.config.velocity_smoothing)
 
 
 class TrackedModelLabeller:
@@ -563,7 +578,7 @@ class TrackedModelLabeller:
     too. And a name given only because its marker followed the point, its segment not posed, is not counted: it echoes a
     name given before and is no new evidence (over a whole recording, leaving it out swung cases both ways). A run whose
     name the poses give for a while to another run, which they name so throughout, and its own point another name,
-    starts afresh (``_break_contested``), and so does a run whose name only a segment not posed by its markers backs,
+    starts afresh (``_tally``), and so does a run whose name only a segment not posed by its markers backs,
     its point named otherwise by one so posed."""
 
     def __init__(self, skeleton: SkeletonModel, rate: float, config: ModelLabellerConfig | None = None) -> None:
@@ -601,36 +616,13 @@ class TrackedModelLabeller:
             self._contested = np.concatenate([self._contested, np.zeros(grow, np.int64)])
             self._by_evidence = np.concatenate([self._by_evidence, np.full(grow, -1, np.intp)])
             self._evidence.grow(len(self._seen))
-        rows = np.flatnonzero(point_track >= 0)
-        track = point_track[rows]
-        fresh = track[~self._seen[track]]
-        self._run[fresh], self._run_length[fresh], self._contested[fresh] = 0, 0, 0
-        self._by_evidence[fresh] = -1
-        self._evidence.restart(fresh)
-        self._seen[:] = False
-        self._seen[track] = True
-        # the names the poses gave, not those of markers only followed (their segment not posed)
-        named = self.model.sureness(given[rows]) < 3
-        self._votes[track[named], given[rows[named]]] += 1  # a track holds one point a frame
-        self._run[track[named], given[rows[named]]] += 1
-        self._run_length[track] += 1
-        self._break_contested(track, given[rows])
+        level = self.model._level[self.model._segment_of]  # per marker: how its segment was posed (3: not)
         marker = np.full(len(pts), -1, np.intp)
-        held = np.zeros(len(self.labels), bool)
-        run, votes = self._run[track], self._votes[track]
-        own, usual = run.argmax(axis=1), votes.argmax(axis=1)
-        own_votes, usual_votes = run.max(axis=1, initial=0), votes.max(axis=1, initial=0)
-        for choice, count, sure in ((own, own_votes, 2 * own_votes > self._run_length[track]),
-                                    (usual, usual_votes, (usual_votes > 1) & (2 * usual_votes > votes.sum(axis=1)))):
-            order = np.argsort(-count, kind="stable")
-            for row, name in zip(rows[order[sure[order]]].tolist(), choice[order[sure[order]]].tolist(), strict=True):
-                if marker[row] < 0 and not held[name]:
-                    marker[row] = name
-                    held[name] = True
-        for row in np.flatnonzero((marker < 0) & (given >= 0)):
-            if not held[given[row]]:
-                marker[row] = given[row]
-                held[given[row]] = True
+        held = np.zeros(len(self.labels), np.bool_)
+        fresh = np.empty(len(pts), np.intp)
+        restarted = _tally(point_track, given, level, self._votes, self._run, self._run_length, self._seen,
+                           self._contested, self._by_evidence, self.tracks.config.confirm_frames, marker, held, fresh)
+        self._evidence.restart(fresh[:restarted])
         self._name_by_evidence(pts, point_track, marker, held)
         return self._named(pts, marker), marker
 
@@ -674,30 +666,135 @@ class TrackedModelLabeller:
         named[marker[found]] = pts[found]
         return named
 
-    def _break_contested(self, track: np.ndarray, given: np.ndarray) -> None:
-        """Start afresh the runs of ``track`` (this frame's tracks, their points named ``given`` by the poses) whose
-        name the poses have given, for ``confirm_frames`` frames in a row, to the point of a run that claims it too
-        and that they have named so in every frame of it, and their own point another name. Such a run took its name
-        while its segment was posed wrong (a mate hidden, the layout fitted one marker over), and the marker whose
-        name it is has come back: without this, the run's votes would hold the name as long as the run lasts, and
-        that marker would go unnamed. So does a run whose name's segment is not posed by three of its markers or more
-        while one so posed names its point otherwise, ``confirm_frames`` frames in a row: its name rests on a marker
-        that only followed the point, or on a looser pose. Any other run the poses name otherwise for a while keeps
-        its name (a segment posed wrong for a moment)."""
-        run, length = self._run[track], self._run_length[track]
-        top = run.max(axis=1, initial=0)
-        claim = np.where(2 * top > length, run.argmax(axis=1), -1)
-        whole = top == length  # the poses named every point of the run so
-        backed = np.zeros(len(self.labels) + 1, np.int64)  # per name: runs claiming it, named so in every frame
-        np.add.at(backed, np.where((claim >= 0) & (given == claim) & whole, claim, len(self.labels)), 1)
-        sure = self.model._level[self.model._segment_of] == 0  # per marker: its segment posed by its markers
-        contested = (claim >= 0) & (given >= 0) & (given != claim) & (
-            (backed[claim] > 0) | (sure[np.maximum(given, 0)] & ~sure[np.maximum(claim, 0)]))
-        self._contested[track] = np.where(contested, self._contested[track] + 1, 0)
-        due = self._contested[track] >= self.tracks.config.confirm_frames
-        broken = track[due]
-        self._run[broken], self._run_length[broken], self._contested[broken] = 0, 1, 0
-        self._run[broken, given[due]] = 1  # the run starts at this frame, with its name in it
+
+@njit(cache=True)
+def _observed(cur: np.ndarray, time: float, pos: np.ndarray, vel: np.ndarray, last: np.ndarray, streak: np.ndarray,
+              smoothing: float) -> None:  # pragma: no cover
+    """``ModelLabeller._observe``, compiled, into ``pos``, ``vel``, ``last`` and ``streak``: a marker seen two frames
+    in a row or more takes ``smoothing`` of its newest velocity into its smoothed one, one seen the frame before
+    takes its newest, a new one none; a marker not seen loses its streak."""
+    for m in range(len(cur)):
+        if not np.isfinite(cur[m, 0]):
+            streak[m] = 0
+            continue
+        dt = time - last[m]
+        for a in range(3):
+            if streak[m] >= 2:
+                vel[m, a] = vel[m, a] + smoothing * ((cur[m, a] - pos[m, a]) / dt - vel[m, a])
+            elif streak[m] == 1:
+                vel[m, a] = (cur[m, a] - pos[m, a]) / dt
+            else:
+                vel[m, a] = 0.0
+            pos[m, a] = cur[m, a]
+        last[m] = time
+        streak[m] += 1
+
+
+@njit(cache=True)
+def _tally(point_track: np.ndarray, given: np.ndarray, level: np.ndarray, votes: np.ndarray, run: np.ndarray,
+           run_length: np.ndarray, seen: np.ndarray, contested: np.ndarray, by_evidence: np.ndarray, confirm: int,
+           marker: np.ndarray, held: np.ndarray, fresh: np.ndarray) -> int:  # pragma: no cover
+    """One frame of ``TrackedModelLabeller``'s bookkeeping, compiled: each point's track (``point_track``, -1 for
+    none) counts the name the poses gave the point (``given``, by ``level``, per marker how its segment was posed),
+    over its life (``votes``) and its run (``run``, ``run_length``), the state changed in place; the tracks not seen
+    in the last frame (``seen``) start a run, and so do contested runs (below); then the points take names into
+    ``marker`` (-1 given) and ``held`` (False given): by their runs, their tracks, then as the poses named them. The
+    tracks that started a run are written to ``fresh``; their count is returned.
+
+    A run starts afresh when the poses have given its name, ``confirm`` frames in a row, to the point of a run that
+    claims it too and that they have named so in every frame of it, and its own point another name. Such a run took
+    its name while its segment was posed wrong (a mate hidden, the layout fitted one marker over), and the marker
+    whose name it is has come back: without this, the run's votes would hold the name as long as the run lasts, and
+    that marker would go unnamed. So does a run whose name's segment is not posed by three of its markers or more
+    while one so posed names its point otherwise, ``confirm`` frames in a row: its name rests on a marker that only
+    followed the point, or on a looser pose. Any other run the poses name otherwise for a while keeps its name (a
+    segment posed wrong for a moment)."""
+    markers = votes.shape[1]
+    rows = np.flatnonzero(point_track >= 0)
+    n = len(rows)
+    track = point_track[rows]
+    restarted = 0
+    for i in range(n):
+        t = track[i]
+        if not seen[t]:
+            run[t, :] = 0
+            run_length[t], contested[t], by_evidence[t] = 0, 0, -1
+            fresh[restarted] = t
+            restarted += 1
+    seen[:] = False
+    for i in range(n):
+        t, name = track[i], given[rows[i]]
+        seen[t] = True
+        if name >= 0 and level[name] < 3:  # the names the poses gave, not those of markers only followed
+            votes[t, name] += 1
+            run[t, name] += 1
+        run_length[t] += 1
+    # contested runs
+    claim = np.full(n, -1, np.intp)
+    whole = np.zeros(n, np.bool_)
+    backed = np.zeros(markers, np.int64)  # per name: runs claiming it, named so in every frame
+    for i in range(n):
+        t = track[i]
+        top, best = _most(run[t])
+        if 2 * top > run_length[t]:
+            claim[i] = best
+        whole[i] = top == run_length[t]  # the poses named every point of the run so
+        if claim[i] >= 0 and given[rows[i]] == claim[i] and whole[i]:
+            backed[claim[i]] += 1
+    for i in range(n):
+        t, name, own = track[i], given[rows[i]], claim[i]
+        if own >= 0 and name >= 0 and name != own and (backed[own] > 0 or (level[name] == 0 and level[own] != 0)):
+            contested[t] += 1
+        else:
+            contested[t] = 0
+        if contested[t] >= confirm:  # the run starts at this frame, with its name in it
+            run[t, :] = 0
+            run[t, name] = 1
+            run_length[t], contested[t] = 1, 0
+    # names: the runs', the tracks', then the poses'
+    own_name, own_votes = np.empty(n, np.intp), np.empty(n, np.int64)
+    usual_name, usual_votes = np.empty(n, np.intp), np.empty(n, np.int64)
+    own_sure, usual_sure = np.empty(n, np.bool_), np.empty(n, np.bool_)
+    for i in range(n):
+        t = track[i]
+        own_votes[i], own_name[i] = _most(run[t])
+        usual_votes[i], usual_name[i] = _most(votes[t])
+        own_sure[i] = 2 * own_votes[i] > run_length[t]
+        usual_sure[i] = usual_votes[i] > 1 and 2 * usual_votes[i] > votes[t].sum()
+    for choice, count, sure in ((own_name, own_votes, own_sure), (usual_name, usual_votes, usual_sure)):
+        for i in _descending(count):
+            row, name = rows[i], choice[i]
+            if sure[i] and marker[row] < 0 and not held[name]:
+                marker[row] = name
+                held[name] = True
+    for row in range(len(given)):
+        if marker[row] < 0 and given[row] >= 0 and not held[given[row]]:
+            marker[row] = given[row]
+            held[given[row]] = True
+    return restarted
+
+
+@njit(cache=True)
+def _most(counts: np.ndarray) -> tuple[int, int]:  # pragma: no cover
+    """The largest of ``counts`` (0 for none) and its first index."""
+    top, best = 0, 0
+    for k in range(len(counts)):
+        if counts[k] > top:
+            top, best = counts[k], k
+    return top, best
+
+
+@njit(cache=True)
+def _descending(count: np.ndarray) -> np.ndarray:  # pragma: no cover
+    """The indices of ``count`` ordered by it, largest first, ties in index order (a stable sort)."""
+    order = np.arange(len(count))
+    for i in range(1, len(order)):
+        k, j = order[i], i
+        while j > 0 and count[order[j - 1]] < count[k]:
+            order[j] = order[j - 1]
+            j -= 1
+        order[j] = k
+    return order
 
 
 def _place_layout(layout: np.ndarray, cloud: np.ndarray, tol: np.ndarray, weight: np.ndarray,
@@ -1116,16 +1213,6 @@ def _merged(one: tuple[np.ndarray, np.ndarray], other: tuple[np.ndarray, np.ndar
             out[rows[k]] = names[k]
             held[names[k]] = True
     return out
-
-
-def _arrays(poses: Sequence[tuple[np.ndarray, np.ndarray] | None]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The segments' poses as arrays: rotations (S, 3, 3), translations (S, 3) and whether posed (S,)."""
-    rot, shift = np.zeros((len(poses), 3, 3)), np.zeros((len(poses), 3))
-    posed = np.zeros(len(poses), np.bool_)
-    for s, pose in enumerate(poses):
-        if pose is not None:
-            rot[s], shift[s], posed[s] = pose[0], pose[1], True
-    return rot, shift, posed
 
 
 @njit(cache=True)
