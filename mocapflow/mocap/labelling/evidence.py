@@ -164,14 +164,26 @@ class _Garbled:
         self.pairs = np.array([(seg.markers[i], seg.markers[j]) for _, seg, i, j in rows], np.intp).reshape(-1, 2)
         self.distance = np.array([seg.sides[i, j] for _, seg, i, j in rows])
         self.tol = np.array([seg.slack[i, j] for _, seg, i, j in rows])
-        self.member = np.zeros((len(rows), len(segments)))  # pair -> its segment
-        self.member[np.arange(len(rows)), [s for s, *_ in rows]] = 1.0
+        self.segment = np.array([s for s, *_ in rows], np.intp)  # pair -> its segment
+        self.segments = len(segments)
 
     def __call__(self, named: np.ndarray) -> np.ndarray:
         """(..., S) from the markers' positions ``named`` (..., N, 3), NaN where not named."""
-        d = norm(named[..., self.pairs[:, 0], :] - named[..., self.pairs[:, 1], :])
-        broken = np.abs(d - self.distance) > self.tol  # False where either is not named
-        return broken.astype(float) @ self.member > 0
+        frames = np.ascontiguousarray(named, dtype=np.float64).reshape(-1, *named.shape[-2:])
+        out = np.zeros((len(frames), self.segments), np.bool_)
+        _broken(frames, self.pairs, self.distance, self.tol, self.segment, out)
+        return out.reshape(*named.shape[:-2], self.segments)
+
+
+@njit(cache=True)
+def _broken(named: np.ndarray, pairs: np.ndarray, apart: np.ndarray, tol: np.ndarray, segment: np.ndarray,
+            out: np.ndarray) -> None:  # pragma: no cover
+    """``_Garbled``, compiled, into ``out`` (F, S) (all False given): per frame of ``named`` (F, N, 3), the segments
+    with a pair of named markers farther than ``tol`` from their distance ``apart`` (not where either is NaN)."""
+    for f in range(len(named)):
+        for k in range(len(pairs)):
+            if abs(distance(named[f, pairs[k, 0]], named[f, pairs[k, 1]]) - apart[k]) > tol[k]:
+                out[f, segment[k]] = True
 
 
 def _verdicts(points: np.ndarray, references: list[Reference]) -> tuple[np.ndarray, np.ndarray]:
