@@ -55,7 +55,7 @@ from numba import njit
 from pydantic import BaseModel, ConfigDict, Field
 from scipy.spatial.transform import Rotation
 
-from mocapflow.mocap.labelling.assignment import assign, distance, gated_cost, match, norm
+from mocapflow.mocap.labelling.assignment import assign, distance, gated_cost, gated_cost_compiled, match, norm
 from mocapflow.mocap.labelling.config import FRAME_ACCEL_MM_S2, LabellerConfig, frame_gate
 from mocapflow.mocap.labelling.evidence import RunningEvidence, Tables, name_by_evidence
 from mocapflow.mocap.labelling.labeller import Labeller, own_gates
@@ -324,27 +324,15 @@ class ModelLabeller:
         cfg = self.config
         rot, shift, posed = poses.arrays()
         self._reclaim(rot, shift, posed, cur, taken, z, refused)
-        missing = np.flatnonzero(np.isnan(cur[:, 0]))
-        free = np.flatnonzero(taken < 0)
-        if not len(missing) or not len(free):
-            return
-        pred, gate = self._predicted(missing, rot, shift, posed)
-        allowed = np.ones((len(missing), len(free)), np.bool_)
         tables = self._tables
-        _weakly_posed(missing, z[free], cur, rot, shift, posed, self._level, self._segment_of, tables.first,
-                      tables.count, tables.local, tables.tol, tables.joint_first, tables.other, tables.here,
-                      tables.there, tables.joint_tol, cfg.weak_gate_mm, pred, gate, allowed)
-        dt = time - self.last[missing]
-        coast = np.isnan(pred[:, 0]) & (dt <= cfg.max_coast_s)
-        pred[coast] = self.pos[missing[coast]] + self.vel[missing[coast]] * dt[coast, None]
-        known = np.flatnonzero(np.isfinite(pred[:, 0]))
-        if not len(known):
-            return
-        allowed &= ~refused[np.ix_(missing, free)]  # a point its segment's fit gave back is not taken again
-        cost = np.where(allowed[known], gated_cost(pred[known], gate[known], z[free]), 0.0)
+        markers, free, cost = _predicted_costs(cur, taken, z, refused, time, rot, shift, posed, self._level,
+                                               self._segment_of, tables.first, tables.count, tables.local,
+                                               self._tol, tables.joint_first, tables.other, tables.here,
+                                               tables.there, tables.joint_tol, self.pos, self.vel, self.last,
+                                               cfg.gate_mm, cfg.fit_mm, cfg.weak_gate_mm, cfg.max_coast_s)
         mi, fi = match(cost)
-        cur[missing[known[mi]]] = z[free[fi]]
-        taken[free[fi]] = missing[known[mi]]
+        cur[markers[mi]] = z[free[fi]]
+        taken[free[fi]] = markers[mi]
 
     def _predicted(self, markers: np.ndarray, rot: np.ndarray, shift: np.ndarray,
                    posed: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -1359,6 +1347,51 @@ def _predict(markers: np.ndarray, rot: np.ndarray, shift: np.ndarray, posed: np.
         if posed[s]:
             place(rot[s], local[m], shift[s], pred[i])
             gate[i] += tol[m] - fit_mm
+
+
+@njit(cache=True)
+def _predicted_costs(cur: np.ndarray, taken: np.ndarray, z: np.ndarray, refused: np.ndarray, time: float,
+                     rot: np.ndarray, shift: np.ndarray, posed: np.ndarray, levels: np.ndarray,
+                     segment_of: np.ndarray, first: np.ndarray, count: np.ndarray, local: np.ndarray, tol: np.ndarray,
+                     joint_first: np.ndarray, joint_other: np.ndarray, joint_here: np.ndarray,
+                     joint_there: np.ndarray, joint_tol: np.ndarray, pos: np.ndarray, vel: np.ndarray,
+                     last: np.ndarray, gate_mm: float, fit_mm: float, weak_gate_mm: float,
+                     max_coast_s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # pragma: no cover
+    """For ``ModelLabeller._take_predicted``: the unmatched markers with a prediction (their segment's pose, else a
+    coast at constant velocity for ``max_coast_s``), the points of ``z`` left over, and the cost of giving each such
+    point to each such marker (``gated_cost``; 0 where not allowed: ``_weakly_posed``'s checks, or a point the
+    marker's fit gave back this frame, ``refused``)."""
+    missing = np.flatnonzero(np.isnan(cur[:, 0]))
+    free = np.flatnonzero(taken < 0)
+    if not len(missing) or not len(free):
+        return missing[:0], free[:0], np.zeros((0, 0))
+    pred, gate = np.full((len(missing), 3), np.nan), np.full(len(missing), gate_mm)
+    _predict(missing, rot, shift, posed, segment_of, local, tol, fit_mm, pred, gate)
+    allowed = np.ones((len(missing), len(free)), np.bool_)
+    points = z[free]
+    _weakly_posed(missing, points, cur, rot, shift, posed, levels, segment_of, first, count, local, tol, joint_first,
+                  joint_other, joint_here, joint_there, joint_tol, weak_gate_mm, pred, gate, allowed)
+    known = np.empty(len(missing), np.intp)
+    n = 0
+    for i in range(len(missing)):
+        m = missing[i]
+        dt = time - last[m]
+        if np.isnan(pred[i, 0]) and dt <= max_coast_s:
+            for a in range(3):
+                pred[i, a] = pos[m, a] + vel[m, a] * dt
+        if np.isfinite(pred[i, 0]):
+            known[n] = i
+            n += 1
+    known = known[:n]
+    hypotheses, gates = np.empty((n, 1, 3)), np.empty((n, 1))
+    for k in range(n):
+        hypotheses[k, 0], gates[k, 0] = pred[known[k]], gate[known[k]]
+    cost = gated_cost_compiled(hypotheses, gates, points)
+    for k in range(n):
+        for p in range(len(free)):
+            if not allowed[known[k], p] or refused[missing[known[k]], free[p]]:
+                cost[k, p] = 0.0
+    return missing[known], free, cost
 
 
 @njit(cache=True)
