@@ -165,14 +165,14 @@ class _Garbled:
         self.distance = np.array([seg.sides[i, j] for _, seg, i, j in rows])
         self.tol = np.array([seg.slack[i, j] for _, seg, i, j in rows])
         self.segment = np.array([s for s, *_ in rows], np.intp)  # pair -> its segment
-        self.segments = len(segments)
+        self.count = len(segments)  # segments
 
     def __call__(self, named: np.ndarray) -> np.ndarray:
         """(..., S) from the markers' positions ``named`` (..., N, 3), NaN where not named."""
         frames = np.ascontiguousarray(named, dtype=np.float64).reshape(-1, *named.shape[-2:])
-        out = np.zeros((len(frames), self.segments), np.bool_)
+        out = np.zeros((len(frames), self.count), np.bool_)
         _broken(frames, self.pairs, self.distance, self.tol, self.segment, out)
-        return out.reshape(*named.shape[:-2], self.segments)
+        return out.reshape(*named.shape[:-2], self.count)
 
 
 @njit(cache=True)

@@ -719,15 +719,14 @@ def _tally(point_track: np.ndarray, given: np.ndarray, level: np.ndarray, votes:
         run_length[t] += 1
     # contested runs
     claim = np.full(n, -1, np.intp)
-    whole = np.zeros(n, np.bool_)
     backed = np.zeros(markers, np.int64)  # per name: runs claiming it, named so in every frame
     for i in range(n):
         t = track[i]
         top, best = _most(run[t])
         if 2 * top > run_length[t]:
             claim[i] = best
-        whole[i] = top == run_length[t]  # the poses named every point of the run so
-        if claim[i] >= 0 and given[rows[i]] == claim[i] and whole[i]:
+        whole = top == run_length[t]  # the poses named every point of the run so
+        if claim[i] >= 0 and given[rows[i]] == claim[i] and whole:
             backed[claim[i]] += 1
     for i in range(n):
         t, name, own = track[i], given[rows[i]], claim[i]
