@@ -60,6 +60,7 @@ from mocapflow.mocap.labelling.config import FRAME_ACCEL_MM_S2, LabellerConfig, 
 from mocapflow.mocap.labelling.evidence import RunningEvidence, Tables, name_by_evidence
 from mocapflow.mocap.labelling.labeller import Labeller, own_gates
 from mocapflow.mocap.labelling.offline import label_sequence, run_starts, source_rows
+from mocapflow.mocap.labelling.tracks import observed
 from mocapflow.mocap.model import SkeletonModel
 from mocapflow.mocap.report import Progress, steps
 from mocapflow.mocap.rigidfit import kabsch_into, place
@@ -545,8 +546,8 @@ class ModelLabeller:
 
     def _observe(self, cur: np.ndarray, time: float) -> None:
         """Take the markers matched this frame (``cur`` finite) as seen at ``time``: their positions, smoothed
-        velocities and streaks (``_observed``)."""
-        _observed(cur, time, self.pos, self.vel, self.last, self.streak, self.config.velocity_smoothing)
+        velocities and streaks (``observed``; a marker found again after a gap starts with no velocity)."""
+        observed(cur, time, self.pos, self.vel, self.last, self.streak, self.config.velocity_smoothing, 0.0)
 
 
 class TrackedModelLabeller:
@@ -653,29 +654,6 @@ class TrackedModelLabeller:
         found = np.flatnonzero(marker >= 0)
         named[marker[found]] = pts[found]
         return named
-
-
-@njit(cache=True)
-def _observed(cur: np.ndarray, time: float, pos: np.ndarray, vel: np.ndarray, last: np.ndarray, streak: np.ndarray,
-              smoothing: float) -> None:  # pragma: no cover
-    """``ModelLabeller._observe``, compiled, into ``pos``, ``vel``, ``last`` and ``streak``: a marker seen two frames
-    in a row or more takes ``smoothing`` of its newest velocity into its smoothed one, one seen the frame before
-    takes its newest, a new one none; a marker not seen loses its streak."""
-    for m in range(len(cur)):
-        if not np.isfinite(cur[m, 0]):
-            streak[m] = 0
-            continue
-        dt = time - last[m]
-        for a in range(3):
-            if streak[m] >= 2:
-                vel[m, a] = vel[m, a] + smoothing * ((cur[m, a] - pos[m, a]) / dt - vel[m, a])
-            elif streak[m] == 1:
-                vel[m, a] = (cur[m, a] - pos[m, a]) / dt
-            else:
-                vel[m, a] = 0.0
-            pos[m, a] = cur[m, a]
-        last[m] = time
-        streak[m] += 1
 
 
 @njit(cache=True)

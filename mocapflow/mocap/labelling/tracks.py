@@ -100,7 +100,7 @@ class Tracks:
 
     def observe(self, cur: np.ndarray, time: float) -> None:
         """Update the kinematic state of confirmed tracks from this frame's matches."""
-        _observe(cur, time, self.pos, self.vel, self.last, self.streak, self.config.velocity_smoothing,
+        observed(cur, time, self.pos, self.vel, self.last, self.streak, self.config.velocity_smoothing,
                  self.config.max_coast_s)
 
     def learn(self, cur: np.ndarray, time: float, frame: int) -> None:
@@ -236,9 +236,13 @@ def _signature_now(pair_n: np.ndarray, pair_mean: np.ndarray, pair_m2: np.ndarra
 
 
 @njit(cache=True)
-def _observe(cur: np.ndarray, time: float, pos: np.ndarray, vel: np.ndarray, last: np.ndarray, streak: np.ndarray,
+def observed(cur: np.ndarray, time: float, pos: np.ndarray, vel: np.ndarray, last: np.ndarray, streak: np.ndarray,
              smoothing: float, max_coast_s: float) -> None:  # pragma: no cover
-    """``Tracks.observe`` in place, track by track."""
+    """Take the tracks (or markers) seen in ``cur`` (NaN rows: not seen) as seen at ``time``, in place, one by one:
+    their positions ``pos``, times ``last``, streaks of frames seen in a row ``streak`` (0 for one not seen), and
+    velocities ``vel``: one seen two frames in a row or more takes ``smoothing`` of its newest velocity into its
+    smoothed one, one seen the frame before its newest, one found again after a gap its newest if the gap lasted no
+    longer than ``max_coast_s``, else none (``Tracks.observe``; ``ModelLabeller``'s markers, with 0: none)."""
     for i in range(len(cur)):
         if not np.isfinite(cur[i, 0]):
             streak[i] = 0
