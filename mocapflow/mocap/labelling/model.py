@@ -567,8 +567,8 @@ class TrackedModelLabeller:
     too. And a name given only because its marker followed the point, its segment not posed, is not counted: it echoes a
     name given before and is no new evidence (over a whole recording, leaving it out swung cases both ways). A run whose
     name the poses give for a while to another run, which they name so throughout, and its own point another name,
-    starts afresh (``_tally``), and so does a run whose name only a segment not posed by its markers backs,
-    its point named otherwise by one so posed."""
+    starts afresh (``_tally``), and so does a run whose name only a segment not posed by its markers backs, its point
+    named otherwise by one so posed."""
 
     def __init__(self, skeleton: SkeletonModel, rate: float, config: ModelLabellerConfig | None = None) -> None:
         self.model = ModelLabeller(skeleton, rate, config)

@@ -237,7 +237,7 @@ def _signature_now(pair_n: np.ndarray, pair_mean: np.ndarray, pair_m2: np.ndarra
 
 @njit(cache=True)
 def observed(cur: np.ndarray, time: float, pos: np.ndarray, vel: np.ndarray, last: np.ndarray, streak: np.ndarray,
-             smoothing: float, max_coast_s: float) -> None:  # pragma: no cover
+            smoothing: float, max_coast_s: float) -> None:  # pragma: no cover
     """Take the tracks (or markers) seen in ``cur`` (NaN rows: not seen) as seen at ``time``, in place, one by one:
     their positions ``pos``, times ``last``, streaks of frames seen in a row ``streak`` (0 for one not seen), and
     velocities ``vel``: one seen two frames in a row or more takes ``smoothing`` of its newest velocity into its
