@@ -202,6 +202,46 @@ def test_a_capture_at_60_hz_is_named_from_its_skeleton(data_dir: Path) -> None:
     assert right >= 0.999 * total
 
 
+def test_a_capture_from_another_lab_is_named_from_a_skeleton_calibrated_in_this_one(tmp_path: Path,
+                                                                                     data_dir: Path) -> None:
+    """A lab's skeleton, calibrated on the first 5 s of a real capture (120 Hz, z up, mm), names the unlabelled points
+    of a later stretch of the same subject as another lab's exporter wrote them: a TRC file in metres, y up, turned
+    30 deg about the vertical, its origin metres away, at 60 Hz. The labeller works on the markers' layouts and joints,
+    not on where a lab put its axes or which unit it wrote: every point comes out under its own marker's name, where
+    the file put it."""
+    from scipy.spatial.transform import Rotation
+
+    from mocapflow.cli import main
+    from mocapflow.io.markers import read_markers
+    from mocapflow.io.skeleton import write_skeleton
+
+    data = read_markers(data_dir / "cmu_02_05.c3d")
+    write_skeleton(tmp_path / "subject.json", calibrate(data.positions[:600], data.labels, data.rate))
+    points, identity = unlabel(data.positions[900:1500:2], 60.0, seed=1, gaps_per_s=0.0, ghosts=0.0)
+    turn = Rotation.from_euler("x", 90, degrees=True) * Rotation.from_euler("z", 30, degrees=True)
+    metres = turn.apply(points.reshape(-1, 3)).reshape(points.shape) / 1000.0 + [1.5, 0.0, -2.5]
+    frames, count = metres.shape[:2]
+    rows = ["PathFileType\t4\t(X/Y/Z)\ttrial.trc",
+            "DataRate\tCameraRate\tNumFrames\tNumMarkers\tUnits\tOrigDataRate\tOrigDataStartFrame\tOrigNumFrames",
+            f"60.00\t60.00\t{frames}\t{count}\tm\t60.00\t1\t{frames}",
+            "Frame#\tTime\t" + "\t\t\t".join(f"P{k}" for k in range(1, count + 1)),
+            "\t\t" + "\t".join(f"X{k}\tY{k}\tZ{k}" for k in range(1, count + 1))]
+    rows += [f"{f + 1}\t{f / 60:.5f}\t" + "\t".join("" if np.isnan(v) else f"{v:.6f}" for v in frame.ravel())
+             for f, frame in enumerate(metres)]
+    (tmp_path / "trial.trc").write_text("\n".join(rows) + "\n")
+    assert main(["label", str(tmp_path / "trial.trc"), "-o", str(tmp_path / "named.c3d"),
+                 "--skeleton", str(tmp_path / "subject.json")]) == 0
+    source, out = read_markers(tmp_path / "trial.trc"), read_markers(tmp_path / "named.c3d")
+    assert out.rate == 60.0 and sorted(out.labels) == sorted(data.labels)
+    right = total = 0
+    for f in range(frames):
+        for row in np.flatnonzero(identity[f] >= 0):
+            total += 1
+            at = np.flatnonzero(np.linalg.norm(out.positions[f] - source.positions[f, row], axis=1) < 0.01)
+            right += len(at) == 1 and out.labels[at[0]] == data.labels[identity[f, row]]
+    assert total > 0.9 * frames * len(data.labels) and right == total
+
+
 @pytest.mark.integration
 def test_a_segment_of_two_markers_as_far_from_its_joint_is_told_from_its_mirror_image_by_the_calibrated_posture(
         data_dir: Path) -> None:
