@@ -43,7 +43,7 @@ def read_chosen(path: str, args: argparse.Namespace) -> MarkerData:
     from mocapflow.io.markers import read_markers, select_markers
 
     data = read_markers(path)
-    refuse_absurd(data, path)
+    leave_out_absurd(data, path)
     include, exclude = getattr(args, "include", []), args.exclude
     if not (include or exclude):
         return data
@@ -52,24 +52,31 @@ def read_chosen(path: str, args: argparse.Namespace) -> MarkerData:
     return chosen
 
 
-MAX_RATE_HZ = 100_000
-MAX_COORDINATE_MM = 1e5
-
-
-def refuse_absurd(data: MarkerData, path: str | Path) -> None:
-    """Refuse data no motion capture produces: a rate over 100 kHz, a coordinate over 100 m from the origin."""
+def leave_out_absurd(data: MarkerData, path: str | Path) -> None:
+    """What no motion capture produces, as the live graph treats it (``runtime.integrity``): a rate over 100 kHz is
+    refused; samples over 100 m from the origin are left out as missing, said in one line, and a file with no other
+    sample is refused."""
     import numpy as np
+
+    from mocapflow.io.markerdata import FLAG_MISSING
+    from mocapflow.runtime.integrity import MAX_COORDINATE_MM, MAX_RATE_HZ
 
     if data.rate > MAX_RATE_HZ:
         raise MocapflowError(f"{path}: a rate of {data.rate:g} Hz is beyond any tracker ({MAX_RATE_HZ:,} Hz at most)")
     with np.errstate(invalid="ignore"):
-        beyond = np.abs(data.positions) > MAX_COORDINATE_MM
-    if beyond.any():
-        f, m, _ = np.argwhere(beyond)[0]
-        raise MocapflowError(
-            f"{path}: {int(beyond.any(axis=2).sum())} samples beyond {MAX_COORDINATE_MM / 1000:g} m from the origin "
-            f"(first: {data.labels[m]} at frame {data.first_frame + f}, {data.positions[f, m].tolist()} mm): not "
-            "motion capture; remove them (set them missing) first")
+        beyond = (np.abs(data.positions) > MAX_COORDINATE_MM).any(axis=2)
+    if not beyond.any():
+        return
+    f, m = np.argwhere(beyond)[0]
+    what = (f"beyond {MAX_COORDINATE_MM / 1000:g} m from the origin (first: {data.labels[m]} at frame "
+            f"{data.first_frame + f}, {data.positions[f, m].tolist()} mm)")
+    if not (np.isfinite(data.positions).all(axis=2) & ~beyond).any():
+        raise MocapflowError(f"{path}: every sample lies {what}: not motion capture, or not in the unit the file "
+                             "states")
+    data.positions[beyond] = np.nan
+    if data.flags is not None:
+        data.flags[beyond] = FLAG_MISSING
+    print(f"{path}: {int(beyond.sum())} samples {what} left out as missing")
 
 
 def distinct_output(output: str | Path, *inputs: str | Path) -> Path:

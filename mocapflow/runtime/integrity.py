@@ -31,6 +31,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from mocapflow.messages import MarkerFrame, Message
 
 MAX_RATE_HZ = 100_000  # no tracker is faster: bounds how far a restarted publisher's clock can have moved
+MAX_COORDINATE_MM = 1e5  # no capture volume is larger: 100 m from the origin
 
 
 class StreamLimits(BaseModel):
@@ -41,7 +42,8 @@ class StreamLimits(BaseModel):
     max_markers: int = Field(default=5000, ge=1, description="frames with more markers are refused")
     max_frame_jump: int = Field(default=1000, ge=1, description="a frame further ahead of the last one is refused")
     resync_frames: int = Field(default=5, ge=2, description="consecutive frames that re-establish a jumped counter")
-    max_coordinate_mm: float = Field(default=1e5, gt=0, description="coordinates beyond it are treated as missing")
+    max_coordinate_mm: float = Field(default=MAX_COORDINATE_MM, gt=0,
+                                     description="coordinates beyond it are treated as missing")
     takeover_s: float = Field(default=1.0, gt=0, description="silence after which another publisher may take over")
 
 
