@@ -422,7 +422,7 @@ def test_a_join_across_a_gap_onto_another_marker_is_cut_offline() -> None:
     tracks = truth.copy()
     tracks[200:220, [0, 5]] = tracks[300:320, 1] = np.nan
     tracks[220:, 0], tracks[220:, 5] = truth[220:, 5], truth[220:, 0]
-    out, doubtful = split_doubtful_joins(tracks)
+    out, doubtful = split_doubtful_joins(tracks, RATE)
     assert out.shape[1] == 14 and doubtful == []
     pieces = [np.flatnonzero(np.isfinite(out[:, k, 0])) for k in range(14)]
     for k, frames in enumerate(pieces):  # each column is one marker now

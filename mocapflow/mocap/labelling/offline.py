@@ -35,6 +35,10 @@ MUTUAL = 2.0
 """Two tracks whose neighbours place each other within this many gates, both ways (the median over frames), are one
 marker when each fits the other best of all the tracks it could be, once nothing else merges. At most 2: beyond that,
 ``_set_score`` gives a pair it rules out by its distances only a lower bound."""
+JUDGED_S = 30.0
+"""A run after a gap is judged against at most this much of its track before the gap: as much of the neighbours'
+motion as a whole capture of the stress benchmark shows, and a bound on the work, which would otherwise grow with the
+square of a recording's length (a track of a long recording is joined across hundreds of gaps)."""
 UNSIDED = 0.25
 """A pair of tracks whose triangles show no side (a hand that turns over, the forearm's markers nearly in its plane)
 is merged by its triangle only where the neighbours leave it in doubt both ways and its three distances agree within
@@ -130,7 +134,8 @@ class _Round:
     def __init__(self, tracks: np.ndarray, cfg: LabellerConfig) -> None:
         self.tracks = tracks
         self.seen = np.isfinite(tracks[..., 0])
-        self.overlap = self.seen.T.astype(np.int64) @ self.seen
+        as_float = self.seen.astype(np.float64)  # frame counts are exact in floats, whose product BLAS does fast
+        self.overlap = np.rint(as_float.T @ as_float).astype(np.int64)
         self.frames = [np.flatnonzero(column) for column in self.seen.T]
         self.sampled = [_evenly(f, cfg.poses) for f in self.frames]
         self._cfg = cfg
@@ -144,7 +149,7 @@ class _Round:
             self.seen[:, c] = np.isfinite(self.tracks[:, c, 0])
             self.frames[c] = np.flatnonzero(self.seen[:, c])
             self.sampled[c] = _evenly(self.frames[c], self._cfg.poses)
-        rows = self.seen[:, columns].T.astype(np.int64) @ self.seen
+        rows = np.array([self.seen[self.frames[c]].sum(axis=0) for c in columns], np.int64).reshape(len(columns), -1)
         self.overlap[columns] = rows
         self.overlap[:, columns] = rows.T
         self._spreads.clear()
@@ -257,14 +262,15 @@ def _set_score(state: _Round, i: int, j: int, cfg: LabellerConfig) -> float:
     return _median(best) if len(best) else np.inf
 
 
-def split_doubtful_joins(tracks: np.ndarray,
+def split_doubtful_joins(tracks: np.ndarray, rate: float,
                          config: LabellerConfig | None = None) -> tuple[np.ndarray, list[tuple[int, int]]]:
-    """Tracks ``(F, T, 3)`` cut where a run after a gap is surely another marker than the track before it, and the
-    joins left in doubt: (column of the tracks returned, frame the run starts).
+    """Tracks ``(F, T, 3)`` at ``rate`` Hz cut where a run after a gap is surely another marker than the track before
+    it, and the joins left in doubt: (column of the tracks returned, frame the run starts).
 
     Streaming re-identifies a lost track on a point that fits its hypotheses then; now and then the point is another
     marker's (a segment mate, a marker of the other side), and the track goes on as that marker. Offline, each run
-    after a gap is compared with the track's frames before it (since its last cut) as fragments are
+    after a gap is compared with the track's frames before it (since its last cut, the last ``JUDGED_S`` at most) as
+    fragments are
     (``_set_score``, both ways, the other tracks whole): where the neighbours of either place the other ``LOOSE``
     gates off or more, both ways, the run starts a new track, for merging to join to its own marker. Where neither
     way places the other within the gate (a way with nothing to place confirms nothing), the join stands but is in
@@ -286,7 +292,8 @@ def split_doubtful_joins(tracks: np.ndarray,
         begin = first[0]
         for run in range(1, len(first)):
             work[:, t] = np.nan
-            work[begin:first[run], t] = tracks[begin:first[run], t]
+            since = max(begin, first[run] - round(JUDGED_S * rate))
+            work[since:first[run], t] = tracks[since:first[run], t]
             work[:, count] = np.nan
             work[first[run]:last[run], count] = tracks[first[run]:last[run], t]
             state.refresh([t, count])
@@ -626,7 +633,7 @@ def label_sequence(frames: Iterable[np.ndarray], rate: float, config: LabellerCo
         tracks[i, : len(row)] = row
     for track, idx, pos in late:
         tracks[idx, track] = pos
-    tracks, doubtful = split_doubtful_joins(tracks, cfg)
+    tracks, doubtful = split_doubtful_joins(tracks, rate, cfg)
     groups = merge_tracks(tracks, rate, cfg, progress)
     joined = _joined(tracks, groups)
     kept = _markers(joined, rate, cfg)
