@@ -218,7 +218,7 @@ def test_a_capture_from_another_lab_is_named_from_a_skeleton_calibrated_in_this_
     data = read_markers(data_dir / "cmu_02_05.c3d")
     write_skeleton(tmp_path / "subject.json", calibrate(data.positions[:600], data.labels, data.rate))
     points, identity = unlabel(data.positions[900:1500:2], 60.0, seed=1, gaps_per_s=0.0, ghosts=0.0)
-    turn = Rotation.from_euler("x", 90, degrees=True) * Rotation.from_euler("z", 30, degrees=True)
+    turn = Rotation.from_euler("x", -90, degrees=True) * Rotation.from_euler("z", 30, degrees=True)  # z up to y up
     metres = turn.apply(points.reshape(-1, 3)).reshape(points.shape) / 1000.0 + [1.5, 0.0, -2.5]
     frames, count = metres.shape[:2]
     rows = ["PathFileType\t4\t(X/Y/Z)\ttrial.trc",

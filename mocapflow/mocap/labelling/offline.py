@@ -270,11 +270,10 @@ def split_doubtful_joins(tracks: np.ndarray, rate: float,
     Streaming re-identifies a lost track on a point that fits its hypotheses then; now and then the point is another
     marker's (a segment mate, a marker of the other side), and the track goes on as that marker. Offline, each run
     after a gap is compared with the track's frames before it (since its last cut, the last ``JUDGED_S`` at most) as
-    fragments are
-    (``_set_score``, both ways, the other tracks whole): where the neighbours of either place the other ``LOOSE``
-    gates off or more, both ways, the run starts a new track, for merging to join to its own marker. Where neither
-    way places the other within the gate (a way with nothing to place confirms nothing), the join stands but is in
-    doubt: ``label_sequence`` looks at it again once the fragments are merged (``_second_look``).
+    fragments are (``_set_score``, both ways, the other tracks whole): where the neighbours of either place the other
+    ``LOOSE`` gates off or more, both ways, the run starts a new track, for merging to join to its own marker. Where
+    neither way places the other within the gate (a way with nothing to place confirms nothing), the join stands but
+    is in doubt: ``label_sequence`` looks at it again once the fragments are merged (``_second_look``).
     """
     cfg = config or LabellerConfig()
     seen = np.isfinite(tracks[..., 0])
