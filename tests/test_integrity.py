@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import run_cli
 
 from mocapflow.io.framelog import FrameLog, scan
 from mocapflow.io.markers import read_markers
@@ -153,10 +154,7 @@ def test_a_blinded_tracker_does_not_change_identities() -> None:
 def test_commands_leave_out_absurd_samples_and_refuse_absurd_files(tmp_path: Path) -> None:
     """A sample no capture volume holds is left out as missing, as live, in one line, and the rest is worked on; a
     file with nothing else, a rate no tracker has or more markers than calibrate takes is refused in one line."""
-    import subprocess
-    import sys
-
-    from mocapflow.io.markers import MarkerData, read_markers, write_markers
+    from mocapflow.io.markers import MarkerData, write_markers
 
     positions = np.random.default_rng(0).normal(0, 100, (50, 4, 3))
     positions[10, 2] = [1e6, 0, 0]
@@ -168,27 +166,23 @@ def test_commands_leave_out_absurd_samples_and_refuse_absurd_files(tmp_path: Pat
     write_markers(tmp_path / "wide.c3d", MarkerData(positions=np.zeros((5, 600, 3)),
                                                     labels=[f"M{i}" for i in range(600)], rate=100))
 
-    def run(*args: str) -> subprocess.CompletedProcess[str]:
-        return subprocess.run([sys.executable, "-m", "mocapflow.cli", *args], cwd=tmp_path, capture_output=True,
-                              text=True, timeout=60)
-
-    done = run("calibrate", "wide.c3d", "-o", "out.json")
+    done = run_cli("calibrate", tmp_path / "wide.c3d", "-o", tmp_path / "out.json")
     assert done.returncode == 2 and len(done.stderr.splitlines()) == 1, done.stderr
     assert "600 markers: calibrate takes at most 500" in done.stderr
     for name, message in (("micrometres.trc", "every sample lies beyond 100 m from the origin (first: A at frame"),
                           ("fast.trc", "a rate of 1e+06 Hz is beyond any tracker")):
         for command, output in (("fill", "out.c3d"), ("calibrate", "out.json"), ("label", "out.c3d")):
-            done = run(command, name, "-o", output)
+            done = run_cli(command, tmp_path / name, "-o", tmp_path / output)
             assert done.returncode == 2 and message in done.stderr and len(done.stderr.splitlines()) == 1, \
                 (command, done.stderr)
-    done = run("fill", "spike.c3d", "-o", "filled.c3d")
+    done = run_cli("fill", tmp_path / "spike.c3d", "-o", tmp_path / "filled.c3d")
     assert done.returncode == 0, done.stderr
-    assert "spike.c3d: 1 samples beyond 100 m from the origin (first: C at frame 10, [1000000.0, 0.0, 0.0] mm) " \
-        "left out as missing" in done.stdout.splitlines()
+    assert (f"{tmp_path / 'spike.c3d'}: 1 samples beyond 100 m from the origin (first: C at frame 10, "
+            "[1000000.0, 0.0, 0.0] mm) left out as missing") in done.stdout.splitlines()
     gap = positions.copy()
     gap[10, 2] = np.nan
     write_markers(tmp_path / "gap.c3d", MarkerData(positions=gap, labels=list("ABCD"), rate=100))
-    assert run("fill", "gap.c3d", "-o", "gap_filled.c3d").returncode == 0
+    assert run_cli("fill", tmp_path / "gap.c3d", "-o", tmp_path / "gap_filled.c3d").returncode == 0
     # worked on as if the sample were missing: the same output, bit for bit
     assert np.array_equal(read_markers(tmp_path / "filled.c3d").positions,
                           read_markers(tmp_path / "gap_filled.c3d").positions)

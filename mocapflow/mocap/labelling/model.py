@@ -202,8 +202,7 @@ class ModelLabeller:
         self.vel = np.zeros((n, 3))
         self.last = np.full(n, -np.inf)
         self.streak = np.zeros(n, np.int64)
-        self.pose = Poses(len(self.segments))
-        self.posed = self.pose.arrays()  # the same as arrays: rotations, translations and whether posed
+        self.pose = Poses(len(self.segments))  # the last frame's
         # how surely each segment was posed this frame: 0 by three markers or more, 1 through joints, 2 with a turn
         # left to its previous pose (3: not posed)
         self._level = np.full(len(self.segments), 3)
@@ -223,6 +222,11 @@ class ModelLabeller:
     def time(self) -> float:
         """Capture time of the last frame named (s; -inf before the first)."""
         return self._time
+
+    @property
+    def posed(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The last frame's poses as arrays (``Poses.arrays``): rotations, translations and whether posed."""
+        return self.pose.arrays()
 
     def update(self, points: np.ndarray, time: float) -> tuple[np.ndarray, np.ndarray]:
         """Name one frame of points ``(M, 3)`` (NaN rows ignored) captured at ``time`` seconds (increasing).
@@ -265,7 +269,7 @@ class ModelLabeller:
                 self._level[s] = 3
         self._doubted_since[~doubted] = np.nan
         self._observe(cur, time)
-        self.pose, self.posed = poses, poses.arrays()
+        self.pose = poses
         rot, shift, standing = self.posed
         sure = standing & (self._level < 2)
         self._last_seen[sure], self._last_time[sure] = shift[sure], time
