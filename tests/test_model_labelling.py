@@ -107,11 +107,28 @@ def test_trajectories_carry_the_name_most_of_their_points_were_given() -> None:
     for f in range(frames):
         named[f][:2] = [0, 1] if f < 10 else [-1, -1] if f < 14 else [1, 0] if f < 20 else [0, 1]
         named[f][2] = 2 if f < 12 else 3 if f >= 18 else -1
-    names = _track_names(track_row, named, 4)
+    names = _track_names(track_row, _posed(named), 4)
     # unnamed for a while, and the names of two markers given turned for a while: each keeps its trajectory's name
     assert (names[:, 0] == 0).all() and (names[:, 1] == 1).all()
     # a trajectory joined to another marker across a gap: each run keeps what its own points were named most
     assert (names[:12, 2] == 2).all() and (names[16:, 2] == 3).all() and (names[12:16, 2] == -1).all()
+
+
+def _posed(named: list[np.ndarray]) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Names given each frame's rows, each with its segment posed by three markers or more (``_merged``'s form)."""
+    return [(names, np.where(names >= 0, 0, 3)) for names in named]
+
+
+def test_a_name_given_by_following_alone_counts_half_a_posed_one() -> None:
+    """A trajectory seen for 30 frames, whose point one pass followed under marker 0's name for 18 frames, its
+    segment posed in none of them, and both passes named marker 1 with its segment posed in the other 12 (following
+    carries a name onto another marker's point where the two cross): 9 votes against 12, it is marker 1. Posed in
+    those 18 frames too, it would be marker 0."""
+    track_row = np.zeros((30, 1), np.intp)
+    names = np.array([[0]] * 18 + [[1]] * 12)
+    followed = [(n, np.array([3 if n[0] == 0 else 0])) for n in names]
+    assert (_track_names(track_row, followed, 2) == 1).all()
+    assert (_track_names(track_row, _posed(list(names)), 2) == 0).all()
 
 
 def test_a_run_that_takes_its_own_name_frees_its_trajectorys_for_the_run_it_held_back() -> None:
@@ -127,7 +144,7 @@ def test_a_run_that_takes_its_own_name_frees_its_trajectorys_for_the_run_it_held
     for f in range(frames):
         named[f][0] = 0 if f < 50 else 1
         named[f][1] = -1 if 60 <= f < 65 else 0
-    names = _track_names(track_row, named, 2)
+    names = _track_names(track_row, _posed(named), 2)
     assert (names[:50, 0] == 0).all() and (names[60:70, 0] == 1).all()
     assert (names[55:, 1] == 0).all()  # -1 when not tried again: frames 60-64 would end with no name
 
@@ -141,7 +158,7 @@ def test_two_runs_holding_each_others_names_trade_them() -> None:
     track_row = np.full((frames, 2), -1, np.intp)
     track_row[:30] = track_row[40:] = [0, 1]
     named = [np.array([1, 0]) if f < 30 else np.array([0, 1]) for f in range(frames)]
-    names = _track_names(track_row, named, 2)
+    names = _track_names(track_row, _posed(named), 2)
     assert (names[:30] == [1, 0]).all() and (names[40:] == [0, 1]).all()
     assert (names[30:40] == -1).all()
 
@@ -155,7 +172,7 @@ def test_a_trajectory_seen_in_two_runs_after_being_joined_to_the_other_marker_tr
     track_row[:60] = track_row[70:90] = track_row[95:] = [0, 1]
     track_row[90:95, 1] = 1
     named = [np.array([0, 1]) if f < 60 else np.array([1, 0]) for f in range(frames)]
-    names = _track_names(track_row, named, 2)
+    names = _track_names(track_row, _posed(named), 2)
     assert (names[:60] == [0, 1]).all()
     assert (names[70:90] == [1, 0]).all() and (names[95:] == [1, 0]).all() and (names[90:95, 1] == 0).all()
 
@@ -519,19 +536,20 @@ def test_the_pass_that_posed_a_point_more_surely_names_it_over_a_whole_recording
     the stress damage (seed 1), the forward pass had swapped the two back head markers for 300 frames, posing the head
     by those two and its neck; the backward pass, posing it more surely, had them right: offline, named right 96.77 ->
     100.00 %."""
-    def merged(one: tuple[list[int], list[int]], other: tuple[list[int], list[int]]) -> list[int]:
-        return _merged((np.array(one[0]), np.array(one[1])), (np.array(other[0]), np.array(other[1]))).tolist()
+    def merged(one: tuple[list[int], list[int]], other: tuple[list[int], list[int]]) -> tuple[list[int], list[int]]:
+        names, levels = _merged((np.array(one[0]), np.array(one[1])), (np.array(other[0]), np.array(other[1])))
+        return names.tolist(), levels.tolist()  # each name with how surely the pass that gave it posed its segment
 
     # two points swapped by a looser forward pose: the backward pass's names
-    assert merged(([4, 5], [1, 1]), ([5, 4], [0, 0])) == [5, 4]
+    assert merged(([4, 5], [1, 1]), ([5, 4], [0, 0])) == ([5, 4], [0, 0])
     # as sure both ways: the forward pass's; a point the forward pass left unnamed: the backward pass's name
-    assert merged(([4, 5, -1], [1, 1, 3]), ([5, 4, 7], [1, 1, 1])) == [4, 5, 7]
+    assert merged(([4, 5, -1], [1, 1, 3]), ([5, 4, 7], [1, 1, 1])) == ([4, 5, 7], [1, 1, 1])
     # the backward pass's surer claim on name 5 wins; the forward pass's point of 5 then keeps its backward name, 6
-    assert merged(([2, 5], [2, 1]), ([5, 6], [0, 1])) == [5, 6]
+    assert merged(([2, 5], [2, 1]), ([5, 6], [0, 1])) == ([5, 6], [0, 1])
     # ... or none when it has no other; the surer claim holds against a looser one of the backward pass too
-    assert merged(([2, 5, 7], [1, 1, 1]), ([5, 7, -1], [0, 0, 3])) == [5, 7, -1]
-    assert merged(([2, 5], [0, 1]), ([5, 2], [0, 3])) == [2, 5]
-    assert merged(([-1, 5], [3, 0]), ([5, -1], [0, 3])) == [-1, 5]
+    assert merged(([2, 5, 7], [1, 1, 1]), ([5, 7, -1], [0, 0, 3])) == ([5, 7, -1], [0, 0, 3])
+    assert merged(([2, 5], [0, 1]), ([5, 2], [0, 3])) == ([2, 5], [0, 1])
+    assert merged(([-1, 5], [3, 0]), ([5, -1], [0, 3])) == ([-1, 5], [3, 0])
 
 
 def test_a_layout_is_placed_on_its_own_points_among_ghosts_with_or_without_its_joint() -> None:

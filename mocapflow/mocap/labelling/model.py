@@ -1053,10 +1053,12 @@ def label_with_skeleton(frames: Sequence[np.ndarray] | np.ndarray, rate: float, 
     ahead = [_pass(forward, points, i / rate) for i, points in enumerate(steps(clouds, n, "label forward", report))]
     behind = [_pass(backward, clouds[i], (n - 1 - i) / rate)
               for i in steps(range(n - 1, -1, -1), n, "label backward", report)][::-1]
-    named = [_merged(one, other) for one, other in zip(ahead, behind, strict=True)]  # per frame: each row's marker
+    # per frame: each row's marker and how surely its segment was posed
+    merged = [_merged(one, other) for one, other in zip(ahead, behind, strict=True)]
+    named = [name for name, _ in merged]
     tracks, _ = label_sequence(steps(clouds, n, "label trajectories", report), rate, progress=report)
     track_row = np.array([source_rows(tracks[f], clouds[f]) for f in range(n)], np.intp).reshape(tracks.shape[:2])
-    owner = name_by_evidence(tracks, _track_names(track_row, named, markers), forward.segments, forward._snug, rate,
+    owner = name_by_evidence(tracks, _track_names(track_row, merged, markers), forward.segments, forward._snug, rate,
                              forward.config.joint_mm)
     out = np.full((n, markers, 3), np.nan)
     for f in range(n):
@@ -1071,10 +1073,18 @@ def label_with_skeleton(frames: Sequence[np.ndarray] | np.ndarray, rate: float, 
     return out, list(forward.labels)
 
 
-def _track_names(track_row: np.ndarray, named: list[np.ndarray], markers: int) -> np.ndarray:
+FOLLOWED_VOTE = 0.5
+"""A point named by following alone (its segment not posed in that frame) counts this much of a vote towards its
+trajectory's name, against a point named with its segment posed. Following from frame to frame can carry a name onto
+another marker's point (in the stress benchmark's breakdance, a hip marker was followed as a shoulder marker for half a
+second, while the backward pass posed the pelvis on it); a pose checks the name against the segment's layout."""
+
+
+def _track_names(track_row: np.ndarray, named: list[tuple[np.ndarray, np.ndarray]], markers: int) -> np.ndarray:
     """The marker each trajectory's point is named, ``(F, T)`` (-1 for none), from the names each frame's rows were
-    given. A trajectory is named in runs: each run of frames it is seen in a row is one marker surely (followed from
-    frame to frame), while across its gaps it may have been joined to another marker's.
+    given and how surely (``_merged``), a point named by following alone counting ``FOLLOWED_VOTE``. A trajectory is
+    named in runs: each run of frames it is seen in a row is one marker surely (followed from frame to frame), while
+    across its gaps it may have been joined to another marker's.
 
     Each run first takes its trajectory's name: the name given most of the trajectory's points, if given to most of
     them; the trajectories with most votes first, and never a name to two runs that share a frame. A run whose own
@@ -1094,12 +1104,15 @@ def _track_names(track_row: np.ndarray, named: list[np.ndarray], markers: int) -
     runs = int(starts.sum())
     length = np.bincount(run_of[seen], minlength=runs)
     track, first = np.nonzero(starts.T)  # each run's trajectory and first frame, in run order
-    votes = np.zeros((runs, markers), np.int64)
+    votes = np.zeros((runs, markers))
+    weight = np.zeros(runs)
     for f in range(frames):
         k = np.flatnonzero(seen[f])
-        name = named[f][track_row[f, k]]
-        np.add.at(votes, (run_of[f, k[name >= 0]], name[name >= 0]), 1)
-    pooled = np.zeros((count, markers), np.int64)
+        name, level = named[f][0][track_row[f, k]], named[f][1][track_row[f, k]]
+        w = np.where((level < 3) | (name < 0), 1.0, FOLLOWED_VOTE)  # a point named nothing counts whole
+        np.add.at(weight, run_of[f, k], w)
+        np.add.at(votes, (run_of[f, k[name >= 0]], name[name >= 0]), w[name >= 0])
+    pooled = np.zeros((count, markers))
     np.add.at(pooled, track, votes)
     best = pooled.argmax(axis=1)
     top = pooled[np.arange(count), best]
@@ -1127,7 +1140,7 @@ def _track_names(track_row: np.ndarray, named: list[np.ndarray], markers: int) -
             for r in np.flatnonzero(track == k):
                 give(int(r), int(best[k]))
     own = votes.argmax(axis=1)
-    mostly = 2 * votes[np.arange(runs), own] > length
+    mostly = 2 * votes[np.arange(runs), own] > weight
 
     def trade(r: int) -> bool:
         """Run ``r`` takes its own name from the one run holding it in its frames, if that run's own name is the one
@@ -1168,20 +1181,24 @@ def _pass(labeller: ModelLabeller, points: np.ndarray, time: float) -> tuple[np.
     return given, labeller.sureness(given)
 
 
-def _merged(one: tuple[np.ndarray, np.ndarray], other: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
-    """The marker each row is named (-1 for none) from two passes' names of the rows and how surely each name's
-    segment was posed (``ModelLabeller`` levels: 0 by three of its markers or more, up to 3 followed only): each row
-    takes the name of the pass that posed it more surely, the first pass's where both did alike, and a name goes to
-    one row only, the surest claim first; a row whose claim another took keeps the other pass's name if it is free."""
+def _merged(one: tuple[np.ndarray, np.ndarray],
+            other: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """The marker each row is named (-1 for none) and how surely its segment was posed (3 for none), from two passes'
+    names of the rows and how surely each name's segment was posed (``ModelLabeller`` levels: 0 by three of its
+    markers or more, up to 3 followed only): each row takes the name of the pass that posed it more surely, the first
+    pass's where both did alike, and a name goes to one row only, the surest claim first; a row whose claim another
+    took keeps the other pass's name if it is free."""
     names, levels = np.concatenate([one[0], other[0]]), np.concatenate([one[1], other[1]])
     rows = np.concatenate([np.arange(len(one[0]))] * 2)
     out = np.full(len(one[0]), -1, np.intp)
+    level = np.full(len(one[0]), 3, np.intp)
     held = np.zeros(max(int(names.max(initial=-1)) + 1, 0), bool)
     for k in np.lexsort((np.repeat([0, 1], len(one[0])), levels)).tolist():  # surest first, the first pass on ties
         if names[k] >= 0 and out[rows[k]] < 0 and not held[names[k]]:
             out[rows[k]] = names[k]
+            level[rows[k]] = levels[k]
             held[names[k]] = True
-    return out
+    return out, level
 
 
 @njit(cache=True)
