@@ -217,8 +217,8 @@ def main() -> None:
             frames_named = f" (frames {named}-{len(points) - 1})" if named else ""
             print(f"  skeleton, {'streaming' if streaming else 'offline'}{frames_named}: {100 * right:.3f} % of true "
                   f"points carry their own marker's name, {100 * wrong:.3f} % another's, "
-                  f"{100 * (1 - right - wrong):.3f} % none; {100 * of_known:.3f} % of those of the skeleton's markers "
-                  f"({named_us:.0f} us per frame)", flush=True)
+                  f"{100 * max(1 - right - wrong, 0.0):.3f} % none; {100 * of_known:.3f} % of those of the skeleton's "
+                  f"markers ({named_us:.0f} us per frame)", flush=True)
 
 
 if __name__ == "__main__":

@@ -83,7 +83,7 @@ def test_natnet_client_reads_the_file_exactly(real_file) -> None:
         descriptions: list = []
         arrived = [0.0]
 
-        def received(frame: object) -> None:
+        def received(frame: object, frames: list = frames, arrived: list[float] = arrived) -> None:
             frames.append(frame)
             arrived[0] = time.monotonic()
 
