@@ -59,12 +59,11 @@ def leave_out_absurd(data: MarkerData, path: str | Path) -> None:
     import numpy as np
 
     from mocapflow.io.markerdata import FLAG_MISSING
-    from mocapflow.runtime.integrity import MAX_COORDINATE_MM, MAX_RATE_HZ
+    from mocapflow.runtime.integrity import MAX_COORDINATE_MM, MAX_RATE_HZ, beyond_volume
 
     if data.rate > MAX_RATE_HZ:
         raise MocapflowError(f"{path}: a rate of {data.rate:g} Hz is beyond any tracker ({MAX_RATE_HZ:,} Hz at most)")
-    with np.errstate(invalid="ignore"):
-        beyond = (np.abs(data.positions) > MAX_COORDINATE_MM).any(axis=2)
+    beyond = beyond_volume(data.positions)
     if not beyond.any():
         return
     f, m = np.argwhere(beyond)[0]

@@ -34,6 +34,13 @@ MAX_RATE_HZ = 100_000  # no tracker is faster: bounds how far a restarted publis
 MAX_COORDINATE_MM = 1e5  # no capture volume is larger: 100 m from the origin
 
 
+def beyond_volume(positions: np.ndarray, limit: float = MAX_COORDINATE_MM) -> np.ndarray:
+    """Per sample of ``positions`` (its coordinates on the last axis), whether one coordinate lies beyond ``limit`` mm:
+    no capture volume holds it. A missing sample (NaN) is not beyond."""
+    with np.errstate(invalid="ignore"):
+        return (np.abs(np.asarray(positions)) > limit).any(axis=-1)
+
+
 class StreamLimits(BaseModel):
     """The graph's ``limits:`` section: what every node accepts on its data inputs."""
 
@@ -109,10 +116,10 @@ class InputGuard:
         if n > self.limits.max_markers:
             raise Refused(f"frame {message.frame} has {n} markers (at most {self.limits.max_markers}, "
                           "limits.max_markers)")
-        beyond = np.abs(message.positions) > self.limits.max_coordinate_mm  # NaN (missing) is not beyond
+        beyond = beyond_volume(message.positions, self.limits.max_coordinate_mm)
         if beyond.any():
             positions = np.array(message.positions, dtype=float)
-            positions[beyond.any(axis=1)] = np.nan
+            positions[beyond] = np.nan
             if n and np.isnan(positions).all():
                 raise Refused(f"frame {message.frame}: every coordinate is beyond {self.limits.max_coordinate_mm:g}"
                               " mm (limits.max_coordinate_mm)")
