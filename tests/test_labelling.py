@@ -418,6 +418,22 @@ def test_a_mirrored_cluster_on_the_other_leg_is_not_merged_with_a_lost_one_offli
     assert score.tracks <= 1.25 * markers  # 1.44 tracks per marker by the neighbours' placement alone
 
 
+def test_a_triangle_seen_mirrored_one_way_needs_its_witnesses_the_other_offline() -> None:
+    """The simulated human under the stress damage at seed 6: a fragment of the left thigh's first marker (57 frames)
+    stands with two left-thigh fragments in the same triangle as the right thigh's first marker with its two mates,
+    the rig being symmetric. Matched one way (by one fragment of each partner), a pelvis marker lies on opposite sides
+    of the two triangles: mirror images. Matched another way, no marker shows a side, and the neighbours leave the pair
+    in doubt: the triangle alone merged the fragment into the right thigh's track (one swap). A pair once seen
+    mirrored is merged by its triangle only where ``WITNESSES`` markers show the same side."""
+    rec = simulate(SimulatorConfig(rig="human", rate=120, noise_mm=0.5, seed=7), 1500)
+    points, identity = unlabel(rec.positions, 120.0, seed=6, stationary=True, **STRESS)
+    tracks, _ = label_sequence(list(points), 120.0)
+    held, _, _ = held_markers(tracks, list(points), list(identity), len(rec.labels))
+    right, left = rec.labels.index("RTH1"), rec.labels.index("LTH1")
+    both = [(held[:, t] == right).any() and (held[:, t] == left).any() for t in range(held.shape[1])]
+    assert (held == right).any() and (held == left).any() and not any(both)
+
+
 def test_a_hand_hidden_whole_is_known_by_its_triangle_though_it_shows_no_side_offline(
         human_under_stress: tuple[int, LabellingScore]) -> None:
     """The simulated hand's three markers, hidden together, come back as new tracks that the forearm's markers place

@@ -510,7 +510,10 @@ def _triangle_score(state: _Round, i: int, j: int, cfg: LabellerConfig, in_doubt
     joints must lie on the same side of both triangles (``_Round.same_side``): the other leg's cluster may have the same
     shape, mirrored. A pair with no partner in common must show that side plainly, unless ``in_doubt`` (the neighbours
     leave it in doubt both ways) and its three distances agree within ``UNSIDED`` of their tolerance; one with a partner
-    in common is held by that partner where the side changes with the pose (a hand turning over)."""
+    in common is held by that partner where the side changes with the pose (a hand turning over). And a pair whose
+    triangles some match shows mirrored (a marker across the joints on opposite sides) counts only by a match that
+    ``WITNESSES`` markers show on the same side: with fragments for partners, another match of the same two triangles
+    may show no side at all (a symmetric body's two thighs)."""
     mean_i, sd_i = state.spread(i)
     mean_j, sd_j = state.spread(j)
     if not min(np.nanmedian(sd_i), np.nanmedian(sd_j)) >= ARTICULATION * cfg.rigid_sd_mm:
@@ -523,7 +526,8 @@ def _triangle_score(state: _Round, i: int, j: int, cfg: LabellerConfig, in_doubt
             tol = cfg.rigid_tolerance_mm + 3.0 * max(sd_i[p], sd_j[q])
             if (p == q or state.overlap[p, q] == 0) and abs(mean_i[p] - mean_j[q]) <= tol:
                 matched.append((p, q, abs(mean_i[p] - mean_j[q]) / tol, tol))
-    best = np.inf
+    kept: list[tuple[float, int]] = []  # (error, witnesses) of each way the two triangles match
+    mirrored = False
     for a, (p1, q1, e1, t1) in enumerate(matched):
         for p2, q2, e2, t2 in matched[a + 1:]:
             if p1 == p2 or q1 == q2:
@@ -542,10 +546,11 @@ def _triangle_score(state: _Round, i: int, j: int, cfg: LabellerConfig, in_doubt
             error = max(e1, e2, e3)
             if error > SAME_MEANS:
                 continue
+            mirrored |= side < 0
             if side < 0 or (side == 0 and p1 != q1 and p2 != q2 and not (in_doubt and error <= UNSIDED)):
                 continue
-            best = min(best, error)
-    return best
+            kept.append((error, side))
+    return min((error for error, side in kept if side >= WITNESSES or not mirrored), default=np.inf)
 
 
 def _explained(tracks: np.ndarray, seen: np.ndarray, k: int, rigid_sd: float, least: int) -> bool:
