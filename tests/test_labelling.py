@@ -193,6 +193,23 @@ def test_a_point_two_lost_markers_fit_by_one_rigid_partner_is_not_given_to_eithe
     assert score.accuracy > 0.97
 
 
+def test_two_lost_mates_back_frames_apart_are_not_told_apart_by_their_distance_alone() -> None:
+    """The simulated human under the stress damage at seed 1: the left foot's toe and fifth metatarsal markers are
+    both lost (the heel hidden too), and come back two frames apart with no rigid partner in view. The first point
+    back kept the toe marker's learnt distance to the second, still tentative, and was given the toe's track; the
+    second then took the metatarsal's: a swap for the rest of the capture. That distance says nothing of which point
+    is which: a lost mate placed on another tentative point counts only where the two could not be the other way round
+    (the looser neighbours rule it out)."""
+    rec = simulate(SimulatorConfig(rig="human", rate=120.0, noise_mm=0.5, seed=7), 1500)
+    points, identity = unlabel(rec.positions, rec.rate, seed=1, stationary=True, **STRESS)
+    labeller = Labeller(LabellerConfig(), rec.rate)
+    tracks = _stacked([labeller.update(p, f / rec.rate).positions for f, p in enumerate(points)])
+    held, _, _ = held_markers(tracks, list(points), list(identity), len(rec.labels))
+    toe, fifth = rec.labels.index("LTOE"), rec.labels.index("LMT5")
+    assert (held == toe).any() and (held == fifth).any()
+    assert not any((held[:, t] == toe).any() and (held[:, t] == fifth).any() for t in range(held.shape[1]))
+
+
 def test_reflections_that_stand_still_for_up_to_20_frames_are_not_kept_as_markers() -> None:
     """Ghosts that live longer than ``confirm_frames`` become tracks; offline, a track too short to be a marker is
     kept only when rigid partners explain it. A still reflection keeps its distances to other still reflections and,

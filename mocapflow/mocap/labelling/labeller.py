@@ -250,7 +250,11 @@ class Labeller:
         Markers of one body are often hidden together and come back a few frames apart, each with too few rigid
         partners seen to be recognised alone. A lost partner counts for a point when some other tentative point lies
         at their learnt distance from it and could be that partner: no rigid partner of the partner seen now rules
-        it out. Returns ``(L, B)`` worst distance errors (as ``rigid_signature``) and counts of such partners.
+        it out. And the two must not fit the other way round as well: where the looser neighbours (``Tracks.plausible``)
+        allow the partner at the point and the track at the other point, their distance does not say which point is
+        which (the simulated human's toe and fifth metatarsal markers, both lost with the heel, came back two frames
+        apart, and the first took the toe's track on that distance alone). Returns ``(L, B)`` worst distance errors
+        (as ``rigid_signature``) and counts of such partners.
         """
         tol = self.config.rigid_tolerance_mm
         mean, sd = self._tracks.rigid(lost, lost)
@@ -259,7 +263,12 @@ class Labeller:
         possible = (partners == 0) | (broken < 1.0)
         d = cdist(z, self._tentative.pos)
         error = np.abs(d[None, None] - mean[..., None, None]) / (tol + 3.0 * sd[..., None, None])
-        best = np.where(possible[None, :, None], error, np.inf).min(axis=3, initial=np.inf)
+        error = np.where(possible[None, :, None], error, np.inf)  # (a, k, b, u)
+        if (error < 1.0).any():  # the partner k could be the point b, and the track a the point u
+            swapped = (self._tracks.plausible(lost, cur, z)[None, :, :, None]
+                       & self._tracks.plausible(lost, cur, self._tentative.pos)[:, None, None, :])
+            error[swapped] = np.inf
+        best = error.min(axis=3, initial=np.inf)
         fits = best < 1.0
         return np.where(fits, best, 0.0).max(axis=1, initial=0.0), fits.sum(axis=1)
 
