@@ -243,18 +243,19 @@ class Labeller:
         _drop_near(pred, cur, cfg.gate_mm / 2)
         return pred, gate, instant
 
-    def _lost_partners(self, lost: np.ndarray, cur: np.ndarray, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def _lost_partners(self, lost: np.ndarray, cur: np.ndarray, z: np.ndarray,
+                       near: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``rigid_signature`` of points ``z`` against ``lost`` tracks and their lost rigid partners, each placed on a
         tentative point of this frame.
 
         Markers of one body are often hidden together and come back a few frames apart, each with too few rigid
         partners seen to be recognised alone. A lost partner counts for a point when some other tentative point lies
         at their learnt distance from it and could be that partner: no rigid partner of the partner seen now rules
-        it out. And the two must not fit the other way round as well: where the looser neighbours (``Tracks.plausible``)
-        allow the partner at the point and the track at the other point, their distance does not say which point is
-        which (the simulated human's toe and fifth metatarsal markers, both lost with the heel, came back two frames
-        apart, and the first took the toe's track on that distance alone). Returns ``(L, B)`` worst distance errors
-        (as ``rigid_signature``) and counts of such partners.
+        it out. And the two must not fit the other way round as well: where the looser neighbours (``near``: the
+        ``Tracks.plausible`` of ``lost`` and ``z``) allow the partner at the point and the track at the other point,
+        their distance does not say which point is which (the simulated human's toe and fifth metatarsal markers, both
+        lost with the heel, came back two frames apart, and the first took the toe's track on that distance alone).
+        Returns ``(L, B)`` worst distance errors (as ``rigid_signature``) and counts of such partners.
         """
         tol = self.config.rigid_tolerance_mm
         mean, sd = self._tracks.rigid(lost, lost)
@@ -265,7 +266,7 @@ class Labeller:
         error = np.abs(d[None, None] - mean[..., None, None]) / (tol + 3.0 * sd[..., None, None])
         error = np.where(possible[None, :, None], error, np.inf)  # (a, k, b, u)
         if (error < 1.0).any():  # the partner k could be the point b, and the track a the point u
-            swapped = (self._tracks.plausible(lost, cur, z)[None, :, :, None]
+            swapped = (near[None, :, :, None]
                        & self._tracks.plausible(lost, cur, self._tentative.pos)[:, None, None, :])
             error[swapped] = np.inf
         best = error.min(axis=3, initial=np.inf)
@@ -324,8 +325,8 @@ class Labeller:
         if len(lost):
             cost = gated_cost(pred, np.full(gate.shape, UNGATED_MM) if full else gate, z)
             broken, partners, violated = self._tracks.signature(lost, cur, z)
-            lost_broken, helpers = self._lost_partners(lost, cur, z)
             near = self._tracks.plausible(lost, cur, z)
+            lost_broken, helpers = self._lost_partners(lost, cur, z, near)
             worst = np.where(partners >= 2, broken, np.fmax(broken, lost_broken))
             # partners seen and lost, and the looser neighbours, for a point that fits no other lost track so
             pooled = (worst < 1.0) & np.where(partners >= 1, partners + helpers + near >= 2,
