@@ -49,6 +49,24 @@ def test_a_short_trial_keeps_the_back_markers_off_the_legs(real_file: Callable[[
     assert not checks.mixed, f"segments mixing limbs, or a leg and the trunk: {checks.mixed}"
 
 
+@pytest.mark.integration
+def test_a_short_running_trial_hangs_each_shank_from_its_own_thigh(real_file: Callable[[str], Path]) -> None:
+    """The running trial's first 1.16 s: its left thigh keeps two markers (the third moved with the pelvis), so the tree
+    is built from the closest markers' spreads, which over a stride kept the right shank's as still to a pelvis marker
+    and the left shank's to the right thigh's as to their own knees. Their centres of rotation lie 109 and 131 mm
+    apart as each segment places them: no joint."""
+    data = read_markers(real_file("hamner_run200.trc"))
+    half = data.positions[: len(data.positions) // 2]
+    skeleton = calibrate(half, data.labels, data.rate)
+    checks = check(skeleton, half, data.labels)
+    segment = {m: s.name for s in skeleton.segments for m in s.markers}
+    joined = {frozenset((j.parent, j.child)) for j in skeleton.joints}
+    assert frozenset((segment["RTB1"], segment["RTH1"])) in joined, [j.name for j in skeleton.joints]
+    assert frozenset((segment["LTB1"], segment["LTH2"])) in joined, [j.name for j in skeleton.joints]
+    assert "right leg" not in checks.not_chains
+    assert checks.fit_mm < 5.0
+
+
 def test_region_map_knows_each_file(real_file: Callable[[str], Path]) -> None:
     """The checks mean something only if every limb of each full-body file is mapped."""
     for name in FILES:

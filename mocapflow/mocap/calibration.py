@@ -7,7 +7,8 @@ The batch pipeline of Schoenauer (2007, chapter 3) with Aristidou's (2008) close
 2. joint costs for every pair of segments, on frames sampled every half second with a small jitter (Kirk et al.):
    the distance-variance cost of 3.5 (``joint_method="variance"``) or the residual of the closed-form centre of
    rotation of Aristidou 4.4 (``"closed-form"``); when some segments have only two markers (markers on the joints
-   took the others), the spread of the most rigid pair of markers across the two segments (``closest_spreads``);
+   took the others), the spread of the most rigid pair of markers across the two segments (``closest_spreads``),
+   scaled up where the two fix their orientations and their closed-form centre lies farther apart than a joint's;
 3. topology: the minimum spanning tree of those costs, rooted at the most connected segment (3.7.7);
 4. joint centres of the tree's joints, frame by frame; with segments of two markers, sequentially from an oriented
    root down (closed form between posed segments, sphere centres into a two-marker segment, which its joint then
@@ -76,6 +77,10 @@ UNLABELLED_MM = 30.0
 artefact) holds no rigid segment: its labels do not follow the markers."""
 MIN_ROTATION_DEG = 2.0
 """Least RMS rotation between two joined segments for their joint to be located."""
+APART_MM = 50.0
+"""RMS distance (mm) between two segments' centre of rotation as each places it (the closed form's residual) beyond
+which they hold no joint: skin moves markers by a couple of centimetres (the real captures' joints: 27 mm at most). In
+a tree built from the closest markers' spreads, a pair farther apart has its spread scaled up by that ratio."""
 LOCATED_MM = 20.0
 """Largest uncertainty (mm) along its weakest direction of a joint reported as located: functional methods reach
 10-20 mm from a range-of-motion trial; gait alone leaves a hip uncertain by over 100 mm along its flexion axis."""
@@ -190,6 +195,11 @@ def _build(positions: np.ndarray, labels: Sequence[str], rate: float, groups: Se
         log.info("segments %s have fewer than 3 markers: the tree joins the segments whose closest markers keep "
                  "their distance best; joints found down the tree", ", ".join(flat))
         costs = closest_spreads(spread, groups)
+        # but two segments whose markers fix their orientations, and whose centre of rotation as each places it lies
+        # farther apart than a joint's (their closest markers may keep their distance by chance: a shank's and the
+        # other thigh's over a stride), have that spread scaled up by how many times farther
+        fitted = _pair_costs(positions, groups, poses, sample_frames(frames, rate), "closed-form", progress)
+        costs = costs * np.maximum(1.0, np.where(np.isfinite(fitted), fitted, 0.0) / APART_MM)
     else:
         if joint_method == "auto" and flat:
             log.info("no segment has 3 markers: joints by the distance-variance cost")
