@@ -193,7 +193,8 @@ def _build(positions: np.ndarray, labels: Sequence[str], rate: float, groups: Se
         # the others) are joined where their closest markers keep their distance best, and their joints are
         # found down the tree from the segments whose markers fix their orientation
         log.info("segments %s have fewer than 3 markers: the tree joins the segments whose closest markers keep "
-                 "their distance best; joints found down the tree", ", ".join(flat))
+                 "their distance best, unless their centre of rotation lies too far apart for a joint; joints found "
+                 "down the tree", ", ".join(flat))
         costs = closest_spreads(spread, groups)
         # but two segments whose markers fix their orientations, and whose centre of rotation as each places it lies
         # farther apart than a joint's (their closest markers may keep their distance by chance: a shank's and the

@@ -550,7 +550,7 @@ def _triangle_score(state: _Round, i: int, j: int, cfg: LabellerConfig, in_doubt
             if side < 0 or (side == 0 and p1 != q1 and p2 != q2 and not (in_doubt and error <= UNSIDED)):
                 continue
             kept.append((error, side))
-    return min((error for error, side in kept if side >= WITNESSES or not mirrored), default=np.inf)
+    return min((error for error, witnesses in kept if witnesses >= WITNESSES or not mirrored), default=np.inf)
 
 
 def _explained(tracks: np.ndarray, seen: np.ndarray, k: int, rigid_sd: float, least: int) -> bool:
