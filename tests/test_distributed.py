@@ -100,7 +100,9 @@ class Lab:
     def start_agent(self, name: str) -> None:
         log = self.tmp / f"agent-{name}.log"
         self.agents[name] = cli(["agent", "--name", name, "--connect", self.endpoint], log, self.tmp)
-        wait_for(f"agent {name}", lambda: "ready" in log.read_text())
+        # an agent compiles the numeric kernels before it is ready: on a fresh install half a minute on a quiet
+        # machine, over a minute beside the other tests' processes
+        wait_for(f"agent {name}", lambda: "ready" in log.read_text(), timeout=300.0)
 
     def graph(self, name: str, tracker: str, machines: tuple[str, str] = MACHINES) -> Path:
         """As deployments/distributed-lab.yaml, with a key prefix of its own: simulator -> relay -> recorder, the
