@@ -127,13 +127,15 @@ nodes:
 @pytest.fixture
 def lab(tmp_path: Path, free_endpoint: str) -> Iterator[Lab]:
     lab = Lab(tmp_path, free_endpoint)
-    lab.start_router()
-    for name in MACHINES:
-        lab.start_agent(name)
-    yield lab
-    for proc in [*lab.agents.values(), lab.router]:
-        if proc is not None:
-            stop(proc)
+    try:  # what started is stopped, also when a later start fails
+        lab.start_router()
+        for name in MACHINES:
+            lab.start_agent(name)
+        yield lab
+    finally:
+        for proc in [*lab.agents.values(), lab.router]:
+            if proc is not None:
+                stop(proc)
 
 
 class FrameWatch:
