@@ -28,9 +28,11 @@ whatever the point order and however long a marker was hidden:
    another limb among them: a segment with joints placed by it stands only if, by the end of the frame, a neighbour is
    surely posed with their joint centre where it puts it, or, no neighbour posed at all, once it has been so placed, at
    the same place, in every frame for ``held_s`` (a chance triangle across a joint keeps its shape only while the joint
-   keeps still). When nothing else poses a segment, a segment of three markers whose look-alike has no pose either (both
-   feet unposed, a deadlock) is placed on three points together with an unposed neighbour whose own three points or more
-   (both, for a neighbour of two markers) lie where the joint puts them (``_pair``);
+   keeps still). A segment placed with a joint centre farther from a surely posed segment than the segments between
+   them reach stands only in that second way, whatever its neighbours say, and until then no neighbour is placed
+   through its joints. When nothing else poses a segment, a segment of three markers whose look-alike has no pose
+   either (both feet unposed, a deadlock) is placed on three points together with an unposed neighbour whose own three
+   points or more (both, for a neighbour of two markers) lie where the joint puts them (``_pair``);
 5. a segment posed by three of its markers or more is placed anew where its layout lands on more points, its own and
    those left over, its joint centres where segments posed so put them (``_challenge``): one placed on chance points
    (at a cold start) and followed on them is found again where its own markers show.
@@ -204,7 +206,7 @@ class ModelLabeller:
         self.streak = np.zeros(n, np.int64)
         self.pose = Poses(len(self.segments))  # the last frame's
         # how surely each segment was posed this frame: 0 by three markers or more, 1 through joints, 2 with a turn
-        # left to its previous pose (3: not posed)
+        # left to its previous pose, or out of reach (``_search``) (3: not posed)
         self._level = np.full(len(self.segments), 3)
         self._last_seen = np.full((len(self.segments), 3), np.nan)  # where each segment was last posed
         self._last_time = np.full(len(self.segments), -np.inf)
@@ -251,8 +253,11 @@ class ModelLabeller:
         ti, pi = assign(self.pos[live] + self.vel[live] * dt[:, None], follow, z)
         cur[live[ti]], taken[pi] = z[pi], live[ti]
         poses = Poses(len(self.segments))
-        searched: dict[int, tuple[int, bool]] = {}  # per segment: anchors and look-alikes at its last search
-        seeds: list[int] = []  # segments found this frame on three points alone, for want of a look-alike
+        # per segment: its anchors, look-alikes and reaches at its last search
+        searched: dict[int, tuple[int, bool, int]] = {}
+        # segments found this frame on three points alone, for want of a look-alike, or out of reach (``_search``):
+        # whether a neighbour may confirm each
+        seeds: dict[int, bool] = {}
         self._level[:] = 3
         while True:
             posed = self._pose_segments(poses, cur, taken, refused)
@@ -262,8 +267,8 @@ class ModelLabeller:
                     or self._challenge(poses, cur, taken, z)):
                 break
         doubted = np.zeros(len(self.segments), bool)
-        for s in seeds:
-            if not self._confirmed(s, poses) and not self._held(s, poses, dt_frame, doubted):
+        for s, confirmable in seeds.items():
+            if not (confirmable and self._confirmed(s, poses)) and not self._held(s, poses, dt_frame, doubted):
                 self._give_back(self.segments[s].markers, cur, taken, refused)
                 poses.clear(s)
                 self._level[s] = 3
@@ -372,7 +377,7 @@ class ModelLabeller:
         taken[held[hi]] = missing[mi]
 
     def _search(self, poses: Poses, cur: np.ndarray, taken: np.ndarray, z: np.ndarray, searched: dict,
-                seeds: list) -> bool:
+                seeds: dict[int, bool]) -> bool:
         """Look for each segment with no pose among the points left over and those of its own markers matched so far
         by its layout (``_place_layout``), its joint centres to surely posed segments kept within their tolerance;
         True when one was placed. A segment is searched again in a frame only when more of its neighbours got posed, or
@@ -382,6 +387,10 @@ class ModelLabeller:
         distances fit it, a chance triangle across two segments of another limb among them when its own markers are
         hidden, so it stands only if a neighbour is posed at their joint in the same frame (``_confirmed``), or, no
         neighbour posed, once so placed for a while (``_held``).
+        A segment with no sure neighbour and no pose lately whose placement puts a joint centre farther from a surely
+        posed segment than the segments between them reach (``_reaches``: at a cold start, the other leg's thigh on a
+        triangle of shoulder and upper arm) is weakly posed (level 2: no neighbour is placed through its joints) and
+        added to ``seeds`` as one no neighbour confirms: it stands only once so placed for a while.
         A segment of two markers as far from its joint (a foot's toe and fifth metatarsal, each 122 mm from the ankle)
         fits its points both ways round, and no posture to its neighbour tells the two apart until it has been posed
         once: until then, the posture it mostly had to that neighbour in calibration does (``Joint.posture``). Not for
@@ -395,9 +404,11 @@ class ModelLabeller:
             sure = [(other, here, there, tol) for other, here, there, tol in seg.joints
                     if self._sure(other, poses)]
             alone = self._alone(s, poses)
-            if searched.get(s, (-1, False)) >= (len(sure), alone):
+            recent = self._time - self._last_time[s] <= cfg.recent_s
+            reaches = [] if sure or recent else self._reaches(s, poses)
+            if searched.get(s, (-1, False, -1)) >= (len(sure), alone, len(reaches)):
                 continue
-            searched[s] = (len(sure), alone)
+            searched[s] = (len(sure), alone, len(reaches))
             anchors = [(here, poses.rot[other] @ there + poses.shift[other], tol, self._joint_weight(tol))
                        for other, here, there, tol in sure]
             posture = [poses.rot[other] @ self._posture[s, other] for other, *_ in sure
@@ -414,11 +425,38 @@ class ModelLabeller:
             if best is None:
                 continue
             points = {slot: int(free[p]) for slot, p in best[0].items()}
-            self._place(s, points, best[1], best[2], 1 if anchors else 0, poses, cur, taken, z)
-            if alone and not anchors and around is None and seg.joints:
-                seeds.append(s)
+            beyond = any(np.linalg.norm(best[1] @ here + best[2] - world) > far for here, world, far in reaches)
+            self._place(s, points, best[1], best[2], 2 if beyond else 1 if anchors else 0, poses, cur, taken, z)
+            if beyond or (alone and not anchors and around is None and seg.joints):
+                seeds[s] = not beyond
             placed = True
         return placed
+
+    def _reaches(self, s: int, poses: Poses) -> list[tuple[np.ndarray, np.ndarray, float]]:
+        """How far each joint centre of segment ``s`` may lie from the joint centres of the surely posed segments
+        reached from it through segments with no sure pose: per such pair, the centre in ``s``'s frame, the other's in
+        the world, and the largest distance between them (mm): the sum, over the segments between, of the distance
+        between each one's two joint centres (fixed, as the segment is rigid), widened by every joint's tolerance."""
+        reaches = []
+        for first, here, entry, tol in self.segments[s].joints:
+            if self._sure(first, poses):
+                continue
+            visited = {s, first}
+            walk = [(first, entry, tol)]  # a segment between, where the way in lies in its frame, how far so far
+            length = {first: 0.0}
+            while walk:
+                m, entry, slack = walk.pop()
+                for other, centre, there, joint_tol in self.segments[m].joints:
+                    if other in visited:
+                        continue
+                    visited.add(other)
+                    far, loose = length[m] + float(np.linalg.norm(centre - entry)), slack + joint_tol
+                    if self._sure(other, poses):
+                        reaches.append((here, poses.rot[other] @ there + poses.shift[other], far + loose))
+                    else:
+                        length[other] = far
+                        walk.append((other, there, loose))
+        return reaches
 
     def _challenge(self, poses: Poses, cur: np.ndarray, taken: np.ndarray, z: np.ndarray) -> bool:
         """Place anew each segment posed by three of its markers or more where its layout lands on more points, among
@@ -544,8 +582,8 @@ class ModelLabeller:
 
     def sureness(self, marker: np.ndarray) -> np.ndarray:
         """How surely the last frame posed the segment of each of ``marker`` (a row's marker, -1 for none): 0 by three
-        of its markers or more, 1 by its markers and joint centres, 2 by two points and its last pose, 3 not at all
-        (a marker only followed from frame to frame, or none)."""
+        of its markers or more, 1 by its markers and joint centres, 2 by two points and its last pose, or out of reach
+        of the posed segments (``_search``), 3 not at all (a marker only followed from frame to frame, or none)."""
         return np.where(marker >= 0, self._level[self._segment_of[np.maximum(marker, 0)]], 3)
 
     def _observe(self, cur: np.ndarray, time: float) -> None:
