@@ -442,7 +442,7 @@ class ModelLabeller:
             if self._sure(first, poses):
                 continue
             visited = {s, first}
-            walk = [(first, entry, tol)]  # a segment between, where the way in lies in its frame, how far so far
+            walk = [(first, entry, tol)]  # a segment between, where the way in lies in its frame, the tolerances so far
             length = {first: 0.0}
             while walk:
                 m, entry, slack = walk.pop()
