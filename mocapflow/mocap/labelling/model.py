@@ -381,7 +381,7 @@ class ModelLabeller:
         """Look for each segment with no pose among the points left over and those of its own markers matched so far
         by its layout (``_place_layout``), its joint centres to surely posed segments kept within their tolerance;
         True when one was placed. A segment is searched again in a frame only when more of its neighbours got posed, or
-        its look-alikes did.
+        its look-alikes did, or more segments it reaches (``_reaches``).
         A segment with joints placed on its three points for want of a look-alike elsewhere (``alone``), with no joint
         centre to hold it and not near where it was lately, is added to ``seeds``: any three points at its layout's
         distances fit it, a chance triangle across two segments of another limb among them when its own markers are
@@ -404,8 +404,8 @@ class ModelLabeller:
             sure = [(other, here, there, tol) for other, here, there, tol in seg.joints
                     if self._sure(other, poses)]
             alone = self._alone(s, poses)
-            recent = self._time - self._last_time[s] <= cfg.recent_s
-            reaches = [] if sure or recent else self._reaches(s, poses)
+            dt = self._time - self._last_time[s]
+            reaches = [] if sure or dt <= cfg.recent_s else self._reaches(s, poses)
             if searched.get(s, (-1, False, -1)) >= (len(sure), alone, len(reaches)):
                 continue
             searched[s] = (len(sure), alone, len(reaches))
@@ -416,7 +416,6 @@ class ModelLabeller:
             free = np.flatnonzero((taken < 0) | self._among(taken, seg.markers))  # its markers matched so far may move
             if not len(free):
                 continue
-            dt = self._time - self._last_time[s]
             around = (self._last_seen[s], 100.0 + cfg.max_speed_mm_s * dt) if dt <= cfg.recent_s else None
             prior = [poses.rot[other] @ self._calibrated[s, other] for other, *_ in sure
                      if (s, other) in self._calibrated] if len(seg.markers) == 2 and not posture else []
@@ -565,10 +564,11 @@ class ModelLabeller:
                    for other, here, there, tol in self.segments[s].joints)
 
     def _held(self, s: int, poses: Poses, dt: float, doubted: np.ndarray) -> bool:
-        """Whether segment ``s``, placed on three points alone (a seed) with no neighbour posed to confirm it, has
-        been so placed in every frame for ``held_s``, each time within ``max_speed_mm_s`` of the frame before (plus
-        ``fit_mm``): a chance triangle across two segments of another limb keeps the layout's distances only while
-        that joint keeps still, where the segment's own markers keep them as it moves. Marks ``s`` in ``doubted``."""
+        """Whether segment ``s``, placed on three points alone or out of reach (a seed, ``_search``) with no
+        neighbour posed to confirm it, has been so placed in every frame for ``held_s``, each time within
+        ``max_speed_mm_s`` of the frame before (plus ``fit_mm``): a chance triangle across two segments of another
+        limb keeps the layout's distances only while that joint keeps still, where the segment's own markers keep them
+        as it moves. Marks ``s`` in ``doubted``."""
         if any(poses.posed[other] for other, *_ in self.segments[s].joints):
             return False  # a neighbour posed elsewhere refutes it
         cfg = self.config
