@@ -489,6 +489,52 @@ def test_a_point_a_marker_of_an_unposed_segment_only_followed_goes_to_the_marker
     assert late == 0
 
 
+def test_a_hand_marker_that_follows_onto_the_sternums_point_gives_it_back_to_the_trunks_sure_pose() -> None:
+    """The rule of the test above, on a case built for it: the left hand is brought to the sternum, its other markers
+    and the forearm hidden, so that its segment has no pose and LHN1 is only followed from frame to frame; STRN is
+    hidden meanwhile, its trunk posed by its other three markers. As LHN1 vanishes, STRN shows 15 mm from where LHN1
+    was expected, and LHN1 follows it. With the rule left out, the poses name STRN's point LHN1 from then on, and so
+    does the live labeller. With it, the trunk takes the point back in that frame, and the live name follows within
+    ``confirm_frames`` frames."""
+    trial = simulate(SimulatorConfig(rig="human", rate=RATE, noise_mm=0.5, seed=7), 240)
+    positions, labels = trial.positions.copy(), trial.labels
+    hand, strn = labels.index("LHN1"), labels.index("STRN")
+    hidden_from, shows = 60, 100
+    gap, step = 35.0, 20.0  # mm from the sternum in the last frame LHN1 is seen, and mm a frame it closes in
+    start = shows - 1 - int((np.linalg.norm(positions[hidden_from, hand] - positions[hidden_from, strn]) - gap) / step)
+    way = positions[start, hand] - positions[start, strn]
+    way /= np.linalg.norm(way)
+    for f in range(start - 15, shows):  # eased in over 15 frames from where the hand was going
+        ease = min(1.0, (f - start + 15) / 15)
+        ease = ease * ease * (3 - 2 * ease)
+        closing = positions[f, strn] + way * (gap + step * (shows - 1 - f))
+        positions[f, hand] = (1 - ease) * positions[f, hand] + ease * closing
+    hide = np.zeros(positions.shape[:2], bool)
+    hide[20:, [labels.index(name) for name in ("LFA1", "LFA2", "LFA3")]] = True
+    hide[hidden_from:, [labels.index(name) for name in ("LHN2", "LHN3")]] = True
+    hide[hidden_from:shows, strn] = True
+    hide[shows:, hand] = True
+    positions[hide] = np.nan
+    poses, live = ModelLabeller(subject(), RATE), TrackedModelLabeller(subject(), RATE)
+    lhn1, own = live.labels.index("LHN1"), live.labels.index("STRN")
+    trunk = poses._segment_of[own]
+    by_poses = by_live = late = 0
+    named_own_for = 0  # frames in a row the poses named STRN's point STRN
+    for f, frame in enumerate(positions):
+        given, named = poses.update(frame, f / RATE)[1], live.update(frame, f / RATE)[1]
+        if f < shows:
+            continue
+        named_own_for = named_own_for + 1 if given[strn] == own else 0
+        by_poses += int(poses._level[trunk] == 0 and given[strn] == lhn1)
+        by_live += int(named[strn] == lhn1)
+        late += int(named_own_for > live.tracks.config.confirm_frames and named[strn] == lhn1)
+    print(f"\nSTRN named LHN1: by the poses of a surely posed trunk in {by_poses} frames; live in {by_live}, {late} of "
+          "them after the poses named it STRN for longer than confirm_frames")
+    assert by_live > 0, "LHN1 no longer follows onto STRN's point: the case no longer tests the rule"
+    assert by_poses == 0
+    assert late == 0
+
+
 @pytest.mark.integration
 @pytest.mark.parametrize(("capture", "seed"), [("cmu_85_02.c3d", 3), ("cmu_85_02.c3d", 6)])
 def test_the_trajectories_evidence_adds_no_wrong_name(data_dir: Path, monkeypatch: pytest.MonkeyPatch, capture: str,
