@@ -441,20 +441,19 @@ class ModelLabeller:
             if self._sure(first, poses):
                 continue
             visited = {s, first}
-            walk = [(first, entry, tol)]  # a segment between, where the way in lies in its frame, the tolerances so far
-            length = {first: 0.0}
+            # a segment between, where the way in lies in its frame, the lengths and the tolerances so far
+            walk = [(first, entry, 0.0, tol)]
             while walk:
-                m, entry, slack = walk.pop()
+                m, entry, length, slack = walk.pop()
                 for other, centre, there, joint_tol in self.segments[m].joints:
                     if other in visited:
                         continue
                     visited.add(other)
-                    far, loose = length[m] + float(np.linalg.norm(centre - entry)), slack + joint_tol
+                    far, loose = length + float(np.linalg.norm(centre - entry)), slack + joint_tol
                     if self._sure(other, poses):
                         reaches.append((here, poses.rot[other] @ there + poses.shift[other], far + loose))
                     else:
-                        length[other] = far
-                        walk.append((other, there, loose))
+                        walk.append((other, there, far, loose))
         return reaches
 
     def _challenge(self, poses: Poses, cur: np.ndarray, taken: np.ndarray, z: np.ndarray) -> bool:
